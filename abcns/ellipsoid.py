@@ -1,0 +1,161 @@
+"""Bounding ellipsoids as an immutable value and small pure functions.
+
+An ellipsoid is ``{x : (x - centre)^T matrix^{-1} (x - centre) <= 1}``. The paper
+(Algorithm 2, steps 15-16 and 30) fits one to the surviving particles from their mean
+(Eq. 4) and covariance (Eq. 5), scaled so that every survivor is inside, and enlarges
+it by f0 (the matrix, not the axes, is multiplied by f0, as in the authors' demo).
+
+Degenerate inputs are handled explicitly and reported in ``Ellipsoid.note``:
+
+- ``"repaired"``: the covariance was ill-conditioned or singular (for example collinear
+  points); its eigenvalues were clipped from below at ``lambda_max / max_condition``.
+- ``"fallback"``: fewer than d+1 points, or a covariance that is zero or not finite:
+  the shape of ``fallback`` (the model's previous ellipsoid, or the ellipsoid
+  circumscribing the prior box) is recentred at the points' mean and grown, if needed,
+  until it holds every point. A model too sparse to define its own shape keeps the last
+  shape it had.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: eigenvalues below lambda_max / MAX_CONDITION are clipped (repair of the covariance)
+MAX_CONDITION = 1e12
+
+
+@dataclass(frozen=True, eq=False)
+class Ellipsoid:
+    """Ellipsoid value. ``axes`` (d, d) satisfies ``axes @ axes.T == matrix``."""
+
+    centre: np.ndarray  # (d,)
+    matrix: np.ndarray  # (d, d) symmetric positive definite
+    axes: np.ndarray  # (d, d)
+    log_volume: float
+    note: str = ""  # "" | "repaired" | "fallback"
+
+    @property
+    def n_dim(self) -> int:
+        return int(self.centre.shape[0])
+
+
+def _log_unit_ball(d: int) -> float:
+    return 0.5 * d * math.log(math.pi) - math.lgamma(0.5 * d + 1.0)
+
+
+def from_matrix(centre: np.ndarray, matrix: np.ndarray, note: str = "") -> Ellipsoid:
+    """Build an ellipsoid from its centre and a symmetric positive-definite matrix."""
+    centre = np.asarray(centre, dtype=float).reshape(-1)
+    matrix = np.asarray(matrix, dtype=float)
+    d = centre.shape[0]
+    if matrix.shape != (d, d):
+        raise ValueError(f"matrix has shape {matrix.shape}, expected ({d}, {d}) for a {d}-d centre")
+    matrix = 0.5 * (matrix + matrix.T)
+    eigval, eigvec = np.linalg.eigh(matrix)
+    if not np.all(np.isfinite(eigval)) or eigval[0] <= 0.0:
+        raise ValueError(f"ellipsoid matrix must be positive definite; eigenvalues {eigval}")
+    axes = eigvec * np.sqrt(eigval)
+    log_volume = _log_unit_ball(d) + 0.5 * float(np.sum(np.log(eigval)))
+    return Ellipsoid(centre, matrix, axes, log_volume, note)
+
+
+def from_box(low: np.ndarray, high: np.ndarray) -> Ellipsoid:
+    """The axis-aligned ellipsoid through the corners of the box [low, high]."""
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    d = low.shape[0]
+    half = 0.5 * (high - low)
+    return from_matrix(0.5 * (low + high), np.diag(d * half**2), note="box")
+
+
+def mahalanobis2(ell: Ellipsoid, x: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distance of the rows of ``x`` (n, d) to the ellipsoid."""
+    y = np.linalg.solve(ell.axes, (np.atleast_2d(x) - ell.centre).T)
+    return np.sum(y * y, axis=0)
+
+
+def contains(ell: Ellipsoid, x: np.ndarray) -> np.ndarray:
+    """Boolean mask: which rows of ``x`` lie inside (boundary included, 1e-9 slack)."""
+    return mahalanobis2(ell, x) <= 1.0 + 1e-9
+
+
+def enlarge(ell: Ellipsoid, f0: float) -> Ellipsoid:
+    """Multiply the matrix by ``f0`` (axes grow by sqrt(f0)); Algorithm 2, step 16."""
+    if not f0 > 0:
+        raise ValueError(f"enlargement factor must be > 0, got {f0}")
+    d = ell.n_dim
+    return Ellipsoid(
+        ell.centre,
+        ell.matrix * f0,
+        ell.axes * math.sqrt(f0),
+        ell.log_volume + 0.5 * d * math.log(f0),
+        ell.note,
+    )
+
+
+def sample(ell: Ellipsoid, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` points uniform inside the ellipsoid, shape (n, d)."""
+    d = ell.n_dim
+    z = rng.standard_normal((n, d))
+    norms = np.linalg.norm(z, axis=1, keepdims=True)
+    norms[norms == 0.0] = 1.0
+    radius = rng.random((n, 1)) ** (1.0 / d)
+    return ell.centre + (radius * z / norms) @ ell.axes.T
+
+
+def _repair(cov: np.ndarray, max_condition: float) -> tuple[np.ndarray, bool] | None:
+    """Clip small eigenvalues; None when the covariance carries no usable shape."""
+    cov = 0.5 * (cov + cov.T)
+    if not np.all(np.isfinite(cov)):
+        return None
+    eigval, eigvec = np.linalg.eigh(cov)
+    top = eigval[-1]
+    if not top > 0.0:
+        return None
+    floor = top / max_condition
+    if eigval[0] >= floor:
+        return cov, False
+    eigval = np.maximum(eigval, floor)
+    return (eigvec * eigval) @ eigvec.T, True
+
+
+def fit(
+    points: np.ndarray,
+    fallback: Ellipsoid | None = None,
+    max_condition: float = MAX_CONDITION,
+) -> Ellipsoid:
+    """Smallest scaling of the points' covariance ellipsoid that holds every point.
+
+    Parameters
+    ----------
+    points : (n, d) array, n >= 1
+    fallback : ellipsoid whose shape is used when the points cannot define one
+        (n < d + 1, zero or non-finite covariance); required in that case.
+    max_condition : largest condition number kept; above it the covariance is repaired.
+    """
+    points = np.atleast_2d(np.asarray(points, dtype=float))
+    n, d = points.shape
+    if n == 0:
+        raise ValueError("cannot fit an ellipsoid to zero points")
+    if not np.all(np.isfinite(points)):
+        raise ValueError("cannot fit an ellipsoid to non-finite points")
+    centre = points.mean(axis=0)
+    repaired = _repair(np.cov(points, rowvar=False).reshape(d, d), max_condition) if n > d else None
+    if repaired is None:
+        if fallback is None:
+            raise ValueError(f"{n} points in {d} dimensions define no ellipsoid and no fallback was given")
+        if fallback.n_dim != d:
+            raise ValueError(f"fallback has {fallback.n_dim} dimensions, points have {d}")
+        shape, note = fallback.matrix, "fallback"
+        trial = from_matrix(centre, shape, note)
+        scale = max(1.0, float(np.max(mahalanobis2(trial, points))))
+    else:
+        shape, was_repaired = repaired
+        note = "repaired" if was_repaired else ""
+        trial = from_matrix(centre, shape, note)
+        scale = float(np.max(mahalanobis2(trial, points)))
+        if not scale > 0.0:  # every point at the centre: keep the covariance shape as is
+            scale = 1.0
+    return from_matrix(centre, shape * scale * (1.0 + 1e-10), note)

@@ -1,0 +1,157 @@
+"""Filling a population: batches of proposals out, results consumed in submission order.
+
+Shared by ABC-NS, ABC-SMC and rejection. Proposals for batch ``b`` of population ``t``
+come from a generator seeded by ``SeedSequence(seed, spawn_key=(t, b))`` (``b >= 1``;
+``b = 0`` is kept for population-level draws such as the survivor selection; the pilot
+is population 0). Particles are accepted in batch order and, within a batch, in row
+order, until the population is full, so the accepted set and every counter are exactly
+those of a serial one-at-a-time run over the same random stream, whatever the executor.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from abcns.executor import OK, Batch, Executor
+from abcns.settings import StopReason, StopRules
+
+# propose(n, rng) -> (models (n,), theta (n, d_max), redraws (n,))
+Propose = Callable[[int, np.random.Generator], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+def population_rng(seed: int, t: int) -> np.random.Generator:
+    """The generator for population-level draws of population ``t`` (batch index 0)."""
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(t, 0)))
+
+
+class Stopped(Exception):
+    """A stop rule ended a population before it was full."""
+
+    def __init__(self, reason: StopReason):
+        super().__init__(reason.value)
+        self.reason = reason
+
+
+class Budget:
+    """Simulation, time and cancel budgets of a run, checked between batches."""
+
+    def __init__(
+        self,
+        stop: StopRules,
+        clock: Callable[[], float] = time.monotonic,
+        cancel: Callable[[], bool] | None = None,
+        n_simulations: int = 0,
+        elapsed_before_s: float = 0.0,
+    ):
+        self.stop = stop
+        self.clock = clock
+        self.cancel = cancel
+        self.n_simulations = n_simulations
+        self.start = clock() - elapsed_before_s
+
+    def elapsed(self) -> float:
+        return self.clock() - self.start
+
+    def simulations_left(self) -> int | None:
+        if self.stop.max_simulations is None:
+            return None
+        return max(0, self.stop.max_simulations - self.n_simulations)
+
+    def check(self) -> None:
+        """Raise Stopped when a budget is spent or the run was cancelled."""
+        if self.cancel is not None and self.cancel():
+            raise Stopped(StopReason.CANCELLED)
+        left = self.simulations_left()
+        if left is not None and left <= 0:
+            raise Stopped(StopReason.MAX_SIMULATIONS)
+        if self.stop.max_seconds is not None and self.elapsed() >= self.stop.max_seconds:
+            raise Stopped(StopReason.MAX_SECONDS)
+
+
+@dataclass(frozen=True, eq=False)
+class Filled:
+    """Accepted particles in acceptance order, and what it took to get them."""
+
+    models: np.ndarray
+    theta: np.ndarray
+    distances: np.ndarray
+    n_simulations: int
+    n_failed: int
+    n_redraws: int
+
+
+def batches(propose: Propose, *, seed: int, t: int, epsilon: float, batch_size: int) -> Iterator[Batch]:
+    for b in itertools.count(1):
+        proposal_seed, simulation_seed = np.random.SeedSequence(seed, spawn_key=(t, b)).spawn(2)
+        models, theta, redraws = propose(batch_size, np.random.default_rng(proposal_seed))
+        yield Batch(t, b, models, theta, float(epsilon), simulation_seed, redraws)
+
+
+def fill(
+    propose: Propose,
+    n_needed: int,
+    epsilon: float,
+    executor: Executor,
+    budget: Budget,
+    *,
+    seed: int,
+    t: int,
+    batch_size: int,
+    accept_all: bool = False,
+) -> Filled:
+    """Run batches until ``n_needed`` particles have distance < ``epsilon``.
+
+    With ``accept_all`` every simulation is kept, failed ones too (the pilot). Budgets are
+    checked before each batch is consumed and the simulation budget per simulation; on a
+    stop, :class:`Stopped` is raised after the simulations done are added to
+    ``budget.n_simulations``.
+    """
+    budget.check()
+    kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    n_kept = n_sims = n_failed = n_redraws = 0
+    issued: deque[Batch] = deque()  # batches handed to the executor, oldest first
+
+    def tracked() -> Iterator[Batch]:
+        for batch in batches(propose, seed=seed, t=t, epsilon=epsilon, batch_size=batch_size):
+            issued.append(batch)
+            yield batch
+
+    results = executor.map(tracked())
+    try:
+        for evaluated in results:
+            batch = issued.popleft()  # results arrive in submission order
+            ok = evaluated.status == OK
+            accept = np.ones(len(batch), bool) if accept_all else ok & (evaluated.distances < epsilon)
+            # the row at which this batch completes the population, if it does
+            cum = np.cumsum(accept)
+            full = np.searchsorted(cum, n_needed - n_kept)  # first row where cum reaches the need
+            n_rows = min(len(batch), int(full) + 1)
+            left = budget.simulations_left()
+            cut = left is not None and left < n_rows
+            if cut:
+                n_rows = left  # type: ignore[assignment]
+            rows = slice(0, n_rows)
+            take = np.flatnonzero(accept[rows])
+            kept.append((batch.models[take], batch.theta[take], evaluated.distances[take]))
+            n_kept += take.size
+            n_sims += n_rows
+            n_failed += int(np.count_nonzero(~ok[rows]))
+            n_redraws += int(batch.redraws[rows].sum())
+            budget.n_simulations += n_rows
+            if n_kept >= n_needed:
+                break
+            if cut:
+                raise Stopped(StopReason.MAX_SIMULATIONS)
+            budget.check()
+    finally:
+        close = getattr(results, "close", None)
+        if close is not None:
+            close()
+    models, theta, distances = (np.concatenate(parts) for parts in zip(*kept))
+    return Filled(models, theta, distances, n_sims, n_failed, n_redraws)

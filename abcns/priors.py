@@ -1,0 +1,128 @@
+"""Uniform priors and candidate models (a named parameter space with fixed values)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class SpecError(ValueError):
+    """Invalid user input; ``field`` names where it is, e.g. ``models[1].priors.k``."""
+
+    def __init__(self, field: str, message: str):
+        self.field = field
+        self.message = message
+        super().__init__(f"{field}: {message}")
+
+
+@dataclass(frozen=True)
+class Uniform:
+    """Uniform prior U(low, high) on one parameter; finite bounds, low < high."""
+
+    low: float
+    high: float
+
+    def __post_init__(self) -> None:
+        for name in ("low", "high"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float, np.floating, np.integer)) or isinstance(value, bool):
+                raise SpecError(name, f"must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise SpecError(name, f"must be finite, got {value!r}")
+        if not self.low < self.high:
+            raise SpecError("low", f"must be below high, got low={self.low!r} >= high={self.high!r}")
+        object.__setattr__(self, "low", float(self.low))
+        object.__setattr__(self, "high", float(self.high))
+
+    @property
+    def width(self) -> float:
+        return self.high - self.low
+
+
+@dataclass(frozen=True)
+class Model:
+    """A candidate model: its free parameters with uniform priors, and fixed values.
+
+    ``priors`` keeps the order given; that order is the column order of the parameter
+    vectors the algorithm proposes for this model. ``fixed`` holds parameters of the
+    simulator that are not inferred. ``config`` is free JSON-able provenance (the
+    simulator's name and options), never interpreted by the algorithm.
+    """
+
+    name: str
+    priors: Mapping[str, Uniform]
+    fixed: Mapping[str, float] = field(default_factory=dict)
+    config: Mapping[str, object] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise SpecError("name", "a model needs a non-empty name")
+        if not self.priors:
+            raise SpecError(f"models[{self.name}].priors", "a model needs at least one free parameter")
+        priors: dict[str, Uniform] = {}
+        for key, value in self.priors.items():
+            where = f"models[{self.name}].priors.{key}"
+            if isinstance(value, Uniform):
+                priors[key] = value
+                continue
+            try:
+                low, high = value  # type: ignore[misc]
+            except (TypeError, ValueError):
+                raise SpecError(where, f"must be [low, high], got {value!r}") from None
+            try:
+                priors[key] = Uniform(low, high)
+            except SpecError as err:
+                raise SpecError(where, err.message) from None
+        fixed: dict[str, float] = {}
+        for key, value in self.fixed.items():
+            where = f"models[{self.name}].fixed.{key}"
+            if key in priors:
+                raise SpecError(where, "is both fixed and given a prior")
+            try:
+                fval = float(value)  # type: ignore[arg-type]
+            except (TypeError, ValueError):
+                raise SpecError(where, f"must be a number, got {value!r}") from None
+            if not math.isfinite(fval):
+                raise SpecError(where, f"must be finite, got {value!r}")
+            fixed[key] = fval
+        object.__setattr__(self, "priors", priors)
+        object.__setattr__(self, "fixed", fixed)
+        object.__setattr__(self, "config", dict(self.config))
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        return tuple(self.priors)
+
+    @property
+    def n_dim(self) -> int:
+        return len(self.priors)
+
+    @property
+    def low(self) -> np.ndarray:
+        return np.array([p.low for p in self.priors.values()])
+
+    @property
+    def high(self) -> np.ndarray:
+        return np.array([p.high for p in self.priors.values()])
+
+    def sample_prior(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """``n`` draws from the prior, shape (n, n_dim)."""
+        return self.low + (self.high - self.low) * rng.random((n, self.n_dim))
+
+    def in_prior(self, theta: np.ndarray) -> np.ndarray:
+        """Boolean mask of the rows of ``theta`` (n, n_dim) inside the prior box."""
+        return np.all((theta >= self.low) & (theta <= self.high), axis=-1)
+
+    def log_prior_volume(self) -> float:
+        return float(np.sum(np.log(self.high - self.low)))
+
+    def config_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "priors": {k: [p.low, p.high] for k, p in self.priors.items()},
+            "fixed": dict(self.fixed),
+            **({"config": dict(self.config)} if self.config else {}),
+        }

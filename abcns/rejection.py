@@ -1,0 +1,105 @@
+"""ABC rejection (paper Algorithm 1), which is also the first population of ABC-NS and
+ABC-SMC, and the prior-predictive pilot that sets the initial tolerance when none is given."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Generator, Sequence
+
+import numpy as np
+
+from abcns.executor import Executor
+from abcns.filling import Budget, Filled, Propose, Stopped, fill
+from abcns.priors import Model
+from abcns.result import Population, RunEnd
+from abcns.settings import RejectionSettings, StopReason, StopRules
+
+
+def pad(models: Sequence[Model], n: int) -> np.ndarray:
+    return np.full((n, max(m.n_dim for m in models)), np.nan)
+
+
+def prior_proposer(models: Sequence[Model]) -> Propose:
+    """Each proposal picks a model with equal probability, then draws from its prior."""
+
+    def propose(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        which = rng.integers(len(models), size=n)
+        theta = pad(models, n)
+        for i, model in enumerate(models):
+            rows = np.flatnonzero(which == i)
+            theta[rows, : model.n_dim] = model.sample_prior(rows.size, rng)
+        return which.astype(np.int16), theta, np.zeros(n, dtype=np.int64)
+
+    return propose
+
+
+def initial_epsilon(
+    models: Sequence[Model], settings, executor: Executor, budget: Budget, seed: int
+) -> tuple[float, str, int]:
+    """(epsilon_1, "given" | "pilot", pilot simulations).
+
+    Without ``settings.epsilon_initial``, ``pilot_size`` (default N) prior-predictive
+    simulations are run (population index 0 of the seed stream) and epsilon_1 is the
+    ``pilot_quantile`` quantile of their distances (failed ones count as +inf).
+    """
+    if settings.epsilon_initial is not None:
+        return float(settings.epsilon_initial), "given", 0
+    size = settings.pilot_size or settings.particles
+    before = budget.n_simulations
+    pilot = fill(
+        prior_proposer(models), size, np.inf, executor, budget,
+        seed=seed, t=0, batch_size=settings.batch_size, accept_all=True,
+    )
+    eps = float(np.quantile(pilot.distances, settings.pilot_quantile, method="higher"))
+    if not np.isfinite(eps):
+        raise ValueError(
+            f"pilot: more than {1 - settings.pilot_quantile:.0%} of {size} prior simulations failed or "
+            "diverged; give sampler.epsilon_initial or narrow the priors"
+        )
+    return eps, "pilot", budget.n_simulations - before
+
+
+def uniform_weights(model_index: np.ndarray, n_models: int) -> np.ndarray:
+    counts = np.bincount(model_index, minlength=n_models)
+    return 1.0 / counts[model_index]
+
+
+def population_from(
+    t: int, epsilon: float, epsilon_next: float, models: np.ndarray, theta: np.ndarray,
+    distances: np.ndarray, weights: np.ndarray, filled: Filled, elapsed_s: float,
+    model_probabilities: np.ndarray, **extra,
+) -> Population:
+    return Population(
+        t=t, epsilon=epsilon, epsilon_next=epsilon_next, models=models, theta=theta,
+        distances=distances, weights=weights, n_accepted=int(filled.models.shape[0]),
+        n_simulations=filled.n_simulations, n_failed=filled.n_failed, n_redraws=filled.n_redraws,
+        elapsed_s=elapsed_s, model_probabilities=model_probabilities, **extra,
+    )
+
+
+def abc_rejection(
+    models: Sequence[Model],
+    executor: Executor,
+    settings: RejectionSettings = RejectionSettings(),
+    stop: StopRules = StopRules(max_populations=1),
+    seed: int = 0,
+    *,
+    clock: Callable[[], float] = time.monotonic,
+    cancel: Callable[[], bool] | None = None,
+) -> Generator[Population, None, RunEnd]:
+    """Algorithm 1: N particles from the priors with distance below epsilon; one population."""
+    settings.check_models(models)
+    budget = Budget(stop, clock, cancel)
+    source, n_pilot = "given", 0
+    try:
+        eps, source, n_pilot = initial_epsilon(models, settings, executor, budget, seed)
+        filled = fill(prior_proposer(models), settings.particles, eps, executor, budget,
+                      seed=seed, t=1, batch_size=settings.batch_size)
+    except Stopped as stopped:
+        return RunEnd(stopped.reason, budget.n_simulations, n_pilot, source)
+    counts = np.bincount(filled.models, minlength=len(models))
+    yield population_from(
+        1, eps, eps, filled.models, filled.theta, filled.distances,
+        uniform_weights(filled.models, len(models)), filled, budget.elapsed(), counts / counts.sum(),
+    )
+    return RunEnd(StopReason.COMPLETED, budget.n_simulations, n_pilot, source)

@@ -1,0 +1,96 @@
+"""``run()``: the thin loop that drives a population iterator to its end."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Generator, Sequence
+from dataclasses import asdict
+
+from abcns.executor import Evaluate, Executor, SerialExecutor
+from abcns.nested import abc_ns
+from abcns.priors import Model, SpecError
+from abcns.rejection import abc_rejection
+from abcns.result import Population, Result, RunEnd
+from abcns.settings import NSSettings, RejectionSettings, SMCSettings, StopRules
+
+Settings = NSSettings | SMCSettings | RejectionSettings
+
+
+def algorithm_name(settings: Settings) -> str:
+    return {NSSettings: "abc-ns", SMCSettings: "abc-smc", RejectionSettings: "rejection"}[type(settings)]
+
+
+def check_models(models: Sequence[Model]) -> tuple[Model, ...]:
+    models = tuple(models)
+    if not models:
+        raise SpecError("models", "at least one model is needed")
+    names = [m.name for m in models]
+    for i, name in enumerate(names):
+        if name in names[:i]:
+            raise SpecError(f"models[{i}].name", f"duplicate model name {name!r}")
+    return models
+
+
+def iterate(
+    models: Sequence[Model],
+    executor: Executor,
+    settings: Settings,
+    stop: StopRules,
+    seed: int,
+    **kwargs,
+) -> Generator[Population, None, RunEnd]:
+    """The population iterator of the algorithm ``settings`` selects."""
+    from abcns.smc import abc_smc
+
+    models = check_models(models)
+    if isinstance(settings, NSSettings):
+        return abc_ns(models, executor, settings, stop, seed, **kwargs)
+    if isinstance(settings, SMCSettings):
+        return abc_smc(models, executor, settings, stop, seed, **kwargs)
+    if isinstance(settings, RejectionSettings):
+        return abc_rejection(models, executor, settings, stop, seed, **kwargs)
+    raise SpecError("sampler.algorithm", f"unknown settings type {type(settings).__name__}")
+
+
+def run(
+    models: Sequence[Model],
+    evaluate: Evaluate | Executor,
+    settings: Settings = NSSettings(),
+    stop: StopRules = StopRules(),
+    seed: int = 0,
+    *,
+    on_population: Callable[[Population], None] | None = None,
+    **kwargs,
+) -> Result:
+    """Run to the end and return the :class:`Result`.
+
+    ``evaluate`` is a batch evaluator (run in this process) or an executor.
+    ``on_population`` is called with each population as it completes.
+    """
+    executor = evaluate if hasattr(evaluate, "map") else SerialExecutor(evaluate)  # type: ignore[arg-type]
+    start = time.monotonic()
+    gen = iterate(models, executor, settings, stop, seed, **kwargs)  # type: ignore[arg-type]
+    populations: list[Population] = []
+    while True:
+        try:
+            pop = next(gen)
+        except StopIteration as done:
+            end: RunEnd = done.value
+            break
+        populations.append(pop)
+        if on_population is not None:
+            on_population(pop)
+    return Result(
+        algorithm=algorithm_name(settings),
+        models=tuple(models),
+        populations=tuple(populations),
+        stop_reason=end.reason,
+        seed=seed,
+        settings={"sampler": asdict(settings), "stop": asdict(stop)},
+        epsilon_initial_source=end.epsilon_initial_source,
+        n_simulations=end.n_simulations,
+        n_pilot_simulations=end.n_pilot_simulations,
+        wall_time_s=time.monotonic() - start,
+        weighted_posterior=isinstance(settings, SMCSettings),
+        notes=end.notes,
+    )
