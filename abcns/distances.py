@@ -18,6 +18,8 @@ from abcns.priors import SpecError
 
 @runtime_checkable
 class Distance(Protocol):
+    observed: np.ndarray
+
     def __call__(self, simulated: np.ndarray) -> np.ndarray: ...
 
     def config(self) -> dict: ...
@@ -123,6 +125,7 @@ class SummaryEuclidean:
         else:
             self.summaries_name = getattr(summaries, "__name__", repr(summaries))
         self.summaries = summaries
+        self.observed = observed
         self.observed_summaries = summaries(observed[None, :])[0]
         if not np.all(np.isfinite(self.observed_summaries)):
             raise SpecError("distance.summaries", "the observed data's summaries are not finite")

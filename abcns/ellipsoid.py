@@ -105,14 +105,15 @@ def sample(ell: Ellipsoid, n: int, rng: np.random.Generator) -> np.ndarray:
     return ell.centre + (radius * z / norms) @ ell.axes.T
 
 
-def _repair(cov: np.ndarray, max_condition: float) -> tuple[np.ndarray, bool] | None:
-    """Clip small eigenvalues; None when the covariance carries no usable shape."""
+def _repair(cov: np.ndarray, max_condition: float, scale: float) -> tuple[np.ndarray, bool] | None:
+    """Clip small eigenvalues; None when the covariance carries no usable shape (not
+    finite, or no spread above the rounding error of coordinates of size ``scale``)."""
     cov = 0.5 * (cov + cov.T)
     if not np.all(np.isfinite(cov)):
         return None
     eigval, eigvec = np.linalg.eigh(cov)
     top = eigval[-1]
-    if not top > 0.0:
+    if not top > (1e3 * np.finfo(float).eps * scale) ** 2:
         return None
     floor = top / max_condition
     if eigval[0] >= floor:
@@ -142,7 +143,8 @@ def fit(
     if not np.all(np.isfinite(points)):
         raise ValueError("cannot fit an ellipsoid to non-finite points")
     centre = points.mean(axis=0)
-    repaired = _repair(np.cov(points, rowvar=False).reshape(d, d), max_condition) if n > d else None
+    scale = max(1e-300, float(np.max(np.abs(points))))
+    repaired = _repair(np.cov(points, rowvar=False).reshape(d, d), max_condition, scale) if n > d else None
     if repaired is None:
         if fallback is None:
             raise ValueError(f"{n} points in {d} dimensions define no ellipsoid and no fallback was given")

@@ -55,6 +55,13 @@ def model_function(model: Model, simulator, distance: Distance) -> SimulateDista
 def evaluator(models: Sequence[Model], simulators: Sequence, distance: Distance) -> Evaluate:
     if len(models) != len(simulators):
         raise ValueError(f"{len(models)} models but {len(simulators)} simulators")
+    n_observed = int(np.size(distance.observed))
     for i, (model, sim) in enumerate(zip(models, simulators)):
         check_model(model, sim, f"models[{i}]")
+        if sim.n_samples != n_observed:
+            raise SpecError(
+                "data.observed",
+                f"has {n_observed} samples but model {model.name!r} simulates {sim.n_samples} "
+                "(input and observed records must have the same length)",
+            )
     return per_model([model_function(m, s, distance) for m, s in zip(models, simulators)])

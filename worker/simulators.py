@@ -79,6 +79,10 @@ class _Oscillator:
         self.output = _output(output)
         self.state_bound = float(state_bound)
 
+    @property
+    def n_samples(self) -> int:
+        return int(self.force.size)
+
     def config(self) -> dict:
         return {"simulator": self.name, "substeps": self.substeps, "output": self.output,
                 "dt": self.dt, "n_samples": int(self.force.size), "state_bound": self.state_bound}
@@ -188,6 +192,10 @@ class Linear:
         self.dt = float(dt)
         self.output = _output(output)
         self.state_bound = float(state_bound)
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.force.size)
 
     def config(self) -> dict:
         return {"simulator": self.name, "method": "exact-zoh", "output": self.output, "dt": self.dt,

@@ -1,0 +1,1 @@
+"""Worked examples and the paper's problems (data made with fixed seeds)."""

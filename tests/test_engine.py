@@ -1,0 +1,261 @@
+"""Engine contracts: determinism, executor ordering, budgets and stop reasons, result values."""
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from closed_form import gaussian_mean, two_models
+
+from abcns import (
+    FAILED,
+    OK,
+    Evaluated,
+    Model,
+    NSSettings,
+    RejectionSettings,
+    SerialExecutor,
+    SMCSettings,
+    StopReason,
+    StopRules,
+    per_model,
+    run,
+)
+from abcns.nested import apportion, survivor_quotas
+
+ROOT = Path(__file__).resolve().parents[1]
+NS = NSSettings(particles=200, epsilon_initial=2.0, batch_size=50)
+STOP = StopRules(min_epsilon_decrease=None, max_populations=6)
+
+
+def same(a, b):
+    assert len(a.populations) == len(b.populations)
+    for p, q in zip(a.populations, b.populations):
+        for name in ("models", "theta", "distances", "weights", "survivors"):
+            np.testing.assert_array_equal(getattr(p, name), getattr(q, name), err_msg=name)
+        assert (p.epsilon, p.n_simulations, p.n_redraws, p.n_failed) == (q.epsilon, q.n_simulations, q.n_redraws,
+                                                                          q.n_failed)
+
+
+def test_same_seed_same_result_other_seed_different():
+    models, ev = two_models()
+    a = run(models, ev, NS, STOP, seed=3)
+    b = run(models, ev, NS, STOP, seed=3)
+    c = run(models, ev, NS, STOP, seed=4)
+    same(a, b)
+    assert not np.array_equal(a.final.theta, c.final.theta)
+
+
+class ShuffledLookahead:
+    """An executor that runs up to ``ahead`` batches in advance and evaluates them in a
+    scrambled order, yet yields in submission order, as a Dask executor would; records
+    how many batches it ran and how many were thrown away on close()."""
+
+    def __init__(self, evaluate, ahead=4, seed=0):
+        self.evaluate, self.ahead = evaluate, ahead
+        self.rng = np.random.default_rng(seed)
+        self.surplus = 0
+
+    def map(self, batches):
+        pending = []
+        it = iter(batches)
+        try:
+            while True:
+                while len(pending) < self.ahead:
+                    b = next(it, None)
+                    if b is None:
+                        break
+                    pending.append([b, None])
+                if not pending:
+                    return
+                for i in self.rng.permutation(len(pending)):  # completion order scrambled
+                    if pending[i][1] is None:
+                        pending[i][1] = self.evaluate(pending[i][0])
+                yield pending.pop(0)[1]
+        finally:
+            self.surplus += len(pending)
+
+
+@pytest.mark.parametrize("settings", [NS, SMCSettings(particles=200, epsilon_initial=2.0, batch_size=50),
+                                      RejectionSettings(particles=200, epsilon_initial=0.5, batch_size=50)])
+def test_any_executor_gives_the_serial_result(settings):
+    models, ev = two_models()
+    stop = StopRules(min_epsilon_decrease=None, max_populations=4)
+    serial = run(models, SerialExecutor(ev), settings, stop, seed=11)
+    ex = ShuffledLookahead(ev)
+    other = run(models, ex, settings, stop, seed=11)
+    same(serial, other)
+    assert ex.surplus > 0  # it really ran ahead and had work cancelled
+
+
+def test_budget_is_checked_inside_a_population():
+    models, ev = gaussian_mean()
+    r = run(models, ev, NSSettings(particles=200, epsilon_initial=0.05, batch_size=64), StopRules(max_simulations=150),
+            seed=1)
+    assert r.stop_reason is StopReason.MAX_SIMULATIONS
+    assert r.n_simulations == 150  # exactly the budget, cut inside a batch
+    assert r.populations == ()
+    with pytest.raises(ValueError, match="before its first population"):
+        _ = r.final
+
+
+def test_simulation_budget_mid_run_keeps_complete_populations():
+    models, ev = gaussian_mean()
+    r = run(models, ev, NS, StopRules(max_simulations=1200), seed=1)
+    assert r.stop_reason is StopReason.MAX_SIMULATIONS
+    assert r.n_simulations == 1200
+    assert sum(p.n_simulations for p in r.populations) <= 1200
+    assert len(r.populations) >= 1
+
+
+def test_time_budget_with_a_fake_clock():
+    models, ev = gaussian_mean()
+    ticks = iter(range(10**6))
+    r = run(models, ev, NS, StopRules(max_seconds=30), seed=1, clock=lambda: float(next(ticks)))
+    assert r.stop_reason is StopReason.MAX_SECONDS
+
+
+def test_cancel():
+    models, ev = gaussian_mean()
+    calls = {"n": 0}
+
+    def cancel():
+        calls["n"] += 1
+        return calls["n"] > 5
+
+    r = run(models, ev, NS, StopRules(max_populations=50), seed=1, cancel=cancel)
+    assert r.stop_reason is StopReason.CANCELLED
+
+
+@pytest.mark.parametrize(
+    "stop, reason",
+    [(StopRules(max_populations=3), StopReason.MAX_POPULATIONS),
+     (StopRules(min_epsilon_decrease=None, epsilon_target=0.5), StopReason.EPSILON_TARGET),
+     (StopRules(min_epsilon_decrease=0.5), StopReason.MIN_EPSILON_DECREASE)],
+)
+def test_stop_rules(stop, reason):
+    models, ev = gaussian_mean()
+    r = run(models, ev, NS, stop, seed=1)
+    assert r.stop_reason is reason
+    last = r.final
+    if reason is StopReason.MAX_POPULATIONS:
+        assert len(r.populations) == 3
+    if reason is StopReason.EPSILON_TARGET:
+        assert last.epsilon <= 0.5 < r.populations[-2].epsilon
+    if reason is StopReason.MIN_EPSILON_DECREASE:
+        assert last.epsilon - last.epsilon_next < 0.5
+        assert all(p.epsilon - p.epsilon_next >= 0.5 for p in r.populations[:-1])
+
+
+def test_population_invariants_and_summary():
+    models, ev = two_models()
+    r = run(models, ev, NS, STOP, seed=5)
+    n = NS.particles
+    for p, nxt in zip(r.populations, r.populations[1:]):
+        assert p.n_particles == n
+        assert np.all(p.distances < p.epsilon)
+        assert nxt.epsilon == p.epsilon_next
+        assert np.sum(p.distances >= p.epsilon_next) >= NS.n_drop  # alpha N dropped
+        assert p.survivors.sum() == NS.n_survivors
+        assert np.all(p.weights[p.survivors] > 0)
+        assert nxt.n_accepted == NS.n_new
+        for m in range(2):
+            rows = p.models == m
+            if p.survivors[rows].any():
+                assert p.weights[rows].sum() == pytest.approx(1.0)
+                assert p.ellipsoids[m] is not None
+    s = r.summary()
+    json.dumps(s)  # JSON-able
+    for key in ("status", "stop_reason", "n_populations", "n_simulations", "wall_time_s", "epsilon",
+                "acceptance_rate", "model_probabilities", "model_probabilities_by_population", "posterior"):
+        assert key in s
+    assert s["n_simulations"] == sum(p.n_simulations for p in r.populations)
+    assert set(s["posterior"]["narrow"]["theta"]) == {"mean", "std", "q2_5", "q5", "q50", "q95", "q97_5"}
+
+
+def test_failed_simulations_are_counted_rejections():
+    """A simulator that fails on a third of the prior: counted, never accepted, no NaN."""
+
+    def flaky(theta, rng):
+        d = np.abs(theta[:, 0] - 0.5)
+        status = np.where(theta[:, 0] > 3.0, FAILED, OK).astype(np.int8)
+        d = np.where(status == OK, d, np.nan)  # garbage in failed rows must not leak
+        return d, status
+
+    models = [Model("m", {"theta": (-5, 5)})]
+    r = run(models, per_model([flaky]), NSSettings(particles=200, epsilon_initial=10.0, batch_size=50),
+            StopRules(max_populations=3), seed=1)
+    first = r.populations[0]
+    assert first.n_failed > 0
+    assert np.all(np.isfinite(first.distances)) and np.all(first.theta[:, 0] <= 3.0)
+    assert first.n_simulations == first.n_accepted + first.n_failed  # eps = 10 accepts every OK one
+
+
+def test_raising_simulator_marks_rows_failed_but_bugs_propagate():
+    def overflow(theta, rng):
+        raise FloatingPointError("overflow")
+
+    ev = per_model([overflow])
+    from abcns.filling import batches
+    from abcns.rejection import prior_proposer
+
+    b = next(batches(prior_proposer([Model("m", {"x": (0, 1)})]), seed=0, t=1, epsilon=1.0, batch_size=4))
+    out = ev(b)
+    assert np.all(out.status == FAILED) and np.all(np.isinf(out.distances))
+
+    def bug(theta, rng):
+        raise KeyError("a bug")
+
+    with pytest.raises(KeyError):
+        per_model([bug])(b)
+
+
+def test_dead_model_stays_dead_and_is_reported():
+    """Model 'far' cannot get below eps ~ 1: it loses its particles and never returns."""
+
+    def far(theta, rng):
+        return 2.0 + np.abs(theta[:, 0]), np.zeros(theta.shape[0], np.int8)
+
+    def near(theta, rng):
+        return np.abs(theta[:, 0] - 0.5), np.zeros(theta.shape[0], np.int8)
+
+    models = [Model("far", {"x": (-5, 5)}), Model("near", {"x": (-5, 5)})]
+    r = run(models, per_model([far, near]), NSSettings(particles=200, epsilon_initial=10.0, batch_size=50),
+            StopRules(min_epsilon_decrease=None, max_populations=12), seed=2)
+    died = r.died_at()
+    assert "far" in died
+    assert all(p.model_probabilities[0] == 0 for p in r.populations[died["far"] - 1:])
+    assert r.summary()["dead_models"] == died
+    assert set(r.posterior()) == {"near"}
+
+
+def test_apportion_and_quotas():
+    assert apportion(600, np.array([356, 644])).tolist() == [214, 386]
+    assert apportion(10, np.array([1, 1, 1])).sum() == 10
+    q = survivor_quotas(600, np.array([500, 500]), np.array([100, 600]))
+    assert q.tolist() == [100, 500]  # shortfall passed on
+    assert survivor_quotas(600, np.array([500, 500]), np.array([100, 200])).sum() == 300
+
+
+def test_no_global_or_legacy_numpy_rng_in_product_code():
+    pattern = re.compile(r"np\.random\.(seed|rand|randn|randint|random|normal|uniform|choice|shuffle|permutation|"
+                         r"RandomState)\(")
+    offenders = [f"{p}:{i}" for pkg in ("abcns", "worker", "service") for p in (ROOT / pkg).rglob("*.py")
+                 for i, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)]
+    assert offenders == []
+
+
+def test_abcns_stays_pure():
+    pattern = re.compile(r"^\s*(import|from)\s+(dask|distributed|fastapi|uvicorn|zarr|service|worker)\b", re.M)
+    assert [p.name for p in (ROOT / "abcns").rglob("*.py") if pattern.search(p.read_text())] == []
+
+
+def test_evaluated_type_is_what_executors_return():
+    models, ev = gaussian_mean()
+    from abcns.filling import batches
+    from abcns.rejection import prior_proposer
+
+    b = next(batches(prior_proposer(models), seed=0, t=1, epsilon=1.0, batch_size=8))
+    out = ev(b)
+    assert isinstance(out, Evaluated) and out.distances.shape == (8,) and out.status.dtype == np.int8
