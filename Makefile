@@ -14,14 +14,14 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python examples/authors_demo.py
+	$(BIN)/python -m examples.authors_demo
 
 test: $(STAMP)
 	$(BIN)/ruff check abcns worker service tests benchmarks examples
 	$(BIN)/python -m pytest
 
 bench: $(STAMP)
-	$(BIN)/python benchmarks/engine.py
+	$(BIN)/python -m benchmarks.engine
 
 clean:
 	rm -rf $(VENV)

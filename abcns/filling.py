@@ -30,6 +30,41 @@ def population_rng(seed: int, t: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(t, 0)))
 
 
+def draw_inside(
+    draw: Callable[[int, np.random.Generator], np.ndarray],
+    inside: Callable[[np.ndarray], np.ndarray],
+    n: int,
+    rng: np.random.Generator,
+    max_redraws: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` points from ``draw`` that satisfy ``inside`` (the prior box), drawn in chunks.
+
+    Returns (points (n, d), redraws (n,)), where ``redraws[i]`` is the number of rejected
+    draws before point i in the draw sequence, exactly what a one-at-a-time loop counts.
+    Raises Stopped(PROPOSAL_EXHAUSTED) after ``max_redraws * n + 10_000`` draws.
+    """
+    got: list[np.ndarray] = []
+    gaps: list[np.ndarray] = []
+    n_got = n_drawn = since_last = 0
+    while n_got < n:
+        chunk = max(2 * (n - n_got), 64)
+        draws = draw(chunk, rng)
+        ok = np.flatnonzero(inside(draws))[: n - n_got]
+        if ok.size:
+            gap = np.diff(ok, prepend=-1) - 1
+            gap[0] += since_last
+            gaps.append(gap)
+            got.append(draws[ok])
+            n_got += ok.size
+            since_last = chunk - ok[-1] - 1
+        else:
+            since_last += chunk
+        n_drawn += chunk
+        if n_got < n and n_drawn > max_redraws * n + 10_000:
+            raise Stopped(StopReason.PROPOSAL_EXHAUSTED)
+    return np.concatenate(got), np.concatenate(gaps)
+
+
 class Stopped(Exception):
     """A stop rule ended a population before it was full."""
 

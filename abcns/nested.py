@@ -29,7 +29,7 @@ import numpy as np
 
 from abcns import ellipsoid as ell
 from abcns.executor import Executor
-from abcns.filling import Budget, Propose, Stopped, fill, population_rng
+from abcns.filling import Budget, Propose, Stopped, draw_inside, fill, population_rng
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
 from abcns.result import Population, RunEnd
@@ -128,28 +128,9 @@ def ellipsoid_proposer(models: Sequence[Model], ellipsoids: Sequence[ell.Ellipso
             if rows.size == 0:
                 continue
             model, e = models[m], ellipsoids[m]
-            got: list[np.ndarray] = []
-            gaps: list[np.ndarray] = []
-            n_got, n_drawn, since_last = 0, 0, 0
-            while n_got < rows.size:
-                chunk = max(2 * (rows.size - n_got), 64)
-                draws = ell.sample(e, chunk, rng)
-                inside = np.flatnonzero(model.in_prior(draws))
-                inside = inside[: rows.size - n_got]
-                if inside.size:
-                    gap = np.diff(inside, prepend=-1) - 1
-                    gap[0] += since_last
-                    gaps.append(gap)
-                    got.append(draws[inside])
-                    n_got += inside.size
-                    since_last = chunk - inside[-1] - 1
-                else:
-                    since_last += chunk
-                n_drawn += chunk
-                if n_drawn > max_redraws * rows.size + 10_000:
-                    raise Stopped(StopReason.PROPOSAL_EXHAUSTED)
-            theta[rows, : model.n_dim] = np.concatenate(got)
-            redraws[rows] = np.concatenate(gaps)
+            theta[rows, : model.n_dim], redraws[rows] = draw_inside(
+                lambda k, g, e=e: ell.sample(e, k, g), model.in_prior, rows.size, rng, max_redraws
+            )
         return which, theta, redraws
 
     return propose

@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass
 from abcns.priors import Model, SpecError
 
 
-class StopReason(str, enum.Enum):
+class StopReason(enum.StrEnum):
     """Why a run ended; stored with the result."""
 
     MIN_EPSILON_DECREASE = "min_epsilon_decrease"  # the paper's rule

@@ -12,14 +12,14 @@ stored weights are normalised within each model. Dead models (p = 0) stay dead.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 from collections.abc import Callable, Generator, Sequence
+from dataclasses import replace
 
 import numpy as np
 from scipy.special import logsumexp
 
 from abcns.executor import Executor
-from abcns.filling import Budget, Propose, Stopped, fill
+from abcns.filling import Budget, Propose, Stopped, draw_inside, fill
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer, uniform_weights
 from abcns.result import Population, RunEnd
@@ -60,15 +60,10 @@ def kernel_proposer(models: Sequence[Model], p_model: np.ndarray, kernels: Seque
         redraws = np.zeros(n, dtype=np.int64)
         for m, model in enumerate(models):
             rows = np.flatnonzero(which == m)
-            for r in rows:  # one at a time: the redraw count is per proposal
-                for k in range(max_redraws + 1):
-                    x = kernels[m].sample(1, rng)  # type: ignore[union-attr]
-                    if model.in_prior(x)[0]:
-                        theta[r, : model.n_dim] = x[0]
-                        redraws[r] = k
-                        break
-                else:
-                    raise Stopped(StopReason.PROPOSAL_EXHAUSTED)
+            if rows.size:
+                theta[rows, : model.n_dim], redraws[rows] = draw_inside(
+                    kernels[m].sample, model.in_prior, rows.size, rng, max_redraws  # type: ignore[union-attr]
+                )
         return which, theta, redraws
 
     return propose

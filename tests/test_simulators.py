@@ -1,0 +1,114 @@
+"""Reference simulators against a slow, exact-as-possible integration.
+
+The reference is scipy's DOP853 (rtol 1e-11, atol 1e-13) restarted at every sample so the
+held force is exact. RK4 with substeps s has global error O((omega h)^4): tolerances below
+are the RK4 error at the substeps used, measured once and bounded with a factor of ~10.
+"""
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from abcns import DIVERGED, OK
+from examples.paper import SHARED
+from worker.simulators import BoucWen, Duffing, GAndK, Linear
+
+SEED = 1234
+
+
+def reference(rhs, force, dt, n_state, observe=lambda s, f: s[0]):
+    state = np.zeros(n_state)
+    out = [observe(state, force[0])]
+    for i in range(force.size - 1):
+        sol = solve_ivp(lambda t, s: rhs(s, force[i]), (0, dt), state, method="DOP853", rtol=1e-11, atol=1e-13)
+        state = sol.y[:, -1]
+        out.append(observe(state, force[i + 1]))
+    return np.array(out)
+
+
+def rel_l2(a, b):
+    return np.linalg.norm(a - b) / np.linalg.norm(b)
+
+
+def test_duffing_reproduces_the_authors_data_exactly():
+    d = np.load(SHARED / "abcns-reference-demo" / "demo_data.npz")
+    out = Duffing(d["force"], float(d["dt"]), substeps=1).simulate(np.array([[1, 0.05, 50, 0, 1000, 0]]))
+    assert out.status[0] == OK
+    np.testing.assert_allclose(out.values[0], d["displacement"], rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("output", ["displacement", "velocity", "acceleration"])
+def test_duffing_against_dop853(output):
+    rng = np.random.default_rng(SEED)
+    force = 10 * rng.standard_normal(120)
+    dt = 0.01
+    lo, hi = np.array([0.005, 5, 100, 1e4]), np.array([0.5, 500, 1e4, 1e6])  # paper Table 3
+    idx = {"displacement": 0, "velocity": 1}
+    for _ in range(3):
+        c, k, k3, k5 = lo + (hi - lo) * rng.random(4)
+        p = np.array([[1.0, c, k, 0.0, k3, k5]])
+
+        def rhs(s, f):
+            return [s[1], f - c * s[1] - k * s[0] - k3 * s[0] ** 3 - k5 * s[0] ** 5]
+
+        obs = (lambda s, f: rhs(s, f)[1]) if output == "acceleration" else (lambda s, f, j=idx.get(output): s[j])
+        ref = reference(rhs, force, dt, 2, obs)
+        out = Duffing(force, dt, substeps=16, output=output).simulate(p)
+        assert out.status[0] == OK
+        assert rel_l2(out.values[0], ref) < 1e-5
+
+
+def test_linear_exact_zoh_against_dop853():
+    rng = np.random.default_rng(SEED)
+    force = 10 * rng.standard_normal(200)
+    for c, k in [(20.0, 1e4), (10.0, 5000.0), (50.0, 15000.0), (-1.0, 100.0), (3.0, -50.0)]:
+        ref = reference(lambda s, f, c=c, k=k: [s[1], f - c * s[1] - k * s[0]], force, 0.01, 2)
+        out = Linear(force, 0.01).simulate(np.array([[1.0, c, k]]))
+        assert rel_l2(out.values[0], ref) < 1e-8, (c, k)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_bouc_wen_against_dop853(n):
+    rng = np.random.default_rng(SEED + n)
+    dt = 1 / 4096
+    force = 50 * rng.standard_normal(200)
+    # the Bouc-Wen benchmark's values (m, c, k, A = 2, 10, 5e4, 5e4; alpha = 800, beta = -1100
+    # for n = 1, alpha + beta < 0 as Table 6 allows), scaled so the |z|^n terms matter at z ~ 50
+    m, c, k, A = 2.0, 10.0, 5e4, 5e4
+    alpha, beta = 800.0 / 50.0 ** (n - 1), -1100.0 / 50.0 ** (n - 1)
+
+    def rhs(s, f):
+        y, v, z = s
+        zdot = A * v - alpha * abs(v) * abs(z) ** (n - 1) * z - beta * v * abs(z) ** n
+        return [v, (f - c * v - k * y - z) / m, zdot]
+
+    ref = reference(rhs, force, dt, 3)
+    out = BoucWen(force, dt, substeps=8).simulate(np.array([[m, c, k, alpha, beta, A, n]]))
+    assert out.status[0] == OK
+    assert rel_l2(out.values[0], ref) < 1e-5  # measured 8e-7 (n = 1, |v| is not smooth) to 5e-10 (n = 4)
+
+
+def test_blow_ups_are_flagged_never_nan():
+    rng = np.random.default_rng(SEED)
+    force = 1e3 * rng.standard_normal(300)
+    p = np.array([[1.0, -50.0, 10.0, 0, 1e4, 1e6],  # negative damping: grows without bound
+                  [1.0, 0.1, 50.0, 0, -1e4, 0],  # softening cubic: escapes
+                  [1.0, 0.5, 50.0, 0, 1e3, 0]])  # healthy
+    out = Duffing(force, 0.01, substeps=1, state_bound=1e3).simulate(p)
+    assert out.status.tolist() == [DIVERGED, DIVERGED, OK]
+    assert np.all(np.isfinite(out.values[2]))
+    bw = BoucWen(force, 1 / 4096, substeps=2, state_bound=1.0).simulate(
+        np.array([[1.0, -1e3, -1e5, -1e4, -1e4, 1e6, 2], [2.0, 10.0, 0.0, 1e3, 1e3, 1e4, 1]]))
+    assert bw.status[0] == DIVERGED and bw.status[1] == OK
+
+
+def test_gandk_median_and_quantiles():
+    """z = 0 maps to A, so the sample median estimates A; the sample quantiles estimate the
+    quantile function (se of a sample quantile: sqrt(p(1-p)/n)/density, bounded loosely)."""
+    rng = np.random.default_rng(SEED)
+    theta = np.array([[3.0, 1.0, 2.0, 0.5, 0.8]])
+    x = GAndK(200_000).simulate(theta, rng).values[0]
+    for p in (0.2, 0.5, 0.8):
+        exact = GAndK.quantile_of_probability(theta, np.array([p]))[0, 0]
+        assert abs(np.quantile(x, p) - exact) < 0.02
+    assert abs(np.median(x) - 3.0) < 0.01
