@@ -35,7 +35,8 @@ def authors_demo(path: Path | None = None) -> Problem:
     """The authors' MATLAB demo (``shared/data/abcns-reference-demo``): linear vs cubic
     Duffing, noise-free data of the cubic model, their settings, one RK4 step per sample,
     the demo's kernel weights."""
-    d = np.load(path or SHARED / "abcns-reference-demo" / "demo_data.npz")
+    with np.load(path or SHARED / "abcns-reference-demo" / "demo_data.npz") as f:
+        d = dict(f)
     force, observed, dt = d["force"], d["displacement"], float(d["dt"])
     models = [
         Model("linear", {"c": (0.002, 0.2), "k": (20, 80)}, {"m": 1, "k3": 0, "k5": 0}),

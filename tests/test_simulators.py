@@ -31,7 +31,8 @@ def rel_l2(a, b):
 
 
 def test_duffing_reproduces_the_authors_data_exactly():
-    d = np.load(SHARED / "abcns-reference-demo" / "demo_data.npz")
+    with np.load(SHARED / "abcns-reference-demo" / "demo_data.npz") as f:
+        d = dict(f)
     out = Duffing(d["force"], float(d["dt"]), substeps=1).simulate(np.array([[1, 0.05, 50, 0, 1000, 0]]))
     assert out.status[0] == OK
     np.testing.assert_allclose(out.values[0], d["displacement"], rtol=0, atol=1e-13)
