@@ -82,17 +82,13 @@ def contains(ell: Ellipsoid, x: np.ndarray) -> np.ndarray:
 
 
 def enlarge(ell: Ellipsoid, f0: float) -> Ellipsoid:
-    """Multiply the matrix by ``f0`` (axes grow by sqrt(f0)); Algorithm 2, step 16."""
+    """Multiply the matrix by ``f0`` (axes grow by sqrt(f0)); Algorithm 2, step 16.
+
+    The result is built by :func:`from_matrix`, so an ellipsoid stored as (centre, matrix)
+    and rebuilt with ``from_matrix`` is bit-identical to it (resume depends on this)."""
     if not f0 > 0:
         raise ValueError(f"enlargement factor must be > 0, got {f0}")
-    d = ell.n_dim
-    return Ellipsoid(
-        ell.centre,
-        ell.matrix * f0,
-        ell.axes * math.sqrt(f0),
-        ell.log_volume + 0.5 * d * math.log(f0),
-        ell.note,
-    )
+    return from_matrix(ell.centre, ell.matrix * f0, ell.note)
 
 
 def sample(ell: Ellipsoid, n: int, rng: np.random.Generator) -> np.ndarray:

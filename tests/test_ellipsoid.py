@@ -77,3 +77,11 @@ def test_box_ellipsoid_holds_the_box_corners():
     low, high = np.array([0.0, 10.0, -5.0]), np.array([1.0, 20.0, 5.0])
     corners = np.array(np.meshgrid(*zip(low, high))).reshape(3, -1).T
     assert np.all(ell.contains(ell.from_box(low, high), corners))
+
+
+def test_stored_centre_and_matrix_rebuild_the_same_ellipsoid():
+    rng = np.random.default_rng(SEED)
+    e = ell.enlarge(ell.fit(rng.standard_normal((20, 4))), 1.1)
+    again = ell.from_matrix(e.centre.copy(), e.matrix.copy(), e.note)
+    np.testing.assert_array_equal(again.axes, e.axes)
+    np.testing.assert_array_equal(ell.sample(again, 5, np.random.default_rng(1)), ell.sample(e, 5, np.random.default_rng(1)))
