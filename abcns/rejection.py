@@ -84,13 +84,17 @@ def abc_rejection(
     stop: StopRules = StopRules(max_populations=1),
     seed: int = 0,
     *,
+    history: Sequence[Population] = (),
+    budget: Budget | None = None,
     clock: Callable[[], float] = time.monotonic,
     cancel: Callable[[], bool] | None = None,
 ) -> Generator[Population, None, RunEnd]:
     """Algorithm 1: N particles from the priors with distance below epsilon; one population."""
     settings.check_models(models)
-    budget = Budget(stop, clock, cancel)
+    budget = budget or Budget(stop, clock, cancel)
     source, n_pilot = "given", 0
+    if history:  # the one population is done
+        return RunEnd(StopReason.COMPLETED, budget.n_simulations, 0, "resumed")
     try:
         eps, source, n_pilot = initial_epsilon(models, settings, executor, budget, seed)
         filled = fill(prior_proposer(models), settings.particles, eps, executor, budget,

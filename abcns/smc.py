@@ -76,15 +76,18 @@ def abc_smc(
     stop: StopRules = StopRules(),
     seed: int = 0,
     *,
+    history: Sequence[Population] = (),
+    budget: Budget | None = None,
     clock: Callable[[], float] = time.monotonic,
     cancel: Callable[[], bool] | None = None,
 ) -> Generator[Population, None, RunEnd]:
-    """Yield ABC-SMC populations until a stop rule holds or the schedule ends."""
+    """Yield ABC-SMC populations until a stop rule holds or the schedule ends.
+    ``history`` and ``budget`` resume a run, as for :func:`abcns.nested.abc_ns`."""
     settings.check_models(models)
     n_models = len(models)
-    budget = Budget(stop, clock, cancel)
+    budget = budget or Budget(stop, clock, cancel)
     schedule = settings.schedule
-    source, n_pilot = "schedule", 0
+    source, n_pilot = ("resumed" if history else "schedule"), 0
 
     def next_eps(pop: Population) -> float:
         if schedule is not None:
@@ -92,19 +95,22 @@ def abc_smc(
         return float(np.quantile(pop.distances, settings.quantile))
 
     try:
-        if schedule is not None:
-            eps = schedule[0]
+        if history:
+            pop = history[-1]
         else:
-            eps, source, n_pilot = initial_epsilon(models, settings, executor, budget, seed)
-        filled = fill(prior_proposer(models), settings.particles, eps, executor, budget,
-                      seed=seed, t=1, batch_size=settings.batch_size)
-        counts = np.bincount(filled.models, minlength=n_models)
-        pop = population_from(
-            1, eps, np.nan, filled.models, filled.theta, filled.distances,
-            uniform_weights(filled.models, n_models), filled, budget.elapsed(), counts / counts.sum(),
-        )
-        pop = _with_next(pop, next_eps(pop))
-        yield pop
+            if schedule is not None:
+                eps = schedule[0]
+            else:
+                eps, source, n_pilot = initial_epsilon(models, settings, executor, budget, seed)
+            filled = fill(prior_proposer(models), settings.particles, eps, executor, budget,
+                          seed=seed, t=1, batch_size=settings.batch_size)
+            counts = np.bincount(filled.models, minlength=n_models)
+            pop = population_from(
+                1, eps, np.nan, filled.models, filled.theta, filled.distances,
+                uniform_weights(filled.models, n_models), filled, budget.elapsed(), counts / counts.sum(),
+            )
+            pop = _with_next(pop, next_eps(pop))
+            yield pop
         while True:
             if schedule is not None and pop.t >= len(schedule):
                 return RunEnd(StopReason.SCHEDULE_END, budget.n_simulations, n_pilot, source)

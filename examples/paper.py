@@ -14,6 +14,7 @@ import numpy as np
 
 from abcns import NMSE, Model, NSSettings, StopRules, SummaryEuclidean
 from abcns.executor import Evaluate
+from examples import make_data
 from worker.evaluate import evaluator
 from worker.simulators import Duffing, GAndK, Linear
 
@@ -56,11 +57,8 @@ def linear_31(seed: int = 31) -> Problem:
     """Paper §3.1: m = 1 known, c = 20, k = 1e4 (Table 1 priors), Gaussian force of std 10,
     500 samples at 100 Hz, noise-free displacement from the exact zero-order-hold solution;
     stop when the tolerance falls by less than 1e-3."""
-    rng = np.random.default_rng(seed)
-    dt, n = 0.01, 500
-    force = 10.0 * rng.standard_normal(n)
-    sim = Linear(force, dt)
-    observed = sim.simulate(np.array([[1.0, 20.0, 1e4]])).values[0]
+    d = make_data.linear_31(seed)
+    force, observed, dt = d["force"], d["displacement"], 0.01
     sim = Linear(force, dt, state_bound=1e3 * np.max(np.abs(observed)))
     models = [Model("linear", {"c": (10, 50), "k": (5000, 15000)}, {"m": 1})]
     return Problem(
@@ -72,12 +70,11 @@ def linear_31(seed: int = 31) -> Problem:
     )
 
 
-def gandk_32(seed: int = 32, n_samples: int = 10_000) -> Problem:
+def gandk_32(seed: int = 32) -> Problem:
     """Paper §3.2: 1e4 draws of the g-and-k distribution at (A, B, g, k) = (3, 1, 2, 0.5),
     c = 0.8, priors U(0, 10), Euclidean distance between (P20, P40, P60, P80, skewness)."""
-    rng = np.random.default_rng(seed)
-    gk = GAndK(n_samples)
-    observed = gk.simulate(np.array([[3.0, 1.0, 2.0, 0.5, 0.8]]), rng).values[0]
+    observed = make_data.gandk_32(seed)["observed"]
+    gk = GAndK(observed.size)
     models = [Model("gandk", {p: (0, 10) for p in ("A", "B", "g", "k")}, {"c": 0.8})]
     return Problem(
         "paper-3.2-gandk", models, evaluator(models, [gk], SummaryEuclidean(observed, "gk")),

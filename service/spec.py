@@ -17,12 +17,10 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from abcns import NMSE, Model, NSSettings, RejectionSettings, SMCSettings, SpecError, StopRules, SummaryEuclidean
+from abcns import Model, NSSettings, RejectionSettings, SMCSettings, SpecError, StopRules
 from abcns.distances import check_window
 from abcns.executor import Evaluate
-from worker import registry
-from worker.evaluate import evaluator
-from worker.simulators import GAndK
+from worker.evaluate import job_evaluator
 
 Window = tuple[int, int]
 
@@ -192,6 +190,16 @@ def load_array(source: str | list[float], base_dir: Path | None, field: str) -> 
     return arr
 
 
+def description(spec: JobSpec) -> dict:
+    """The JSON-able part of a job a worker needs to build its evaluator."""
+    return {
+        "models": [m.model_dump() for m in spec.models],
+        "distance": spec.distance.model_dump(),
+        "data": {"dt": spec.data.sample_interval if spec.data.input is not None else None,
+                 "fit": list(spec.data.fit) if spec.data.fit else None},
+    }
+
+
 def build(spec: JobSpec, base_dir: Path | None = None) -> Job:
     """Everything checkable before a simulation: raise SpecError or return a Job."""
     data = spec.data
@@ -199,33 +207,7 @@ def build(spec: JobSpec, base_dir: Path | None = None) -> Job:
     force = load_array(data.input, base_dir, "data.input") if data.input is not None else None
     if data.test is not None:
         check_window(data.test, observed.size, "data.test")
-    if spec.distance.name == "nmse":
-        distance = NMSE(observed, data.fit)
-    else:
-        distance = SummaryEuclidean(observed, spec.distance.summaries)
-    models, simulators = [], []
-    for i, ms in enumerate(spec.models):
-        where = f"models[{i}]"
-        try:
-            model = Model(ms.name, ms.priors, ms.fixed, config={"simulator": ms.simulator})
-        except SpecError as err:
-            raise SpecError(err.field.replace(f"models[{ms.name}]", where), err.message) from None
-        cls = registry.get(ms.simulator, f"{where}.simulator")
-        try:
-            if cls is GAndK:
-                sim = GAndK(n_samples=int(observed.size))
-            else:
-                if force is None:
-                    raise SpecError("data.input", f"simulator {ms.simulator!r} needs an input force")
-                bound = 1e3 * float(np.max(np.abs(observed))) if ms.integrator.output == "displacement" else np.inf
-                sim = cls(force, data.sample_interval, substeps=ms.integrator.substeps, output=ms.integrator.output,
-                          state_bound=bound)
-        except SpecError as err:
-            field = err.field if err.field.startswith("data") else f"{where}.{err.field}"
-            raise SpecError(field, err.message) from None
-        models.append(model)
-        simulators.append(sim)
-    evaluate = evaluator(models, simulators, distance)
+    models, evaluate = job_evaluator(description(spec), {"force": force, "observed": observed})
     s = spec.sampler
     common = dict(particles=s.particles, epsilon_initial=s.epsilon_initial, pilot_size=s.pilot_size,
                   pilot_quantile=s.pilot_quantile, batch_size=s.batch_size)

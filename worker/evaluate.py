@@ -4,17 +4,24 @@
 each model's rows are expanded to the simulator's full parameter vector (free values,
 then fixed values, then the simulator's defaults), simulated as one batch, and scored
 by the distance; rows that are not OK get distance +inf.
+
+``job_evaluator(description, arrays)`` builds the same from a JSON-able job description
+(the spec's models, distance and data settings) and the data arrays; it is what a Dask
+worker runs, once per worker and job (:func:`evaluate_on_worker` caches it).
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
 
-from abcns.distances import Distance
-from abcns.executor import OK, Evaluate, SimulateDistance, per_model
+from abcns.distances import NMSE, Distance, SummaryEuclidean
+from abcns.executor import OK, Batch, Evaluate, Evaluated, SimulateDistance, per_model
 from abcns.priors import Model, SpecError
+from worker import registry
+from worker.simulators import GAndK
 
 
 def check_model(model: Model, simulator, where: str) -> None:
@@ -65,3 +72,73 @@ def evaluator(models: Sequence[Model], simulators: Sequence, distance: Distance)
                 "(input and observed records must have the same length)",
             )
     return per_model([model_function(m, s, distance) for m, s in zip(models, simulators)])
+
+
+def _model(desc: dict, where: str) -> Model:
+    try:
+        return Model(desc["name"], desc["priors"], desc.get("fixed", {}), config={"simulator": desc["simulator"]})
+    except SpecError as err:
+        raise SpecError(err.field.replace(f"models[{desc['name']}]", where), err.message) from None
+
+
+def _simulator(desc: dict, force: np.ndarray | None, dt: float | None, observed: np.ndarray, where: str):
+    cls = registry.get(desc["simulator"], f"{where}.simulator")
+    integ = {"substeps": 1, "output": "displacement", **(desc.get("integrator") or {})}
+    try:
+        if cls is GAndK:
+            return GAndK(n_samples=int(observed.size))
+        if force is None:
+            raise SpecError("data.input", f"simulator {desc['simulator']!r} needs an input force")
+        # the divergence guard: 1000 x the observed scale (for a displacement output)
+        bound = 1e3 * float(np.max(np.abs(observed))) if integ["output"] == "displacement" else np.inf
+        return cls(force, dt, substeps=integ["substeps"], output=integ["output"], state_bound=bound)
+    except SpecError as err:
+        field = err.field if err.field.startswith("data") else f"{where}.{err.field}"
+        raise SpecError(field, err.message) from None
+
+
+def job_evaluator(description: dict, arrays: dict) -> tuple[list[Model], Evaluate]:
+    """(models, evaluate) from a job description and its data.
+
+    ``description``: ``{"models": [{name, simulator, priors, fixed, integrator}], "distance":
+    {name: nmse | summary_euclidean, summaries}, "data": {"dt": float | None, "fit": [a, b] | None}}``;
+    ``arrays``: ``{"force": array | None, "observed": array}``. Raises SpecError naming the field.
+    """
+    observed = np.asarray(arrays["observed"], dtype=float)
+    force = arrays.get("force")
+    data = description.get("data", {})
+    dist = description.get("distance", {"name": "nmse"})
+    if dist["name"] == "nmse":
+        distance: Distance = NMSE(observed, data.get("fit"))
+        if force is not None and np.size(force) == observed.size and distance.stop < observed.size:
+            # nothing after the fit window is scored: simulate only up to its end
+            force, observed = force[: distance.stop], observed[: distance.stop]
+            distance = NMSE(observed, (distance.start, distance.stop))
+    elif dist["name"] == "summary_euclidean":
+        distance = SummaryEuclidean(observed, dist.get("summaries", "gk"))
+    else:
+        raise SpecError("distance.name", f"unknown distance {dist['name']!r}")
+    models, simulators = [], []
+    for i, desc in enumerate(description["models"]):
+        models.append(_model(desc, f"models[{i}]"))
+        simulators.append(_simulator(desc, force, data.get("dt"), observed, f"models[{i}]"))
+    return models, evaluator(models, simulators, distance)
+
+
+_CACHE: OrderedDict[str, Evaluate] = OrderedDict()
+_CACHE_SIZE = 8
+
+
+def evaluate_on_worker(job_key: str, payload: dict, batch: Batch) -> Evaluated:
+    """The Dask task: evaluate one batch of job ``job_key``. ``payload`` (description and
+    arrays, scattered once per job) is turned into an evaluator once per worker process
+    and kept for the job's later batches."""
+    evaluate = _CACHE.get(job_key)
+    if evaluate is None:
+        _, evaluate = job_evaluator(payload["description"], payload["arrays"])
+        _CACHE[job_key] = evaluate
+        while len(_CACHE) > _CACHE_SIZE:
+            _CACHE.popitem(last=False)
+    else:
+        _CACHE.move_to_end(job_key)
+    return evaluate(batch)

@@ -1,0 +1,109 @@
+"""The ``abcns`` command line.
+
+    abcns run SPEC --out STORE [--scheduler tcp://HOST:PORT | --workers N] [--seed N]
+    abcns summary STORE [--json]
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from abcns import SpecError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help="ABC-NS inference for dynamical systems.")
+
+
+def _fail(message: str) -> None:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(2)
+
+
+@app.command()
+def run(
+    spec: Annotated[Path, typer.Argument(help="job spec, YAML or JSON")],
+    out: Annotated[Path, typer.Option("--out", help="the job's zarr store (created, or resumed if unfinished)")],
+    scheduler: Annotated[str | None, typer.Option(help="address of a running Dask scheduler")] = None,
+    workers: Annotated[int | None, typer.Option(help="worker processes of the embedded cluster (default: one per core)")] = None,
+    seed: Annotated[int | None, typer.Option(help="override the spec's seed")] = None,
+    quiet: Annotated[bool, typer.Option(help="no progress lines")] = False,
+) -> None:
+    """Run (or resume) a job and print its summary."""
+    from service.runner import Progress, run_job, summary
+    from service.spec import build, load
+    from service.store import Store
+
+    if scheduler and workers:
+        _fail("give --scheduler or --workers, not both")
+    try:
+        job_spec, base = load(spec)
+        build(job_spec.model_copy(update={"seed": seed}) if seed is not None else job_spec, base)  # all checks first
+    except SpecError as err:
+        _fail(str(err))
+    names = [m.name for m in job_spec.models]
+
+    def progress(p: Progress) -> None:
+        if quiet:
+            return
+        pop = p.population
+        probs = " ".join(f"{n}={v:.2f}" for n, v in zip(names, pop.model_probabilities))
+        typer.echo(f"population {pop.t:4d}  eps {pop.epsilon:11.5g}  acceptance {pop.acceptance_rate:5.2f}  "
+                   f"sims {p.n_simulations_total:8d}  {p.simulations_per_s:9.0f} sims/s  {probs}")
+
+    from distributed import Client, LocalCluster
+
+    with ExitStack() as stack:
+        if scheduler:
+            client = stack.enter_context(Client(scheduler))
+        else:
+            n = workers or os.cpu_count() or 1
+            cluster = stack.enter_context(LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                                       dashboard_address=None))
+            client = stack.enter_context(Client(cluster))
+        try:
+            run_job(job_spec, base, out, client, seed=seed, on_population=progress)
+        except SpecError as err:
+            _fail(str(err))
+    typer.echo(json.dumps(summary(Store.open(out)), indent=2) if not quiet else "")
+
+
+@app.command(name="summary")
+def summary_cmd(
+    store: Annotated[Path, typer.Argument(help="a job's zarr store")],
+    as_json: Annotated[bool, typer.Option("--json", help="the full JSON summary")] = False,
+) -> None:
+    """Print the summary of a job's store (finished or running)."""
+    from service.runner import summary
+    from service.store import Store
+
+    try:
+        s = summary(Store.open(store))
+    except (FileNotFoundError, ValueError) as err:
+        _fail(str(err))
+    if as_json:
+        typer.echo(json.dumps(s, indent=2))
+        return
+    typer.echo(f"status {s['status']}  stop {s.get('stop_reason')}  populations {s['n_populations']}  "
+               f"simulations {s.get('n_simulations', 0)}  wall {s.get('wall_time_s', 0):.1f} s")
+    if s.get("epsilon"):
+        typer.echo(f"epsilon {s['epsilon'][0]:.4g} -> {s['epsilon'][-1]:.4g}; "
+                   f"mean acceptance {sum(s['acceptance_rate']) / len(s['acceptance_rate']):.2f}")
+    typer.echo("model probabilities: " + ", ".join(f"{k} {v:.3f}" for k, v in s.get("model_probabilities", {}).items()))
+    for model, params in s.get("posterior", {}).items():
+        typer.echo(f"{model}:")
+        for name, q in params.items():
+            typer.echo(f"  {name:8s} mean {q['mean']:12.6g}  std {q['std']:10.4g}  95% [{q['q2_5']:.6g}, {q['q97_5']:.6g}]")
+
+
+def main() -> None:
+    app(prog_name="abcns")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
