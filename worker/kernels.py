@@ -9,11 +9,14 @@ held over step i). Kernels are ``@njit(cache=True)`` with ``fastmath={"contract"
 (FMA contraction, no reassociation, NaN/inf semantics kept) and ``error_model="numpy"``
 (no Python exception branches in the loops); none is parallel.
 
-Each driver does, for every sample ``i``: read the output of the current state (output[0]
+Drivers take a block of particles (``w`` holds only them; a few hundred keep the work
+array in L1) and ``cols``, their columns in the caller's ``dist``, ``status`` and
+flattened ``(n_samples, n_total)`` trajectory array ``traj``. Each driver does, for every
+sample ``i``: read the output of the current state (output[0]
 is the state at rest), account for it, then advance over step ``i``. Accounting is either
 
-- trajectory mode: store the output in ``traj[i, particle]`` (``traj`` is
-  ``(n_samples, n)``; the caller returns its transpose), or
+- trajectory mode: store the output in ``traj[i * n_total + column]`` (the caller
+  returns the transpose of ``traj.reshape(n_samples, n_total)``), or
 - distance mode: add ``(y - obs[i])**2`` to the accumulator when ``start <= i < stop``;
   the NMSE is ``scale * sum``. With a finite ``eps`` a particle whose partial NMSE
   reaches ``eps`` is retired at once: status OK, distance = that partial NMSE (already
@@ -48,6 +51,8 @@ _JIT = {"cache": True, "fastmath": _FM, "error_model": "numpy"}
 @njit(**_JIT)
 def _account(w, n_state, acc_row, n_act, i, y, bound, obs, start, stop, scale, eps, want_traj, traj, idx, flag,
              dist, status):
+    # idx holds the particles' columns in the caller's arrays: dist, status and the
+    # flattened (n_samples, n_total) trajectory array traj
     """Check, record and score the outputs ``y[:n_act]`` of sample ``i``; returns how many
     particles were retired (their ``flag`` is set, their result written)."""
     acc = w[acc_row]
@@ -70,8 +75,9 @@ def _account(w, n_state, acc_row, n_act, i, y, bound, obs, start, stop, scale, e
         flag[j] = code
         n_flag += code != 0
     if want_traj:
+        row = i * dist.shape[0]
         for j in range(n_act):
-            traj[i, idx[j]] = y[j] if flag[j] != 2 else 0.0
+            traj[row + idx[j]] = y[j] if flag[j] != 2 else 0.0
     if n_flag:
         _retire(w, acc_row, n_act, scale, idx, flag, dist, status)
     return n_flag
@@ -186,10 +192,10 @@ def _duffing_output(w, n_act, f, kind, y):
 
 
 @njit(**_JIT)
-def duffing_run(w, force, h, substeps, kind, bound, obs, start, stop, scale, eps, want_traj, traj, dist, status):
+def duffing_run(w, force, h, substeps, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist, status):
     """Run a Duffing batch in place; see the module docstring. ``w`` is ``(DUFFING_ROWS, n)``."""
     n = w.shape[1]
-    idx = np.arange(n)
+    idx = cols.copy()
     y = np.empty(n)
     flag = np.zeros(n, dtype=np.int8)
     n_act = n
@@ -329,11 +335,11 @@ def _bouc_wen_output(w, n_act, f, kind, out):
 
 
 @njit(**_JIT)
-def bouc_wen_run(w, n_exp, force, h, substeps, kind, bound, obs, start, stop, scale, eps, want_traj, traj, dist,
-                 status):
+def bouc_wen_run(w, n_exp, force, h, substeps, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj,
+                 dist, status):
     """Run a Bouc-Wen batch (one exponent ``n_exp`` in 1..4) in place. ``w`` is ``(BOUC_WEN_ROWS, n)``."""
     n = w.shape[1]
-    idx = np.arange(n)
+    idx = cols.copy()
     y = np.empty(n)
     flag = np.zeros(n, dtype=np.int8)
     n_act = n
@@ -506,11 +512,11 @@ def _linear_disp_nmse(w, n_act, f, o, bound, scale, eps, flag):
 
 
 @njit(**_JIT)
-def linear_run(w, force, kind, bound, obs, start, stop, scale, eps, want_traj, traj, dist, status):
+def linear_run(w, force, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist, status):
     """Run the exact-ZOH recursion for a batch in place; rows 3..11 of ``w`` come from
     :func:`zoh_coefficients`. ``w`` is ``(LINEAR_ROWS, n)``."""
     n = w.shape[1]
-    idx = np.arange(n)
+    idx = cols.copy()
     y = np.empty(n)
     flag = np.zeros(n, dtype=np.int8)
     n_act = n

@@ -148,6 +148,9 @@ class _Oscillator:
     def _call(self, w: np.ndarray, extra: tuple, *args) -> None:
         raise NotImplementedError
 
+    #: particles per kernel call: the work array of a block stays in the L1 cache
+    block = 256
+
     def _run(self, params: np.ndarray, observed=None, start: int = 0, stop: int = 0, scale: float = 1.0,
              epsilon: float = np.inf):
         """Trajectories (observed None) or in-kernel NMSE; returns (values or distances, status)."""
@@ -157,28 +160,17 @@ class _Oscillator:
         bound = min(self.state_bound, _BIG) if self.state_bound == self.state_bound else _BIG
         want_traj = observed is None
         obs = np.zeros(1) if want_traj else observed
+        traj = np.zeros(ns * n if want_traj else 1)
         dist = np.full(n, np.inf)
         status = np.zeros(n, dtype=np.int8)
-        values = None
         for rows, w, extra in self._work(params):
-            m = w.shape[1]
-            traj = np.zeros((ns, m)) if want_traj else np.zeros((1, 1))
-            d = np.empty(m)
-            st = np.zeros(m, dtype=np.int8)
-            if m:
-                self._call(w, extra, kind, bound, obs, int(start), int(stop), float(scale), float(epsilon),
-                           want_traj, traj, d, st)
-            if rows is None:  # the whole batch in one call
-                dist, status = d, st
-                values = traj.T if want_traj else None
-            else:
-                dist[rows], status[rows] = d, st
-                if want_traj:
-                    if values is None:
-                        values = np.zeros((n, ns))
-                    values[rows] = traj.T
+            cols = np.arange(n) if rows is None else rows.astype(np.int64)
+            for b0 in range(0, cols.size, self.block):
+                wb = np.ascontiguousarray(w[:, b0 : b0 + self.block])
+                self._call(wb, extra, kind, bound, obs, int(start), int(stop), float(scale), float(epsilon),
+                           cols[b0 : b0 + self.block], want_traj, traj, dist, status)
         if want_traj:
-            return (values if values is not None else np.zeros((n, ns))), status
+            return traj.reshape(ns, n).T, status
         return dist, status
 
     def distance_nmse(self, params: np.ndarray, observed: np.ndarray, start: int, stop: int,
@@ -356,6 +348,7 @@ class Linear:
     def _call(self, w, extra, kind, *args):
         _kernels().linear_run(w, self.force, kind, *args)
 
+    block = _Oscillator.block
     _run = _Oscillator._run
     distance_nmse = _Oscillator.distance_nmse
 
