@@ -32,11 +32,46 @@ particles are removed from the working set by compaction, so later steps skip th
 from __future__ import annotations
 
 import math
+import os
+import sys
 
-import numpy as np
-from numba import njit
 
-from abcns.executor import DIVERGED, OK
+def _prefer_wide_vectors() -> None:
+    """On AVX-512 hosts, let LLVM use 512-bit vectors (numba's default CPU tuning prefers
+    256-bit ones): the RK4 loops are FMA-throughput bound, and measured 1.3-1.5x faster.
+
+    This sets numba's target features (``NUMBA_CPU_FEATURES``, i.e. ``config.CPU_FEATURES``)
+    for the whole process, so it only acts when numba has not compiled anything yet, and
+    never when ``NUMBA_CPU_FEATURES`` is already set. Opt out with
+    ``ABCNS_NUMBA_WIDE_VECTORS=0``. The results do not depend on the vector width (no
+    reassociation, no floating-point reductions across particles)."""
+    if os.environ.get("ABCNS_NUMBA_WIDE_VECTORS", "1") == "0" or os.environ.get("NUMBA_CPU_FEATURES"):
+        return
+    try:
+        import llvmlite.binding as ll
+
+        features = ll.get_host_cpu_features().flatten()
+    except Exception:  # no feature map on this platform: keep numba's defaults
+        return
+    if "+avx512f" not in features.split(","):
+        return
+    wanted = features + ",-prefer-256-bit"
+    if "numba" not in sys.modules:
+        os.environ["NUMBA_CPU_FEATURES"] = wanted
+        return
+    from numba.core import config
+    from numba.core.registry import cpu_target
+
+    if config.CPU_FEATURES is None and "_toplevel_target_context" not in vars(cpu_target):
+        config.CPU_FEATURES = wanted
+
+
+_prefer_wide_vectors()
+
+import numpy as np  # noqa: E402
+from numba import njit  # noqa: E402
+
+from abcns.executor import DIVERGED, OK  # noqa: E402
 
 _FM = {"contract"}
 _BIG = 1.7976931348623157e308  # the largest finite double
