@@ -86,29 +86,35 @@ _JIT = {"cache": True, "fastmath": _FM, "error_model": "numpy"}
 @njit(**_JIT)
 def _account(w, n_state, acc_row, n_act, i, y, bound, obs, start, stop, scale, eps, want_traj, traj, idx, flag,
              dist, status):
-    # idx holds the particles' columns in the caller's arrays: dist, status and the
-    # flattened (n_samples, n_total) trajectory array traj
     """Check, record and score the outputs ``y[:n_act]`` of sample ``i``; returns how many
-    particles were retired (their ``flag`` is set, their result written)."""
+    particles were retired (``flag``: 1 rejected, 2 diverged; their results written).
+
+    ``idx`` holds the particles' columns in the caller's arrays: ``dist``, ``status`` and
+    the flattened ``(n_samples, n_total)`` trajectory array ``traj``. The finiteness test
+    is on ``|y| + |state[1]| + |state[last]|`` (one comparison, branch-free, vectorised):
+    a non-finite component, or components summing past the largest double, fail it."""
     acc = w[acc_row]
     x = w[0]
-    in_window = (not want_traj) and start <= i < stop
-    o = obs[i] if in_window else 0.0
+    r1 = w[1]
+    rl = w[n_state - 1]
     n_flag = 0
-    for j in range(n_act):
-        yj = y[j]
-        good = abs(x[j]) <= bound and abs(yj) <= _BIG
-        for r in range(1, n_state):
-            good = good and abs(w[r, j]) <= _BIG
-        d = acc[j]
-        if in_window:
+    if (not want_traj) and start <= i < stop:
+        o = obs[i]
+        for j in range(n_act):
+            yj = y[j]
             e = yj - o
-            d = d + e * e
-            good = good and d <= _BIG
+            d = acc[j] + e * e
             acc[j] = d
-        code = 2 if not good else (1 if scale * d >= eps else 0)
-        flag[j] = code
-        n_flag += code != 0
+            good = (abs(x[j]) <= bound) & (abs(yj) + (abs(r1[j]) + abs(rl[j])) <= _BIG) & (d <= _BIG)
+            code = 2 * (1 - good) + good * (scale * d >= eps)
+            flag[j] = code
+            n_flag += code != 0
+    else:
+        for j in range(n_act):
+            good = (abs(x[j]) <= bound) & (abs(y[j]) + (abs(r1[j]) + abs(rl[j])) <= _BIG)
+            code = 2 * (1 - good) + good * (scale * acc[j] >= eps)
+            flag[j] = code
+            n_flag += code != 0
     if want_traj:
         row = i * dist.shape[0]
         for j in range(n_act):
