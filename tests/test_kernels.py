@@ -311,3 +311,33 @@ def test_evaluator_uses_in_kernel_nmse_with_early_rejection():
     np.testing.assert_array_equal(fast.distances < eps, generic.distances < eps)
     np.testing.assert_allclose(slow.distances, generic.distances, rtol=1e-9)
     assert 0 < np.count_nonzero(fast.distances < eps) < 64
+
+
+# ---------------------------------------------------------------- build properties
+
+
+def test_kernels_are_cached_and_serial():
+    from worker import kernels
+
+    for name in ("duffing_run", "bouc_wen_run", "linear_run", "zoh_coefficients", "_duffing_steps",
+                 "_bouc_wen_steps_2", "_account"):
+        dispatcher = getattr(kernels, name)
+        assert not dispatcher.targetoptions.get("parallel", False)
+        assert type(dispatcher._cache).__name__ != "NullCache"
+        assert dispatcher.targetoptions.get("fastmath") in (None, {"contract"})
+
+
+def test_backend_and_window_validation():
+    from abcns.priors import SpecError
+
+    f = np.random.default_rng(0).standard_normal(50)
+    with pytest.raises(SpecError):
+        Duffing(f, 0.01, backend="fortran")
+    sim = Duffing(f, 0.01)
+    assert sim.config()["backend"] == "numba" and Linear(f, 0.01).config()["backend"] == "numba"
+    p = np.array([[1.0, 1.0, 100.0, 0.0, 0.0, 0.0]])
+    for window in ((0, 51), (10, 11), (-1, 20)):
+        with pytest.raises(ValueError):
+            sim.distance_nmse(p, f, *window)
+    with pytest.raises(ValueError):
+        sim.distance_nmse(p, np.zeros(50), 0, 50)  # constant observed: NMSE undefined
