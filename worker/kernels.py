@@ -42,10 +42,11 @@ def _prefer_wide_vectors() -> None:
 
     This sets numba's target features (``NUMBA_CPU_FEATURES``, i.e. ``config.CPU_FEATURES``)
     for the whole process, so it only acts when numba has not compiled anything yet, and
-    never when ``NUMBA_CPU_FEATURES`` is already set. Opt out with
+    never when ``NUMBA_CPU_FEATURES`` is set or ``NUMBA_ENABLE_AVX=0``. Opt out with
     ``ABCNS_NUMBA_WIDE_VECTORS=0``. The results do not depend on the vector width (no
     reassociation, no floating-point reductions across particles)."""
-    if os.environ.get("ABCNS_NUMBA_WIDE_VECTORS", "1") == "0" or os.environ.get("NUMBA_CPU_FEATURES"):
+    if (os.environ.get("ABCNS_NUMBA_WIDE_VECTORS", "1") == "0" or os.environ.get("NUMBA_CPU_FEATURES")
+            or os.environ.get("NUMBA_ENABLE_AVX") == "0"):
         return
     try:
         import llvmlite.binding as ll
