@@ -5,7 +5,9 @@ Run: ``python benchmarks/simulators.py [--repeats N] [--skip-numpy] [--skip-comp
 One thread (NUMBA_NUM_THREADS=1; the kernels are not parallel anyway), batch 1000, best of
 ``--repeats`` runs (the machine may be shared: the best run is the least disturbed one).
 Figures are for the in-kernel NMSE path (what the evaluator uses; epsilon = inf, so no
-early rejection) and for the full-trajectory path.
+early rejection) and for the full-trajectory path. On AVX-512 hosts the kernels use 512-bit
+vectors (see ``worker.kernels._prefer_wide_vectors``); ``ABCNS_NUMBA_WIDE_VECTORS=0``
+gives numba's default 256-bit code for comparison.
 
 Share of the floating-point ceiling: flops per simulation (counted from the kernels' source,
 an FMA = 2 flops, abs/compare = 0) times simulations per second, over ``CEILING`` = 57
@@ -77,6 +79,12 @@ def setups(rng: np.random.Generator):
     yield "linear", "500 samples, exact ZOH", Linear, dict(force=f, dt=0.01), lin, flops_linear(500), 1_000_000
 
 
+def _timed(fn, *args) -> float:
+    t = time.perf_counter()
+    fn(*args)
+    return time.perf_counter() - t
+
+
 def best_time(fn, repeats: int) -> float:
     fn()  # warm up (compile or load from cache)
     best = np.inf
@@ -140,11 +148,11 @@ def main() -> None:
         print(f"  numba, trajectories   : {rate:12,.0f} sims/s/core  ({rate * flops / CEILING:6.1%} of ceiling)")
         if not args.skip_numpy:
             ref = cls(**kwargs, backend="numpy")
-            t0 = time.perf_counter()
-            ref.simulate(params)
-            rate = BATCH / (time.perf_counter() - t0)
+            ref.simulate(params[:2])  # warm up (lazy imports)
+            runs = 3 if name == "linear" else 1
+            rate = BATCH / min(_timed(ref.simulate, params) for _ in range(runs))
             print(f"  numpy reference       : {rate:12,.0f} sims/s/core  ({rate * flops / CEILING:6.1%} of ceiling; "
-                  "one run)")
+                  f"best of {runs})")
     if not args.skip_compile:
         cold, cached = compile_times()
         print(f"\nnumba compile (all kernels, both modes; fresh NUMBA_CACHE_DIR in a subprocess): "
