@@ -8,12 +8,19 @@ by the distance; rows that are not OK get distance +inf.
 ``job_evaluator(description, arrays)`` builds the same from a JSON-able job description
 (the spec's models, distance and data settings) and the data arrays; it is what a Dask
 worker runs, once per worker and job (:func:`evaluate_on_worker` caches it).
+
+When the distance is an :class:`abcns.distances.NMSE` and the simulator offers
+``distance_nmse`` (the built-in oscillators), the NMSE is computed inside the simulator
+(no trajectory array) with early rejection at the batch's epsilon: a particle whose partial
+NMSE reaches epsilon stops and reports that partial NMSE (>= epsilon, so it is rejected as
+it would have been). Other distances take the generic path.
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Sequence
+from functools import partial
 
 import numpy as np
 
@@ -39,16 +46,21 @@ def check_model(model: Model, simulator, where: str) -> None:
 
 
 def model_function(model: Model, simulator, distance: Distance) -> SimulateDistance:
+    """``f(theta, rng, epsilon=inf) -> (distances, status)`` for one model."""
     names = tuple(simulator.parameter_names)
     free = [names.index(p) for p in model.priors]
     const = {**simulator.defaults, **model.fixed}
     const_cols = [names.index(p) for p in const if p in names]
     const_vals = np.array([const[names[j]] for j in const_cols])
+    fast = isinstance(distance, NMSE) and callable(getattr(simulator, "distance_nmse", None))
 
-    def simulate_distance(theta: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    def simulate_distance(theta: np.ndarray, rng: np.random.Generator,
+                          epsilon: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         full = np.empty((theta.shape[0], len(names)))
         full[:, free] = theta
         full[:, const_cols] = const_vals
+        if fast:
+            return simulator.distance_nmse(full, distance.observed, distance.start, distance.stop, epsilon)
         out = simulator.simulate(full, rng)
         d = np.full(theta.shape[0], np.inf)
         ok = out.status == OK
@@ -59,7 +71,9 @@ def model_function(model: Model, simulator, distance: Distance) -> SimulateDista
     return simulate_distance
 
 
-def evaluator(models: Sequence[Model], simulators: Sequence, distance: Distance) -> Evaluate:
+def evaluator(models: Sequence[Model], simulators: Sequence, distance: Distance,
+              early_rejection: bool = True) -> Evaluate:
+    """The batch evaluator; ``early_rejection`` passes each batch's epsilon to the simulators."""
     if len(models) != len(simulators):
         raise ValueError(f"{len(models)} models but {len(simulators)} simulators")
     n_observed = int(np.size(distance.observed))
@@ -71,7 +85,13 @@ def evaluator(models: Sequence[Model], simulators: Sequence, distance: Distance)
                 f"has {n_observed} samples but model {model.name!r} simulates {sim.n_samples} "
                 "(input and observed records must have the same length)",
             )
-    return per_model([model_function(m, s, distance) for m, s in zip(models, simulators)])
+    functions = [model_function(m, s, distance) for m, s in zip(models, simulators)]
+
+    def evaluate(batch: Batch) -> Evaluated:
+        epsilon = float(batch.epsilon) if early_rejection else np.inf
+        return per_model([partial(f, epsilon=epsilon) for f in functions])(batch)
+
+    return evaluate
 
 
 def _model(desc: dict, where: str) -> Model:

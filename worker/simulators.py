@@ -15,6 +15,16 @@ force sample (output[0] is the initial state, output[i + 1] the state after step
 Integration is classical fixed-step RK4 with ``substeps`` steps per sample (the authors'
 demo uses 1). A row whose state leaves ``state_bound`` or stops being finite is flagged
 DIVERGED and frozen at zero, so no overflow spreads and nothing garbage is returned.
+
+Backends. ``backend="numba"`` (the default) runs the compiled kernels of
+:mod:`worker.kernels`; ``backend="numpy"`` keeps the vectorised numpy code below as the
+reference. The oscillators also offer ``distance_nmse(params, observed, start, stop,
+epsilon=inf) -> (distances, status)``: the NMSE of :class:`abcns.distances.NMSE`
+accumulated inside the kernel (no ``(n, n_samples)`` array), with early rejection of the
+particles whose partial NMSE reaches ``epsilon`` (status OK, distance = that partial NMSE,
+which is ``>= epsilon``, so the accept/reject decision is unchanged). With the numba
+backend a row whose squared error overflows is DIVERGED (numpy: an OK row with distance
++inf, which the executor turns into FAILED).
 """
 
 from __future__ import annotations
@@ -30,6 +40,8 @@ from abcns.executor import DIVERGED, OK
 from abcns.priors import SpecError
 
 OUTPUTS = ("displacement", "velocity", "acceleration")
+BACKENDS = ("numba", "numpy")
+_BIG = float(np.finfo(float).max)
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,6 +75,49 @@ def _output(output: str) -> str:
     return output
 
 
+def _backend(backend: str) -> str:
+    if backend not in BACKENDS:
+        raise SpecError("integrator.backend", f"must be one of {BACKENDS}, got {backend!r}")
+    return backend
+
+
+def _kernels():
+    """The numba kernels, imported on first use (numba's import is slow)."""
+    from worker import kernels
+
+    return kernels
+
+
+def _nmse_scale(observed: np.ndarray, start: int, stop: int, n_samples: int) -> tuple[np.ndarray, float]:
+    """Validate the observed record and window like :class:`NMSE`; return it and the scale."""
+    observed = np.ascontiguousarray(observed, dtype=float)
+    if observed.ndim != 1:
+        raise ValueError(f"observed must be 1-d, got shape {observed.shape}")
+    start, stop = int(start), int(stop)
+    if not 0 <= start < stop <= min(observed.size, n_samples) or stop - start < 2:
+        raise ValueError(f"window [{start}, {stop}) does not fit {observed.size} observed and {n_samples} "
+                         "simulated samples (or has fewer than 2 samples)")
+    segment = observed[start:stop]
+    if not np.all(np.isfinite(segment)):
+        raise ValueError("observed has non-finite values in the window")
+    variance = float(np.var(segment, ddof=1))
+    if not variance > 0.0:
+        raise ValueError("observed is constant on the window; the NMSE is undefined")
+    return observed, 100.0 / (segment.size * variance)
+
+
+def _numpy_nmse(simulator, params, observed, start, stop) -> tuple[np.ndarray, np.ndarray]:
+    """The reference ``distance_nmse``: simulate, then :class:`NMSE`."""
+    from abcns.distances import NMSE
+
+    out = simulator.simulate(params)
+    d = np.full(out.status.shape[0], np.inf)
+    ok = out.status == OK
+    if ok.any():
+        d[ok] = NMSE(observed, (start, stop))(out.values[ok])
+    return d, out.status
+
+
 class _Oscillator:
     """Shared ZOH-RK4 loop. Subclasses define the state and its derivative."""
 
@@ -72,12 +127,13 @@ class _Oscillator:
     n_state = 2
 
     def __init__(self, force=None, dt: float = 0.01, substeps: int = 1, output: str = "displacement",
-                 state_bound: float = np.inf):
+                 state_bound: float = np.inf, backend: str = "numba"):
         self.force = _force(force, dt)
         self.dt = float(dt)
         self.substeps = _substeps(substeps)
         self.output = _output(output)
         self.state_bound = float(state_bound)
+        self.backend = _backend(backend)
 
     @property
     def n_samples(self) -> int:
@@ -85,7 +141,52 @@ class _Oscillator:
 
     def config(self) -> dict:
         return {"simulator": self.name, "substeps": self.substeps, "output": self.output,
-                "dt": self.dt, "n_samples": int(self.force.size), "state_bound": self.state_bound}
+                "dt": self.dt, "n_samples": int(self.force.size), "state_bound": self.state_bound,
+                "backend": self.backend}
+
+    # -- numba path: subclasses define the work rows and the kernel call
+    def _work(self, params: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, tuple]]:
+        """[(rows of the batch, work array, extra kernel arguments)], one per kernel call."""
+        raise NotImplementedError
+
+    def _call(self, w: np.ndarray, extra: tuple, *args) -> None:
+        raise NotImplementedError
+
+    #: particles per kernel call: the work array of a block stays in the L1 cache
+    block = 256
+
+    def _run(self, params: np.ndarray, observed=None, start: int = 0, stop: int = 0, scale: float = 1.0,
+             epsilon: float = np.inf):
+        """Trajectories (observed None) or in-kernel NMSE; returns (values or distances, status)."""
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        n, ns = params.shape[0], self.force.size
+        kind = _kernels().OUTPUT_CODES[self.output]
+        bound = min(self.state_bound, _BIG) if self.state_bound == self.state_bound else _BIG
+        want_traj = observed is None
+        obs = np.zeros(1) if want_traj else observed
+        traj = np.zeros(ns * n if want_traj else 1)
+        dist = np.full(n, np.inf)
+        status = np.zeros(n, dtype=np.int8)
+        for rows, w, extra in self._work(params):
+            cols = np.arange(n) if rows is None else rows.astype(np.int64)
+            for b0 in range(0, cols.size, self.block):
+                wb = np.ascontiguousarray(w[:, b0 : b0 + self.block])
+                self._call(wb, extra, kind, bound, obs, int(start), int(stop), float(scale), float(epsilon),
+                           cols[b0 : b0 + self.block], want_traj, traj, dist, status)
+        if want_traj:
+            return traj.reshape(ns, n).T, status
+        return dist, status
+
+    def distance_nmse(self, params: np.ndarray, observed: np.ndarray, start: int, stop: int,
+                      epsilon: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        """The NMSE of :class:`abcns.distances.NMSE` on ``[start, stop)`` without building the
+        trajectories; particles whose partial NMSE reaches ``epsilon`` stop early (status OK,
+        distance >= epsilon). Returns ``(distances (n,), status (n,) int8)``; not-OK rows
+        have distance +inf."""
+        observed, scale = _nmse_scale(observed, start, stop, self.force.size)
+        if self.backend == "numpy":
+            return _numpy_nmse(self, params, observed, start, stop)
+        return self._run(params, observed, start, stop, scale, epsilon)
 
     def derivative(self, p: tuple, state: list[np.ndarray], f: float) -> list[np.ndarray]:
         raise NotImplementedError
@@ -101,6 +202,13 @@ class _Oscillator:
         return self.derivative(p, state, f)[1]
 
     def simulate(self, params: np.ndarray, rng: np.random.Generator | None = None) -> SimOutput:
+        """Outputs ``(n, n_samples)`` (with numba: a transposed, Fortran-ordered view) and status."""
+        if self.backend == "numba":
+            values, status = self._run(params)
+            return SimOutput(values, status)
+        return self._simulate_numpy(params)
+
+    def _simulate_numpy(self, params: np.ndarray) -> SimOutput:
         params = np.atleast_2d(np.asarray(params, dtype=float))
         n = params.shape[0]
         p = self.unpack(params)
@@ -114,11 +222,11 @@ class _Oscillator:
                 f = force[i]
                 for _ in range(self.substeps):
                     k1 = self.derivative(p, state, f)
-                    k2 = self.derivative(p, [s + 0.5 * h * d for s, d in zip(state, k1)], f)
-                    k3 = self.derivative(p, [s + 0.5 * h * d for s, d in zip(state, k2)], f)
-                    k4 = self.derivative(p, [s + h * d for s, d in zip(state, k3)], f)
+                    k2 = self.derivative(p, [s + 0.5 * h * d for s, d in zip(state, k1, strict=True)], f)
+                    k3 = self.derivative(p, [s + 0.5 * h * d for s, d in zip(state, k2, strict=True)], f)
+                    k4 = self.derivative(p, [s + h * d for s, d in zip(state, k3, strict=True)], f)
                     state = [s + (h / 6.0) * (a + 2.0 * b + 2.0 * c + d)
-                             for s, a, b, c, d in zip(state, k1, k2, k3, k4)]
+                             for s, a, b, c, d in zip(state, k1, k2, k3, k4, strict=True)]
                 # the divergence guard: non-finite or out of bound, then frozen at rest
                 now = ~np.isfinite(state[0]) | ~np.isfinite(state[1]) | (np.abs(state[0]) > self.state_bound)
                 if now.any():
@@ -139,6 +247,19 @@ class Duffing(_Oscillator):
     name = "duffing"
     parameter_names = ("m", "c", "k", "k2", "k3", "k5")
     defaults = {"k2": 0.0}
+
+    def _work(self, params):
+        K = _kernels()
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        w = np.zeros((K.DUFFING_ROWS, params.shape[0]))
+        with np.errstate(all="ignore"):
+            im = 1.0 / params[:, 0]
+            w[3] = im
+            w[4:9] = params[:, 1:6].T * im
+        return [(None, w, ())]
+
+    def _call(self, w, extra, kind, *args):
+        _kernels().duffing_run(w, self.force, self.dt / self.substeps, self.substeps, kind, *args)
 
     def derivative(self, p, state, f):
         m, c, k, k2, k3, k5 = p
@@ -168,6 +289,28 @@ class BoucWen(_Oscillator):
             raise SpecError("fixed.n", f"Bouc-Wen n must be an integer in 1..4, got {np.unique(n)}")
         return tuple(params[:, j] for j in range(6)) + (n.astype(np.int64),)
 
+    def _work(self, params):
+        K = _kernels()
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        n_exp = self.unpack(params)[6]
+        groups = np.unique(n_exp)
+        parts = []
+        for g in groups:
+            rows = None if groups.size == 1 else np.flatnonzero(n_exp == g)
+            p = params if rows is None else params[rows]
+            w = np.zeros((K.BOUC_WEN_ROWS, p.shape[0]))
+            with np.errstate(all="ignore"):
+                im = 1.0 / p[:, 0]
+                w[4] = im
+                w[5] = p[:, 1] * im
+                w[6] = p[:, 2] * im
+            w[7:10] = p[:, 3:6].T
+            parts.append((rows, w, (int(g),)))
+        return parts
+
+    def _call(self, w, extra, kind, *args):
+        _kernels().bouc_wen_run(w, extra[0], self.force, self.dt / self.substeps, self.substeps, kind, *args)
+
     def derivative(self, p, state, f):
         m, c, k, alpha, beta, A, n = p
         y, v, z = state
@@ -187,11 +330,12 @@ class Linear:
     defaults: dict[str, float] = {}
 
     def __init__(self, force=None, dt: float = 0.01, output: str = "displacement", state_bound: float = np.inf,
-                 substeps: int | None = None):
+                 substeps: int | None = None, backend: str = "numba"):
         self.force = _force(force, dt)
         self.dt = float(dt)
         self.output = _output(output)
         self.state_bound = float(state_bound)
+        self.backend = _backend(backend)
 
     @property
     def n_samples(self) -> int:
@@ -199,19 +343,44 @@ class Linear:
 
     def config(self) -> dict:
         return {"simulator": self.name, "method": "exact-zoh", "output": self.output, "dt": self.dt,
-                "n_samples": int(self.force.size), "state_bound": self.state_bound}
+                "n_samples": int(self.force.size), "state_bound": self.state_bound, "backend": self.backend}
+
+    def _work(self, params):
+        K = _kernels()
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        w = np.zeros((K.LINEAR_ROWS, params.shape[0]))
+        K.zoh_coefficients(np.ascontiguousarray(params[:, 0]), np.ascontiguousarray(params[:, 1]),
+                           np.ascontiguousarray(params[:, 2]), self.dt, w)
+        return [(None, w, ())]
+
+    def _call(self, w, extra, kind, *args):
+        _kernels().linear_run(w, self.force, kind, *args)
+
+    block = _Oscillator.block
+    _run = _Oscillator._run
+    distance_nmse = _Oscillator.distance_nmse
 
     def simulate(self, params: np.ndarray, rng: np.random.Generator | None = None) -> SimOutput:
+        """Outputs ``(n, n_samples)`` (with numba: a transposed, Fortran-ordered view) and status."""
+        if self.backend == "numba":
+            values, status = self._run(params)
+            return SimOutput(values, status)
+        return self._simulate_numpy(params)
+
+    def _simulate_numpy(self, params: np.ndarray) -> SimOutput:
         params = np.atleast_2d(np.asarray(params, dtype=float))
         n = params.shape[0]
         m, c, k = params[:, 0], params[:, 1], params[:, 2]
         aug = np.zeros((n, 3, 3))
         aug[:, 0, 1] = 1.0
-        aug[:, 1, 0] = -k / m
-        aug[:, 1, 1] = -c / m
-        aug[:, 1, 2] = 1.0 / m
         with np.errstate(all="ignore"):
+            aug[:, 1, 0] = -k / m
+            aug[:, 1, 1] = -c / m
+            aug[:, 1, 2] = 1.0 / m
+            finite = np.all(np.isfinite(aug.reshape(n, -1)), axis=1)
+            aug[~finite] = 0.0  # expm of a non-finite matrix fails; these rows are DIVERGED below
             e = scipy.linalg.expm(aug * self.dt) if n else aug
+            e[~finite] = np.nan
         p11, p12, p21, p22, g1, g2 = e[:, 0, 0], e[:, 0, 1], e[:, 1, 0], e[:, 1, 1], e[:, 0, 2], e[:, 1, 2]
         x, v = np.zeros(n), np.zeros(n)
         out = np.empty((n, self.force.size))
