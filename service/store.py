@@ -23,15 +23,20 @@ counter last: a reader that trusts the counter never sees half a population, and
 crash left beyond the counter are ignored and overwritten by the next append. zarr's local
 store writes each file atomically (temporary file, then rename).
 
-Written for one writer (the job's runner) and any number of readers, in any process:
-every call re-reads the metadata from disk, so a ``Store`` object never goes stale.
+Written for one writer of populations (the job's runner) and any number of readers, in any
+process: every call re-reads the metadata from disk, so a ``Store`` object never goes stale.
+Attribute updates (counter, status) are read-modify-writes of the group metadata done under
+an exclusive ``flock`` on the store's directory (POSIX), so a status set by the scheduler
+while the runner appends is not lost.
 """
 
 from __future__ import annotations
 
 import datetime
+import fcntl
 import hashlib
 import json
+import os
 import platform
 from collections.abc import Mapping
 from pathlib import Path
@@ -236,7 +241,7 @@ class Store:
         update = _jsonable({"status": status, "stop_reason": None if reason is None else str(reason), **extra},
                            "run information")
         update["updated_at"] = _now()
-        self._group("r+").attrs.update(update)
+        self._update_attrs(update)
 
     # ------------------------------------------------------------------ writing
 
@@ -251,11 +256,21 @@ class Store:
             arr = group[name]
             arr.resize((n + 1, *arr.shape[1:]))  # exactly n + 1 rows: a row a crash left at n is overwritten
             arr[n] = value
-        self._commit(group, n + 1)
+        self._commit(n + 1)
 
-    def _commit(self, group: zarr.Group, n_populations: int) -> None:
+    def _commit(self, n_populations: int) -> None:
         """Bump the counter: the population is part of the store from here on."""
-        group.attrs.update({"n_populations": n_populations, "updated_at": _now()})
+        self._update_attrs({"n_populations": n_populations, "updated_at": _now()})
+
+    def _update_attrs(self, update: dict[str, Any]) -> None:
+        """Read-modify-write of the group attributes under an exclusive lock, so a status
+        change from another process and a counter bump cannot overwrite each other."""
+        fd = os.open(self.path, os.O_RDONLY)  # flock(2) on the store's directory: no extra file in the hierarchy
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            self._group("r+").attrs.update(update)
+        finally:
+            os.close(fd)  # releases the lock
 
     def _rows(self, pop: Population, n_simulations_total: int) -> dict[str, Any]:
         """The new row of every growing array (validated before anything is written)."""

@@ -152,7 +152,7 @@ def test_crash_before_counter_leaves_a_store_that_reads_and_appends_cleanly(refe
     for pop, total in zip(pops[:2], totals[:2]):
         store.append(pop, n_simulations_total=total)
 
-    def crash(self, group, n):
+    def crash(self, n):
         raise Crash
 
     with monkeypatch.context() as m:  # every array written, counter not bumped
@@ -333,3 +333,20 @@ def test_data_hash():
     assert data_hash(x[::2]) == data_hash(np.ascontiguousarray(x[::2]))
     with pytest.raises(TypeError):
         data_hash(np.array([None]))
+
+
+def test_status_set_by_another_process_during_an_append_is_kept(reference, tmp_path, monkeypatch):
+    _, pops, totals = reference
+    models, _ = two_models()
+    writer = new_store(tmp_path / "s.zarr", models)
+    commit = Store._commit
+
+    def late(self, n):  # the scheduler cancels between the data and the counter
+        Store.open(self.path).set_status("cancelled", stop_reason="cancelled")
+        commit(self, n)
+
+    monkeypatch.setattr(Store, "_commit", late)
+    writer.append(pops[0], n_simulations_total=totals[0])
+    attrs = Store.open(writer.path).attrs
+    assert attrs["status"] == "cancelled" and attrs["n_populations"] == 1
+    assert xr.open_zarr(writer.path, consolidated=False).sizes["population"] == 1
