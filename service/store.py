@@ -38,12 +38,15 @@ import hashlib
 import json
 import os
 import platform
+import time
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import scipy
+import xarray as xr
 import zarr
 
 import abcns
@@ -51,6 +54,10 @@ from abcns.ellipsoid import Ellipsoid, from_matrix
 from abcns.result import Population
 
 FORMAT_VERSION = 1
+# zarr writes each metadata file through a temporary "zarr.<uuid>.partial" next to it; a
+# reader listing the group while the writer updates the attributes meets that file and warns.
+PARTIAL_WARNING = r"Object at zarr\.[0-9a-f]+\.partial is not recognized as a component of a Zarr hierarchy"
+warnings.filterwarnings("ignore", message=PARTIAL_WARNING, category=zarr.errors.ZarrUserWarning)
 STATUSES = ("running", "finished", "failed", "cancelled")
 NOTE_CODES = {"": 0, "repaired": 1, "fallback": 2, "box": 3}  # -1: no ellipsoid (dead model)
 _NOTES = {code: note for note, code in NOTE_CODES.items()}
@@ -252,10 +259,13 @@ class Store:
             raise StoreError(f"population {pop.t} cannot follow population {n} in {self.path}")
         rows = self._rows(pop, int(n_simulations_total))
         group = self._group("r+")
+        arrays = {name: group[name] for name in rows}
+        # every array resized first, in one short loop (the population dimension disagrees
+        # between arrays only during it), to exactly n + 1 rows: a row a crash left is overwritten
+        for arr in arrays.values():
+            arr.resize((n + 1, *arr.shape[1:]))
         for name, value in rows.items():
-            arr = group[name]
-            arr.resize((n + 1, *arr.shape[1:]))  # exactly n + 1 rows: a row a crash left at n is overwritten
-            arr[n] = value
+            arrays[name][n] = value
         self._commit(n + 1)
 
     def _commit(self, n_populations: int) -> None:
@@ -375,6 +385,23 @@ class Store:
             raise IndexError(f"population {t} is not in {self.path} (it holds populations 1..{n})")
         a = self._read(slice(t - 1, t))
         return self._population(a, 0)
+
+    def dataset(self, retries: int = 20) -> xr.Dataset:
+        """The store as an xarray Dataset (lazy), cut to the complete populations.
+
+        ``xarray.open_zarr(path, consolidated=False)`` reads the store directly; this also
+        hides a row being written (or left by a crash) and retries while an append is
+        resizing the arrays."""
+        for attempt in range(retries + 1):
+            n = self.n_populations  # before the data: rows below the counter are complete
+            try:
+                ds = xr.open_zarr(str(self.path), consolidated=False)
+                return ds.isel(population=slice(0, n))
+            except ValueError:  # conflicting sizes of "population" during a resize
+                if attempt == retries:
+                    raise
+                time.sleep(0.05)
+        raise AssertionError("unreachable")
 
     def run_state(self) -> dict[str, Any]:
         """What a resume needs: the counters after the last complete population."""

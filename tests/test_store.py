@@ -1,6 +1,8 @@
 """The zarr result store: exact round trip, resume from a store, crash-safe appends,
 xarray while a job runs, attributes and errors."""
 
+import threading
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -13,7 +15,7 @@ import abcns
 from abcns import NSSettings, Population, SerialExecutor, StopReason, StopRules
 from abcns import ellipsoid as ell
 from abcns.filling import Budget
-from service.store import FORMAT_VERSION, NOTE_CODES, Store, StoreError, StoreNotFound, data_hash
+from service.store import FORMAT_VERSION, NOTE_CODES, PARTIAL_WARNING, Store, StoreError, StoreNotFound, data_hash
 from tests.closed_form import two_models
 
 SETTINGS = NSSettings(particles=200, epsilon_initial=2.0, batch_size=50)
@@ -162,6 +164,7 @@ def test_crash_before_counter_leaves_a_store_that_reads_and_appends_cleanly(refe
     reopened = Store.open(store.path)
     assert reopened.n_populations == 2
     assert xr.open_zarr(store.path, consolidated=False).sizes["population"] == 3  # the extra row is there
+    assert reopened.dataset().sizes["population"] == 2  # and hidden by the counter
     assert len(reopened.populations()) == 2 and reopened.run_state()["n_simulations_total"] == totals[1]
     for a, b in zip(pops, reopened.populations()):
         assert_same_population(a, b)
@@ -207,6 +210,7 @@ def test_xarray_reads_the_store_between_appends(reference, tmp_path):
         assert ds["ellipsoid_matrix"].dims == ("population", "model", "parameter", "parameter_b")
         assert ds["model_probability"].dims == ("population", "model")
         assert ds["epsilon"].dims == ("population",)
+        assert store.dataset().identical(ds)
         row = ds.sel(population=pop.t)
         assert same_bits(row["model"].values, pop.models)
         assert same_bits(row["theta"].values, pop.theta)
@@ -350,3 +354,37 @@ def test_status_set_by_another_process_during_an_append_is_kept(reference, tmp_p
     attrs = Store.open(writer.path).attrs
     assert attrs["status"] == "cancelled" and attrs["n_populations"] == 1
     assert xr.open_zarr(writer.path, consolidated=False).sizes["population"] == 1
+
+
+@pytest.mark.filterwarnings(f"ignore:{PARTIAL_WARNING}:zarr.errors.ZarrUserWarning")
+def test_a_reader_polling_during_appends_sees_only_complete_populations(reference, tmp_path):
+    _, pops, totals = reference
+    models, _ = two_models()
+    store = new_store(tmp_path / "r.zarr", models)
+    seen, errors, done = [], [], threading.Event()
+
+    def poll():
+        reader = Store.open(store.path)
+        while not done.is_set():
+            try:
+                ds = reader.dataset()
+                n = ds.sizes["population"]
+                assert ds["population"].values.tolist() == list(range(1, n + 1))
+                assert not np.isnan(ds["distance"].values).any() and (ds["model"].values >= 0).all()
+                assert (ds["n_simulations_total"].values == totals[:n]).all()
+                seen.append(n)
+            except Exception as err:  # reported below
+                errors.append(err)
+                return
+
+    thread = threading.Thread(target=poll)
+    thread.start()
+    try:
+        for pop, total in zip(pops, totals):
+            store.append(pop, n_simulations_total=total)
+            time.sleep(0.05)
+    finally:
+        done.set()
+        thread.join()
+    assert not errors, errors
+    assert seen and seen == sorted(seen) and seen[-1] <= 5
