@@ -151,12 +151,13 @@ class Store:
             raise StoreError(f"n_particles must be >= 1, got {n_particles}")
         if hasattr(spec, "model_dump"):  # a pydantic JobSpec
             spec = spec.model_dump(mode="json")  # type: ignore[union-attr]
+        spec = _jsonable(dict(spec), "spec")  # checked before anything is written
         n, m, d = int(n_particles), len(model_names), max(len(p) for p in parameter_names)
 
         group = zarr.open_group(str(path), mode="w-", zarr_format=3)
 
-        def grow(name, tail, dtype, fill, dims, chunk_tail=None):
-            group.create_array(name, shape=(0, *tail), chunks=(1, *(chunk_tail or tail)), dtype=dtype,
+        def grow(name, tail, dtype, fill, dims):
+            group.create_array(name, shape=(0, *tail), chunks=(1, *tail), dtype=dtype,
                                fill_value=fill, dimension_names=[_P, *dims])
 
         grow("population", (), "int32", 0, [])
@@ -191,7 +192,7 @@ class Store:
         group["model_probability"].attrs["coordinates"] = "model_name"
 
         attrs = {
-            "spec": _jsonable(dict(spec), "spec"),
+            "spec": spec,
             "seed": int(seed),
             "versions": _versions(),
             "data_hash": str(data_hash),

@@ -324,6 +324,9 @@ def test_open_and_create_errors(tmp_path):
     with pytest.raises(StoreError, match="already exists"):
         new_store(tmp_path / "file", models)
     assert (tmp_path / "file").read_text() == "x"
+    with pytest.raises(StoreError, match="spec must be JSON-able"):
+        new_store(tmp_path / "bad.zarr", models, spec={"x": float("nan")})
+    assert not (tmp_path / "bad.zarr").exists()
 
 
 def test_data_hash():
