@@ -80,11 +80,11 @@ def summary_cmd(
 ) -> None:
     """Print the summary of a job's store (finished or running)."""
     from service.runner import summary
-    from service.store import Store
+    from service.store import Store, StoreError
 
     try:
         s = summary(Store.open(store))
-    except (FileNotFoundError, ValueError) as err:
+    except StoreError as err:
         _fail(str(err))
     if as_json:
         typer.echo(json.dumps(s, indent=2))
