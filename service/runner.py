@@ -1,0 +1,144 @@
+"""The runner: one job, driven over a Dask client, every population into its zarr store.
+
+``run_job`` validates the spec, opens or creates the job's store, scatters the data to the
+workers once, and drives the abcns population iterator with a :class:`DaskExecutor`,
+appending each complete population to the store (data first, counter last). Run on a store
+of an unfinished job it resumes from the last complete population: the random stream is
+keyed by (seed, population, batch), so the end result equals an uninterrupted run's.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from distributed import Client
+
+from abcns import Model, Population, Result, SpecError, StopReason
+from abcns.filling import Budget
+from abcns.run import algorithm_name, iterate
+from service.dask_executor import DaskExecutor
+from service.spec import Job, JobSpec, build, description
+from service.store import Store, data_hash
+
+
+@dataclass
+class Progress:
+    """What a progress display needs after each population."""
+
+    population: Population
+    n_simulations_total: int
+    elapsed_s: float
+    simulations_per_s: float
+
+
+def job_key(spec: JobSpec, seed: int, dhash: str) -> str:
+    text = json.dumps({"spec": spec.model_dump(mode="json"), "seed": seed, "data": dhash}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def models_of(spec: dict) -> tuple[Model, ...]:
+    return tuple(Model(m["name"], m["priors"], m.get("fixed", {}), config={"simulator": m["simulator"]})
+                 for m in spec["models"])
+
+
+def result_from_store(store: Store) -> Result:
+    """The :class:`abcns.Result` of a store (finished or not)."""
+    a = store.attrs
+    spec = a["spec"]
+    pops = tuple(store.populations())
+    run = a.get("run", {})
+    reason = a.get("stop_reason")
+    return Result(
+        algorithm=a.get("algorithm", "abc-ns"),
+        models=models_of(spec),
+        populations=pops,
+        stop_reason=StopReason(reason) if reason else StopReason.CANCELLED,
+        seed=int(a["seed"]),
+        settings={"sampler": spec.get("sampler", {}), "stop": spec.get("stop", {})},
+        epsilon_initial_source=run.get("epsilon_initial_source", ""),
+        n_simulations=int(run.get("n_simulations", store.run_state()["n_simulations_total"])),
+        n_pilot_simulations=int(run.get("n_pilot_simulations", 0)),
+        wall_time_s=float(run.get("wall_time_s", store.run_state()["elapsed_s"])),
+        weighted_posterior=a.get("algorithm") == "abc-smc",
+        notes=tuple(run.get("notes", ())),
+    )
+
+
+def summary(store: Store) -> dict:
+    out = result_from_store(store).summary() if store.n_populations else {}
+    out["status"] = store.attrs.get("status", "unknown")
+    out["stop_reason"] = store.attrs.get("stop_reason")
+    out["n_populations"] = store.n_populations
+    return out
+
+
+def run_job(
+    spec: JobSpec,
+    base_dir: Path | None,
+    store_path: Path,
+    client: Client,
+    *,
+    seed: int | None = None,
+    on_population: Callable[[Progress], None] | None = None,
+    cancel: Callable[[], bool] | None = None,
+) -> Result:
+    """Run (or resume) one job to its end; return its result."""
+    if seed is not None:
+        spec = spec.model_copy(update={"seed": seed})
+    job: Job = build(spec, base_dir)  # every check before anything runs
+    arrays = {"force": job.force, "observed": job.observed}
+    dhash = data_hash(*(a for a in (job.force, job.observed) if a is not None))
+    key = job_key(spec, job.seed, dhash)
+    spec_json = spec.model_dump(mode="json")
+    store_path = Path(store_path)
+    if store_path.exists() and any(store_path.iterdir()):
+        store = Store.open(store_path)
+        if store.attrs.get("job_key") != key:
+            raise SpecError("--out", f"{store_path} holds another job (different spec, seed or data); choose another --out")
+        if store.attrs.get("status") == "finished":
+            return result_from_store(store)
+    else:
+        store = Store.create(
+            store_path, spec=spec_json, seed=job.seed, model_names=[m.name for m in job.models],
+            parameter_names=[list(m.parameter_names) for m in job.models], n_particles=job.settings.particles,
+            data_hash=dhash, algorithm=algorithm_name(job.settings),
+        )
+    history = store.populations()
+    state = store.run_state()
+    budget = Budget(job.stop, cancel=cancel, n_simulations=int(state["n_simulations_total"]),
+                    elapsed_before_s=float(state["elapsed_s"]))
+    run_info = dict(store.attrs.get("run", {}))
+    store.set_status("running", job_key=key)
+    payload = client.scatter({"description": description(spec), "arrays": arrays}, broadcast=True, hash=False)
+    executor = DaskExecutor(client, key, payload)
+    gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget)
+    start, sims_start = time.monotonic(), budget.n_simulations
+    try:
+        while True:
+            try:
+                pop = next(gen)
+            except StopIteration as done:
+                end = done.value
+                break
+            store.append(pop, n_simulations_total=budget.n_simulations)
+            if pop.t == 1:
+                run_info["epsilon_initial_source"] = "given" if job.settings.epsilon_initial is not None else "pilot"
+                run_info["n_pilot_simulations"] = budget.n_simulations - pop.n_simulations
+                store.set_status("running", job_key=key, run=run_info)
+            if on_population is not None:
+                dt = time.monotonic() - start
+                on_population(Progress(pop, budget.n_simulations, budget.elapsed(),
+                                       (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0))
+    except BaseException as err:
+        store.set_status("failed", None, job_key=key, error=f"{type(err).__name__}: {err}")
+        raise
+    notes = list(run_info.get("notes", [])) + list(end.notes)
+    status = "cancelled" if end.reason is StopReason.CANCELLED else "finished"
+    run_info.update(n_simulations=budget.n_simulations, wall_time_s=budget.elapsed(), notes=notes)
+    store.set_status(status, end.reason.value, job_key=key, run=run_info)
+    return result_from_store(store)

@@ -1,0 +1,190 @@
+"""The runner on real Dask processes: determinism across worker counts, a worker killed
+mid-population, the CLI killed with SIGKILL and resumed, xarray reading a running store."""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+import yaml
+from distributed import Client, LocalCluster
+
+from service.runner import run_job
+from service.spec import parse
+from service.store import Store, StoreError
+
+pytestmark = pytest.mark.distributed
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+DEMO = ROOT.parent / "shared" / "data" / "abcns-reference-demo" / "demo_data.npz"
+
+
+def small_spec(tmp_path: Path, **stop) -> Path:
+    """The authors' demo, shortened: 500 particles, a few populations."""
+    raw = yaml.safe_load((ROOT / "examples" / "authors_demo" / "spec.yaml").read_text())
+    raw["data"]["input"] = f"{DEMO}:force"
+    raw["data"]["observed"] = f"{DEMO}:displacement"
+    raw["sampler"].update(particles=500, batch_size=100)
+    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": 6, **stop}
+    path = tmp_path / "spec.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+def run_local(spec_path: Path, out: Path, n_workers: int, on_population=None):
+    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        spec = parse(yaml.safe_load(spec_path.read_text()))
+        return run_job(spec, spec_path.parent, out, client, on_population=on_population)
+
+
+def assert_same_store(a: Path, b: Path):
+    sa, sb = Store.open(a), Store.open(b)
+    assert sa.n_populations == sb.n_populations > 0
+    for p, q in zip(sa.populations(), sb.populations()):
+        for name in ("models", "theta", "distances", "weights", "survivors"):
+            np.testing.assert_array_equal(getattr(p, name), getattr(q, name), err_msg=f"population {p.t} {name}")
+        assert (p.epsilon, p.epsilon_next, p.n_simulations, p.n_redraws) == (q.epsilon, q.epsilon_next,
+                                                                              q.n_simulations, q.n_redraws)
+    assert sa.attrs["stop_reason"] == sb.attrs["stop_reason"]
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """One undisturbed run on one worker: the result every other run must equal."""
+    tmp = tmp_path_factory.mktemp("ref")
+    spec = small_spec(tmp)
+    reads = []
+
+    def check_xarray(progress):  # a reader between populations sees every complete one
+        ds = xr.open_zarr(tmp / "ref.zarr", consolidated=False)
+        reads.append((progress.population.t, ds.sizes["population"], float(ds["epsilon"].values[-1])))
+
+    run_local(spec, tmp / "ref.zarr", 1, on_population=check_xarray)
+    return spec, tmp / "ref.zarr", reads
+
+
+def test_reference_run_is_readable_with_xarray_while_running(reference):
+    _, store, reads = reference
+    assert len(reads) == 6
+    eps = Store.open(store).populations()
+    for t, size, last_eps in reads:
+        assert size == t
+        assert last_eps == eps[t - 1].epsilon
+
+
+def test_two_workers_give_the_one_worker_result(reference, tmp_path):
+    spec, ref_store, _ = reference
+    run_local(spec, tmp_path / "two.zarr", 2)
+    assert_same_store(ref_store, tmp_path / "two.zarr")
+
+
+def test_a_worker_killed_mid_population_changes_nothing(reference, tmp_path):
+    spec, ref_store, _ = reference
+    killed = []
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        pids = client.run(os.getpid)
+
+        def on_population(progress):
+            if progress.population.t == 2 and not killed:
+                victim = sorted(pids.values())[0]
+
+                def kill():
+                    time.sleep(0.05)  # inside population 3
+                    os.kill(victim, signal.SIGKILL)
+                    killed.append(victim)
+
+                threading.Thread(target=kill, daemon=True).start()
+
+        run_job(parse(yaml.safe_load(spec.read_text())), spec.parent, tmp_path / "killed.zarr", client,
+                on_population=on_population)
+        assert killed
+        assert killed[0] not in client.run(os.getpid).values()  # it really died (the nanny started another)
+    assert_same_store(ref_store, tmp_path / "killed.zarr")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def stock_cluster(tmp_path):
+    """`dask scheduler` and two `dask worker` processes, started as a user would."""
+    port = free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--dashboard-address", ":0"], env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL, start_new_session=True)]
+    for _ in range(2):
+        procs.append(subprocess.Popen([BIN / "dask", "worker", addr, "--nthreads", "1", "--nworkers", "1",
+                                       "--no-dashboard", "--local-directory", str(tmp_path)], env=env,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True))
+    with Client(addr, timeout=30) as client:
+        client.wait_for_workers(2, timeout=60)
+    yield addr
+    for p in procs:
+        os.killpg(p.pid, signal.SIGTERM)
+    for p in procs:
+        try:
+            p.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+
+
+def test_cli_killed_with_sigkill_resumes_to_the_same_store(reference, tmp_path, stock_cluster):
+    spec, ref_store, _ = reference
+    out = tmp_path / "resumed.zarr"
+    cmd = [BIN / "abcns", "run", str(spec), "--out", str(out), "--scheduler", stock_cluster, "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        if out.exists():
+            try:
+                if Store.open(out).n_populations >= 3:
+                    break
+            except StoreError:  # still being created
+                pass
+        time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    interrupted = Store.open(out)
+    assert 3 <= interrupted.n_populations < 6, "the run was not interrupted mid-job"
+    assert interrupted.attrs["status"] != "finished"
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert_same_store(ref_store, out)  # same as one local worker: a remote cluster, 2 workers, a kill, a resume
+
+
+def test_cli_refuses_a_bad_spec_naming_the_field(tmp_path):
+    spec = small_spec(tmp_path)
+    raw = yaml.safe_load(spec.read_text())
+    raw["models"][1]["simulator"] = "nope"
+    spec.write_text(yaml.safe_dump(raw))
+    out = tmp_path / "never.zarr"
+    done = subprocess.run([BIN / "abcns", "run", str(spec), "--out", str(out)], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 2
+    assert "models[1].simulator" in done.stderr
+    assert not out.exists()
+
+
+def test_cli_summary_json(reference):
+    _, store, _ = reference
+    done = subprocess.run([BIN / "abcns", "summary", str(store), "--json"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    s = json.loads(done.stdout)
+    assert s["status"] == "finished" and s["stop_reason"] == "max_populations" and s["n_populations"] == 6
+    assert len(s["epsilon"]) == 6 and set(s["model_probabilities"]) == {"linear", "cubic"}
