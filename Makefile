@@ -14,7 +14,9 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m examples.authors_demo
+	rm -rf out/authors-demo.zarr
+	$(BIN)/abcns run examples/authors_demo/spec.yaml --out out/authors-demo.zarr --quiet
+	$(BIN)/abcns summary out/authors-demo.zarr
 
 test: $(STAMP)
 	$(BIN)/ruff check abcns worker service tests benchmarks examples
@@ -22,6 +24,8 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.engine
+	$(BIN)/python -m benchmarks.simulators
+	$(BIN)/python -m benchmarks.runner
 
 clean:
 	rm -rf $(VENV)

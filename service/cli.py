@@ -43,7 +43,7 @@ def run(
         _fail("give --scheduler or --workers, not both")
     try:
         job_spec, base = load(spec)
-        build(job_spec.model_copy(update={"seed": seed}) if seed is not None else job_spec, base)  # all checks first
+        build(job_spec.model_copy(update={"seed": seed}) if seed is not None else job_spec, base, allow_import=True)
     except SpecError as err:
         _fail(str(err))
     names = [m.name for m in job_spec.models]
@@ -67,10 +67,11 @@ def run(
                                                        dashboard_address=None))
             client = stack.enter_context(Client(cluster))
         try:
-            run_job(job_spec, base, out, client, seed=seed, on_population=progress)
+            run_job(job_spec, base, out, client, seed=seed, on_population=progress, allow_import=True)
         except SpecError as err:
             _fail(str(err))
-    typer.echo(json.dumps(summary(Store.open(out)), indent=2) if not quiet else "")
+    if not quiet:
+        typer.echo(json.dumps(summary(Store.open(out)), indent=2))
 
 
 @app.command(name="summary")

@@ -40,9 +40,9 @@ class DaskExecutor:
         pending: deque[Future] = deque()
         it = iter(batches)
         exhausted = False
+        depth = self._depth()  # one scheduler round trip per population, not per batch
         try:
             while True:
-                depth = self._depth()
                 while not exhausted and len(pending) < depth:
                     batch = next(it, None)
                     if batch is None:

@@ -13,6 +13,7 @@ import hashlib
 import json
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -86,11 +87,13 @@ def run_job(
     seed: int | None = None,
     on_population: Callable[[Progress], None] | None = None,
     cancel: Callable[[], bool] | None = None,
+    allow_import: bool = False,
 ) -> Result:
-    """Run (or resume) one job to its end; return its result."""
+    """Run (or resume) one job to its end; return its result. ``allow_import`` lets the
+    spec name local ``package.module:factory`` simulators (the CLI; never HTTP)."""
     if seed is not None:
         spec = spec.model_copy(update={"seed": seed})
-    job: Job = build(spec, base_dir)  # every check before anything runs
+    job: Job = build(spec, base_dir, allow_import)  # every check before anything runs
     arrays = {"force": job.force, "observed": job.observed}
     dhash = data_hash(*(a for a in (job.force, job.observed) if a is not None))
     key = job_key(spec, job.seed, dhash)
@@ -114,10 +117,23 @@ def run_job(
                     elapsed_before_s=float(state["elapsed_s"]))
     run_info = dict(store.attrs.get("run", {}))
     store.set_status("running", job_key=key)
-    payload = client.scatter({"description": description(spec), "arrays": arrays}, broadcast=True, hash=False)
+    payload = client.scatter({"description": description(spec), "arrays": arrays, "allow_import": allow_import},
+                             broadcast=True, hash=False)
     executor = DaskExecutor(client, key, payload)
     gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget)
     start, sims_start = time.monotonic(), budget.n_simulations
+    # One writer thread appends populations in order while the next one is computed; the
+    # progress callback runs after its population is in the store.
+    writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="abcns-store")
+    writes: list[Future] = []
+
+    def persist(pop: Population, n_total: int, info: dict | None, progress: Progress) -> None:
+        store.append(pop, n_simulations_total=n_total)
+        if info is not None:
+            store.set_status("running", job_key=key, run=info)
+        if on_population is not None:
+            on_population(progress)
+
     try:
         while True:
             try:
@@ -125,18 +141,24 @@ def run_job(
             except StopIteration as done:
                 end = done.value
                 break
-            store.append(pop, n_simulations_total=budget.n_simulations)
+            info = None
             if pop.t == 1:
                 run_info["epsilon_initial_source"] = "given" if job.settings.epsilon_initial is not None else "pilot"
                 run_info["n_pilot_simulations"] = budget.n_simulations - pop.n_simulations
-                store.set_status("running", job_key=key, run=run_info)
-            if on_population is not None:
-                dt = time.monotonic() - start
-                on_population(Progress(pop, budget.n_simulations, budget.elapsed(),
-                                       (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0))
+                info = dict(run_info)
+            dt = time.monotonic() - start
+            progress = Progress(pop, budget.n_simulations, budget.elapsed(),
+                                (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0)
+            writes.append(writer.submit(persist, pop, budget.n_simulations, info, progress))
+            if writes[0].done():
+                writes.pop(0).result()  # surface a failed write early
+        for w in writes:
+            w.result()
     except BaseException as err:
+        writer.shutdown(wait=True, cancel_futures=False)
         store.set_status("failed", None, job_key=key, error=f"{type(err).__name__}: {err}")
         raise
+    writer.shutdown(wait=True)
     notes = list(run_info.get("notes", [])) + list(end.notes)
     status = "cancelled" if end.reason is StopReason.CANCELLED else "finished"
     run_info.update(n_simulations=budget.n_simulations, wall_time_s=budget.elapsed(), notes=notes)

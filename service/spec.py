@@ -49,7 +49,7 @@ class DataSpec(_Strict):
 
 
 class IntegratorSpec(_Strict):
-    substeps: Annotated[int, Field(ge=1)] = 1
+    substeps: Annotated[int, Field(ge=1)] | None = None  # None: chosen from the priors
     output: Literal["displacement", "velocity", "acceleration"] = "displacement"
 
 
@@ -200,14 +200,14 @@ def description(spec: JobSpec) -> dict:
     }
 
 
-def build(spec: JobSpec, base_dir: Path | None = None) -> Job:
+def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = False) -> Job:
     """Everything checkable before a simulation: raise SpecError or return a Job."""
     data = spec.data
     observed = load_array(data.observed, base_dir, "data.observed")
     force = load_array(data.input, base_dir, "data.input") if data.input is not None else None
     if data.test is not None:
         check_window(data.test, observed.size, "data.test")
-    models, evaluate = job_evaluator(description(spec), {"force": force, "observed": observed})
+    models, evaluate = job_evaluator(description(spec), {"force": force, "observed": observed}, allow_import)
     s = spec.sampler
     common = dict(particles=s.particles, epsilon_initial=s.epsilon_initial, pilot_size=s.pilot_size,
                   pilot_quantile=s.pilot_quantile, batch_size=s.batch_size)

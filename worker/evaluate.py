@@ -101,28 +101,50 @@ def _model(desc: dict, where: str) -> Model:
         raise SpecError(err.field.replace(f"models[{desc['name']}]", where), err.message) from None
 
 
-def _simulator(desc: dict, force: np.ndarray | None, dt: float | None, observed: np.ndarray, where: str):
-    cls = registry.get(desc["simulator"], f"{where}.simulator")
-    integ = {"substeps": 1, "output": "displacement", **(desc.get("integrator") or {})}
+def _bounds(desc: dict, factory) -> dict[str, tuple[float, float]]:
+    b = {k: (float(v), float(v)) for k, v in getattr(factory, "defaults", {}).items()}
+    b.update({k: (float(v), float(v)) for k, v in desc.get("fixed", {}).items()})
+    b.update({k: (float(lo), float(hi)) for k, (lo, hi) in desc["priors"].items()})
+    return b
+
+
+def _simulator(desc: dict, force: np.ndarray | None, dt: float | None, observed: np.ndarray, where: str,
+               allow_import: bool):
+    factory = registry.get(desc["simulator"], f"{where}.simulator", allow_import=allow_import)
+    integ = {"substeps": None, "output": "displacement", **(desc.get("integrator") or {})}
     try:
-        if cls is GAndK:
+        if factory is GAndK:
             return GAndK(n_samples=int(observed.size))
-        if force is None:
+        if factory in registry.BUILTINS.values() and force is None:
             raise SpecError("data.input", f"simulator {desc['simulator']!r} needs an input force")
+        if integ["substeps"] is None:
+            integ["substeps"] = 1
+            if dt is not None and callable(getattr(factory, "omega_max", None)):
+                from worker.kernels import choose_substeps
+
+                try:
+                    integ["substeps"] = choose_substeps(factory.omega_max(_bounds(desc, factory)), dt)
+                except (KeyError, ValueError) as err:
+                    raise SpecError("integrator.substeps", f"cannot be chosen from the priors ({err}); give it") from None
         # the divergence guard: 1000 x the observed scale (for a displacement output)
         bound = 1e3 * float(np.max(np.abs(observed))) if integ["output"] == "displacement" else np.inf
-        return cls(force, dt, substeps=integ["substeps"], output=integ["output"], state_bound=bound)
+        return factory(force=force, dt=dt, n_samples=int(observed.size), substeps=integ["substeps"],
+                       output=integ["output"], state_bound=bound)
     except SpecError as err:
         field = err.field if err.field.startswith("data") else f"{where}.{err.field}"
         raise SpecError(field, err.message) from None
 
 
-def job_evaluator(description: dict, arrays: dict) -> tuple[list[Model], Evaluate]:
+def job_evaluator(description: dict, arrays: dict, allow_import: bool = False) -> tuple[list[Model], Evaluate]:
     """(models, evaluate) from a job description and its data.
 
     ``description``: ``{"models": [{name, simulator, priors, fixed, integrator}], "distance":
     {name: nmse | summary_euclidean, summaries}, "data": {"dt": float | None, "fit": [a, b] | None}}``;
-    ``arrays``: ``{"force": array | None, "observed": array}``. Raises SpecError naming the field.
+    ``arrays``: ``{"force": array | None, "observed": array}``. ``allow_import`` lets a
+    model name a ``package.module:factory`` simulator (the CLI; never HTTP). Without
+    ``integrator.substeps`` a simulator with ``omega_max`` gets substeps from
+    ``worker.kernels.choose_substeps`` (RK4 error below 1e-4 per radian at the highest
+    natural frequency the priors allow). Raises SpecError naming the field.
     """
     observed = np.asarray(arrays["observed"], dtype=float)
     force = arrays.get("force")
@@ -141,7 +163,7 @@ def job_evaluator(description: dict, arrays: dict) -> tuple[list[Model], Evaluat
     models, simulators = [], []
     for i, desc in enumerate(description["models"]):
         models.append(_model(desc, f"models[{i}]"))
-        simulators.append(_simulator(desc, force, data.get("dt"), observed, f"models[{i}]"))
+        simulators.append(_simulator(desc, force, data.get("dt"), observed, f"models[{i}]", allow_import))
     return models, evaluator(models, simulators, distance)
 
 
@@ -155,7 +177,7 @@ def evaluate_on_worker(job_key: str, payload: dict, batch: Batch) -> Evaluated:
     and kept for the job's later batches."""
     evaluate = _CACHE.get(job_key)
     if evaluate is None:
-        _, evaluate = job_evaluator(payload["description"], payload["arrays"])
+        _, evaluate = job_evaluator(payload["description"], payload["arrays"], payload.get("allow_import", False))
         _CACHE[job_key] = evaluate
         while len(_CACHE) > _CACHE_SIZE:
             _CACHE.popitem(last=False)

@@ -118,6 +118,13 @@ def _numpy_nmse(simulator, params, observed, start, stop) -> tuple[np.ndarray, n
     return d, out.status
 
 
+def _linear_omega(m_min: float, c_max: float, k_max: float) -> float:
+    """Largest eigenvalue modulus of ``m x'' + c x' + k x`` over the bounds (m_min > 0)."""
+    if not m_min > 0:
+        return float("inf")
+    return c_max / (2 * m_min) + float(np.sqrt(c_max**2 / (4 * m_min**2) + k_max / m_min))
+
+
 class _Oscillator:
     """Shared ZOH-RK4 loop. Subclasses define the state and its derivative."""
 
@@ -127,7 +134,7 @@ class _Oscillator:
     n_state = 2
 
     def __init__(self, force=None, dt: float = 0.01, substeps: int = 1, output: str = "displacement",
-                 state_bound: float = np.inf, backend: str = "numba"):
+                 state_bound: float = np.inf, backend: str = "numba", n_samples: int | None = None):
         self.force = _force(force, dt)
         self.dt = float(dt)
         self.substeps = _substeps(substeps)
@@ -248,6 +255,13 @@ class Duffing(_Oscillator):
     parameter_names = ("m", "c", "k", "k2", "k3", "k5")
     defaults = {"k2": 0.0}
 
+    @staticmethod
+    def omega_max(bounds: dict[str, tuple[float, float]]) -> float:
+        """Highest natural frequency of the linear part the bounds allow (nonlinear
+        stiffening not included: see ``worker.kernels.choose_substeps``)."""
+        mag = {p: max(abs(lo), abs(hi)) for p, (lo, hi) in bounds.items()}
+        return _linear_omega(min(abs(v) for v in bounds["m"]), mag["c"], mag["k"])
+
     def _work(self, params):
         K = _kernels()
         params = np.atleast_2d(np.asarray(params, dtype=float))
@@ -282,6 +296,12 @@ class BoucWen(_Oscillator):
     parameter_names = ("m", "c", "k", "alpha", "beta", "A", "n")
     defaults = {"k": 0.0}
     n_state = 3
+
+    @staticmethod
+    def omega_max(bounds: dict[str, tuple[float, float]]) -> float:
+        """As for Duffing with stiffness |k| + A (at small amplitude z ~ A y)."""
+        mag = {p: max(abs(lo), abs(hi)) for p, (lo, hi) in bounds.items()}
+        return _linear_omega(min(abs(v) for v in bounds["m"]), mag["c"], mag["k"] + mag["A"])
 
     def unpack(self, params):
         n = params[:, 6]
@@ -330,7 +350,7 @@ class Linear:
     defaults: dict[str, float] = {}
 
     def __init__(self, force=None, dt: float = 0.01, output: str = "displacement", state_bound: float = np.inf,
-                 substeps: int | None = None, backend: str = "numba"):
+                 substeps: int | None = None, backend: str = "numba", n_samples: int | None = None):
         self.force = _force(force, dt)
         self.dt = float(dt)
         self.output = _output(output)
