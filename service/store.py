@@ -32,6 +32,7 @@ while the runner appends is not lost.
 
 from __future__ import annotations
 
+import asyncio
 import datetime
 import fcntl
 import hashlib
@@ -48,6 +49,8 @@ import numpy as np
 import scipy
 import xarray as xr
 import zarr
+import zarr.api.asynchronous
+from zarr.core.sync import sync
 
 import abcns
 from abcns.ellipsoid import Ellipsoid, from_matrix
@@ -259,15 +262,17 @@ class Store:
         if pop.t != n + 1:
             raise StoreError(f"population {pop.t} cannot follow population {n} in {self.path}")
         rows = self._rows(pop, int(n_simulations_total))
-        group = self._group("r+")
-        arrays = {name: group[name] for name in rows}
-        # every array resized first, in one short loop (the population dimension disagrees
-        # between arrays only during it), to exactly n + 1 rows: a row a crash left is overwritten
-        for arr in arrays.values():
-            arr.resize((n + 1, *arr.shape[1:]))
-        for name, value in rows.items():
-            arrays[name][n] = value
+        # every array resized first (the population dimension disagrees between arrays only
+        # during this step), to exactly n + 1 rows (a row a crash left is overwritten), then
+        # every row written; each step is one concurrent batch of zarr operations
+        sync(self._write_rows(rows, n))
         self._commit(n + 1)
+
+    async def _write_rows(self, rows: dict[str, Any], n: int) -> None:
+        group = await zarr.api.asynchronous.open_group(store=str(self.path), mode="r+", zarr_format=3)
+        arrays = await asyncio.gather(*(group.getitem(name) for name in rows))
+        await asyncio.gather(*(arr.resize((n + 1, *arr.shape[1:])) for arr in arrays))
+        await asyncio.gather(*(arr.setitem(n, value) for arr, value in zip(arrays, rows.values())))
 
     def _commit(self, n_populations: int) -> None:
         """Bump the counter: the population is part of the store from here on."""

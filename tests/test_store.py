@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import xarray as xr
 import zarr
+from zarr.core.array import AsyncArray
 
 import abcns
 from abcns import NSSettings, Population, SerialExecutor, StopReason, StopRules
@@ -171,16 +172,16 @@ def test_crash_before_counter_leaves_a_store_that_reads_and_appends_cleanly(refe
 
     # a second crash half-way through the arrays of the next attempt (some resized, some not)
     calls = {"n": 0}
-    setitem = zarr.Array.__setitem__
+    setitem = AsyncArray.setitem
 
-    def flaky(self, key, value):
+    async def flaky(self, key, value, *args, **kwargs):
         calls["n"] += 1
         if calls["n"] > 4:
             raise Crash
-        setitem(self, key, value)
+        await setitem(self, key, value, *args, **kwargs)
 
     with monkeypatch.context() as m:
-        m.setattr(zarr.Array, "__setitem__", flaky)
+        m.setattr(AsyncArray, "setitem", flaky)
         with pytest.raises(Crash):
             reopened.append(replace(pops[3], t=3), n_simulations_total=-5)
     assert Store.open(store.path).n_populations == 2

@@ -1,0 +1,92 @@
+"""End-to-end throughput of the runner on the paper §4.1 example (cubic vs cubic-quintic
+Duffing, examples/duffing_41/spec.yaml, first 40 populations), beside the simulator alone.
+
+    python -m benchmarks.runner [--populations N] [--batch-size B]
+
+Simulations per second counts the simulations the algorithm used (the serial-equivalent
+count stored in the result), wall time from the first batch to the last population stored.
+Rows: the simulator alone on a batch of 1000 prior draws (one core, in-kernel NMSE), the
+engine in-process (serial executor, no store), and ``abcns run``'s code path (Dask
+LocalCluster + zarr store) with 1 and 2 worker processes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from distributed import Client, LocalCluster  # noqa: E402
+
+from abcns import run  # noqa: E402
+from abcns.filling import batches  # noqa: E402
+from abcns.rejection import prior_proposer  # noqa: E402
+from service.runner import run_job  # noqa: E402
+from service.spec import build, load  # noqa: E402
+
+SPEC = Path(__file__).resolve().parents[1] / "examples" / "duffing_41" / "spec.yaml"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--populations", type=int, default=40)
+    parser.add_argument("--batch-size", type=int, default=None, help="override sampler.batch_size")
+    args = parser.parse_args()
+    spec, base = load(SPEC)
+    stop = spec.stop.model_copy(update={"max_populations": args.populations})
+    sampler = spec.sampler.model_copy(update={"batch_size": args.batch_size or spec.sampler.batch_size})
+    spec = spec.model_copy(update={"stop": stop, "sampler": sampler})
+    job = build(spec, base)
+    rows = []
+
+    # the simulator alone: one batch of 1000 prior draws, in-kernel NMSE, best of 5
+    batch = next(batches(prior_proposer(job.models), seed=0, t=1, epsilon=np.inf, batch_size=1000))
+    job.evaluate(batch)  # compile / load the cache
+    best = min(_timed(lambda: job.evaluate(batch)) for _ in range(5))
+    rows.append(("simulator alone (1 core, batch 1000)", 1000 / best, None))
+
+    start = time.perf_counter()
+    r = run(job.models, job.evaluate, job.settings, job.stop, job.seed)
+    wall = time.perf_counter() - start
+    rows.append((f"engine in-process, serial ({len(r.populations)} populations)", r.n_simulations / wall, wall))
+    reference = r
+
+    for n_workers in (1, 2):
+        with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+                Client(cluster) as client:
+            tmp = Path(tempfile.mkdtemp())
+            try:
+                warm = spec.model_copy(update={"stop": stop.model_copy(update={"max_populations": 1})})
+                run_job(warm, base, tmp / "warm.zarr", client)  # workers load the kernels once
+                start = time.perf_counter()
+                res = run_job(spec, base, tmp / "job.zarr", client)
+                wall = time.perf_counter() - start
+            finally:
+                shutil.rmtree(tmp, ignore_errors=True)
+        same = all(np.array_equal(p.theta, q.theta, equal_nan=True) for p, q in zip(res.populations, reference.populations))
+        rows.append((f"abcns runner, LocalCluster {n_workers} worker(s), zarr store (identical: {same})",
+                     res.n_simulations / wall, wall))
+
+    print(f"paper §4.1, {len(reference.populations)} populations, {reference.n_simulations} simulations, "
+          f"batch size {job.settings.batch_size}")
+    print(f"{'configuration':70s} {'sims/s':>10s} {'wall s':>8s} {'vs simulator':>12s}")
+    for name, rate, wall in rows:
+        print(f"{name:70s} {rate:10.0f} {'' if wall is None else f'{wall:8.2f}':>8s} {rate / rows[0][1]:12.2f}")
+    print(f"2 workers / 1 worker: {rows[3][1] / rows[2][1]:.2f}")
+
+
+def _timed(fn) -> float:
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
+if __name__ == "__main__":
+    main()
