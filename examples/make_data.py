@@ -8,6 +8,9 @@
 - duffing_41: paper §4.1, cubic-quintic truth (c, k, k3, k5) = (0.05, 50, 1e3, 1e5), m = 1,
   Gaussian force (std 10) at 100 Hz, 1000 samples (500 training + 500 test), integrated with
   64 RK4 steps per sample, plus Gaussian noise of 1 % of the response's RMS.
+
+The truths are simulated with the numpy reference simulators, so the data do not depend
+on the machine's vector width.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ HERE = Path(__file__).resolve().parent
 def linear_31(seed: int = 31) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     force = 10.0 * rng.standard_normal(500)
-    x = Linear(force, 0.01).simulate(np.array([[1.0, 20.0, 1e4]])).values[0]
+    x = Linear(force, 0.01, backend="numpy").simulate(np.array([[1.0, 20.0, 1e4]])).values[0]
     return {"force": force, "displacement": x}
 
 
@@ -39,7 +42,7 @@ def gandk_32(seed: int = 32) -> dict[str, np.ndarray]:
 def duffing_41(seed: int = 41) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     force = 10.0 * rng.standard_normal(1000)
-    x = Duffing(force, 0.01, substeps=64).simulate(np.array([[1.0, 0.05, 50.0, 0.0, 1e3, 1e5]])).values[0]
+    x = Duffing(force, 0.01, substeps=64, backend="numpy").simulate(np.array([[1.0, 0.05, 50.0, 0.0, 1e3, 1e5]])).values[0]
     noise = 0.01 * np.sqrt(np.mean(x**2)) * rng.standard_normal(x.size)
     return {"force": force, "displacement": x + noise, "displacement_clean": x}
 
