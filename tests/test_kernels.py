@@ -341,3 +341,22 @@ def test_backend_and_window_validation():
             sim.distance_nmse(p, f, *window)
     with pytest.raises(ValueError):
         sim.distance_nmse(p, np.zeros(50), 0, 50)  # constant observed: NMSE undefined
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_bouc_wen_z_bound_flags_a_too_coarse_integration(backend):
+    """With A >= 0, alpha >= 0, alpha + beta > 0 the exact |z| never exceeds
+    (A / (alpha + beta))^(1/n). At one RK4 step per sample this stiff hysteresis overshoots
+    it while staying finite (measured with the bound switched off: status OK, |y| 0.03,
+    finite garbage); the bound flags it DIVERGED. 64 substeps stay inside: OK."""
+    rng = np.random.default_rng(77)
+    force = 50 * rng.standard_normal(400)
+    p = np.array([[2.0, 10.0, 0.0, 1e4, 1e3, 5e4, 1.0]])
+    assert BoucWen(force, 1 / 750, substeps=64, backend=backend).simulate(p).status[0] == OK
+    assert BoucWen(force, 1 / 750, substeps=1, backend=backend).simulate(p).status[0] == DIVERGED
+    if backend == "numpy":
+        unguarded = BoucWen(force, 1 / 750, substeps=1, backend="numpy")
+        unguarded.extra_bad = lambda p, state: False
+        out = unguarded.simulate(p)
+        assert out.status[0] == OK and np.all(np.isfinite(out.values))  # what the bound catches
+    assert BoucWen.z_bound(np.array([-1.0]), np.array([5.0]), np.array([1.0]), np.array([1.0]))[0] == np.inf

@@ -256,8 +256,8 @@ def duffing_run(w, force, h, substeps, kind, bound, obs, start, stop, scale, eps
 
 # --------------------------------------------------------------------------- Bouc-Wen
 
-# rows: 0 y, 1 v, 2 z, 3 acc, 4 1/m, 5 c/m, 6 k/m, 7 alpha, 8 beta, 9 A
-BOUC_WEN_ROWS = 10
+# rows: 0 y, 1 v, 2 z, 3 acc, 4 1/m, 5 c/m, 6 k/m, 7 alpha, 8 beta, 9 A, 10 |z| bound (inf: none)
+BOUC_WEN_ROWS = 11
 
 
 @njit(**_JIT)
@@ -386,7 +386,12 @@ def bouc_wen_run(w, n_exp, force, h, substeps, kind, bound, obs, start, stop, sc
     flag = np.zeros(n, dtype=np.int8)
     n_act = n
     ns = force.shape[0]
+    z = w[2]
+    zmax = w[10]
     for i in range(ns):
+        for j in range(n_act):  # past the bound the equation implies: the integration is wrong
+            if abs(z[j]) > zmax[j]:
+                z[j] = np.nan  # the finiteness test below flags it DIVERGED
         _bouc_wen_output(w, n_act, force[i], kind, y)
         if _account(w, 3, 3, n_act, i, y, bound, obs, start, stop, scale, eps, want_traj, traj, idx, flag,
                     dist, status):
