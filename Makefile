@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test browser bench clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or: make PYTHON=python3)"; exit 1; }
@@ -18,9 +18,15 @@ demo: $(STAMP)
 	$(BIN)/abcns run examples/authors_demo/spec.yaml --out out/authors-demo.zarr --quiet
 	$(BIN)/abcns summary out/authors-demo.zarr
 
-test: $(STAMP)
+test: $(STAMP) browser
 	$(BIN)/ruff check abcns worker service tests benchmarks examples
 	$(BIN)/python -m pytest
+
+# Debian's chromium for the live-page test (as root, e.g. in CI); nothing downloaded from elsewhere
+browser:
+	@command -v chromium >/dev/null 2>&1 || { if [ "$$(id -u)" = 0 ]; then \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
+	  else echo "chromium is missing and this is not root: the browser test will be skipped"; fi; }
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.engine

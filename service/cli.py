@@ -102,6 +102,28 @@ def summary_cmd(
             typer.echo(f"  {name:8s} mean {q['mean']:12.6g}  std {q['std']:10.4g}  95% [{q['q2_5']:.6g}, {q['q97_5']:.6g}]")
 
 
+@app.command()
+def serve(
+    host: Annotated[str, typer.Option(help="listen address (localhost by default)")] = "127.0.0.1",
+    port: Annotated[int, typer.Option()] = 8000,
+    scheduler: Annotated[str | None, typer.Option(help="a Dask scheduler; default: an embedded LocalCluster")] = None,
+    workers: Annotated[int | None, typer.Option(help="LocalCluster worker processes")] = None,
+    store_dir: Annotated[Path, typer.Option(help="one folder per job")] = Path("abcns-jobs"),
+    token: Annotated[str | None, typer.Option(envvar="ABCNS_TOKEN", help="require Authorization: Bearer TOKEN")] = None,
+    max_running: Annotated[int, typer.Option(help="jobs running at once")] = 1,
+    max_request_mb: Annotated[float, typer.Option(help="request size limit")] = 32.0,
+) -> None:
+    """Serve the HTTP job API and the live pages."""
+    import uvicorn
+
+    from service.api import create_app
+    from service.settings import Settings
+
+    settings = Settings(store_dir=store_dir, scheduler=scheduler, workers=workers, token=token,
+                        max_running=max_running, max_request_bytes=int(max_request_mb * 1024 * 1024))
+    uvicorn.run(create_app(settings), host=host, port=port, log_level="warning")
+
+
 def main() -> None:
     app(prog_name="abcns")
 

@@ -4,7 +4,6 @@ mid-population, the CLI killed with SIGKILL and resumed, xarray reading a runnin
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -111,37 +110,6 @@ def test_a_worker_killed_mid_population_changes_nothing(reference, tmp_path):
         assert killed
         assert killed[0] not in client.run(os.getpid).values()  # it really died (the nanny started another)
     assert_same_store(ref_store, tmp_path / "killed.zarr")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@pytest.fixture
-def stock_cluster(tmp_path):
-    """`dask scheduler` and two `dask worker` processes, started as a user would."""
-    port = free_port()
-    addr = f"tcp://127.0.0.1:{port}"
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--dashboard-address", ":0"], env=env, stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL, start_new_session=True)]
-    for _ in range(2):
-        procs.append(subprocess.Popen([BIN / "dask", "worker", addr, "--nthreads", "1", "--nworkers", "1",
-                                       "--no-dashboard", "--local-directory", str(tmp_path)], env=env,
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True))
-    with Client(addr, timeout=30) as client:
-        client.wait_for_workers(2, timeout=60)
-    yield addr
-    for p in procs:
-        os.killpg(p.pid, signal.SIGTERM)
-    for p in procs:
-        try:
-            p.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(p.pid, signal.SIGKILL)
 
 
 def test_cli_killed_with_sigkill_resumes_to_the_same_store(reference, tmp_path, stock_cluster):

@@ -1,0 +1,260 @@
+"""The HTTP service against real processes on 127.0.0.1: `abcns serve` (uvicorn), a stock
+`dask scheduler` and two `dask worker` processes.
+
+- the §4.1 job submitted over HTTP, its events followed to the end, equals `abcns run`;
+- a worker killed mid-job: identical; the service SIGKILLed mid-job and restarted: the job
+  resumes, finishes identical, and its events continue after Last-Event-ID;
+- 20 queued jobs and 100 concurrent event-stream clients: every client sees every event;
+- tokens (401 / 403), job-id validation, fuzzing the OpenAPI schema (no 5xx).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import yaml
+from conftest import BIN, ROOT, StockCluster, free_port, stop, wait_until
+
+from service.store import Store
+
+pytestmark = pytest.mark.http
+TOKEN = "s3cret-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+class Service:
+    """`abcns serve` as a user starts it."""
+
+    def __init__(self, store_dir: Path, scheduler: str, max_running: int = 1, port: int | None = None):
+        self.port = port or free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.args = [BIN / "abcns", "serve", "--port", str(self.port), "--scheduler", scheduler, "--store-dir",
+                     str(store_dir), "--token", TOKEN, "--max-running", str(max_running)]
+        self.proc: subprocess.Popen | None = None
+        self.start()
+
+    def start(self) -> None:
+        self.proc = subprocess.Popen(self.args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                     start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+        def healthy():
+            try:
+                return httpx.get(f"{self.url}/health", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        wait_until(healthy, 60, "the service to answer /health", 0.2)
+
+    def kill(self) -> None:
+        os.killpg(self.proc.pid, signal.SIGKILL)  # type: ignore[union-attr]
+        self.proc.wait()  # type: ignore[union-attr]
+
+    def close(self) -> None:
+        stop([self.proc])  # type: ignore[list-item]
+
+
+def duffing_spec(max_populations: int = 8, particles: int = 500) -> dict:
+    """Paper §4.1 (examples/duffing_41) with inline data, shortened."""
+    raw = yaml.safe_load((ROOT / "examples" / "duffing_41" / "spec.yaml").read_text())
+    folder = ROOT / "examples" / "duffing_41"
+    raw["data"]["input"] = np.load(folder / "force.npy").tolist()
+    raw["data"]["observed"] = np.load(folder / "displacement.npy").tolist()
+    raw["sampler"].update(particles=particles, batch_size=250)
+    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": max_populations}
+    return raw
+
+
+def demo_spec(seed: int) -> dict:
+    with np.load(ROOT.parent / "shared" / "data" / "abcns-reference-demo" / "demo_data.npz") as d:
+        force, x = d["force"].tolist(), d["displacement"].tolist()
+    raw = yaml.safe_load((ROOT / "examples" / "authors_demo" / "spec.yaml").read_text())
+    raw["data"].update(input=force, observed=x)
+    raw["sampler"].update(particles=200, batch_size=100)
+    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": 3}
+    raw["seed"] = seed
+    return raw
+
+
+def follow(url: str, job_id: str, after: int = 0, until=None, timeout: float = 240) -> list[dict]:
+    """Read the job's event stream (from Last-Event-ID ``after``) until a terminal event or
+    until ``until(events)`` is true."""
+    events: list[dict] = []
+    headers = {**AUTH, **({"Last-Event-ID": str(after)} if after else {})}
+    with httpx.stream("GET", f"{url}/jobs/{job_id}/events", headers=headers, timeout=timeout) as r:
+        assert r.status_code == 200, r.read()
+        current: dict = {}
+        for line in r.iter_lines():
+            if not line:
+                if "event" in current:
+                    current["data"] = json.loads(current.get("data", "null"))
+                    current["id"] = int(current["id"])
+                    events.append(current)
+                    if current["event"] in ("finished", "failed", "cancelled") or (until and until(events)):
+                        return events
+                current = {}
+                continue
+            field, _, value = line.partition(":")
+            if field in ("event", "data", "id"):
+                current[field] = value.lstrip(" ")
+    return events
+
+
+def same_populations(a: Path, b: Path) -> None:
+    sa, sb = Store.open(a), Store.open(b)
+    assert sa.n_populations == sb.n_populations > 0
+    for p, q in zip(sa.populations(), sb.populations()):
+        for name in ("models", "theta", "distances", "weights", "survivors"):
+            np.testing.assert_array_equal(getattr(p, name), getattr(q, name), err_msg=f"population {p.t} {name}")
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    c = StockCluster(tmp_path_factory.mktemp("dask"))
+    yield c
+    c.close()
+
+
+@pytest.fixture(scope="module")
+def reference(cluster, tmp_path_factory):
+    """The same job run with `abcns run` on the same cluster."""
+    tmp = tmp_path_factory.mktemp("cli")
+    (tmp / "spec.json").write_text(json.dumps(duffing_spec()))
+    done = subprocess.run([BIN / "abcns", "run", str(tmp / "spec.json"), "--out", str(tmp / "ref.zarr"), "--scheduler",
+                           cluster.address, "--quiet"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return tmp / "ref.zarr"
+
+
+@pytest.fixture
+def service(cluster, tmp_path):
+    s = Service(tmp_path / "jobs", cluster.address)
+    yield s
+    s.close()
+
+
+def test_http_job_with_a_worker_killed_equals_abcns_run(service, cluster, reference):
+    r = httpx.post(f"{service.url}/jobs", json=duffing_spec(), headers=AUTH, timeout=60)
+    assert r.status_code == 201, r.text
+    job_id = r.json()["id"]
+    first = follow(service.url, job_id, until=lambda ev: sum(e["event"] == "population" for e in ev) >= 2)
+    victim = cluster.worker_pids()[0]
+    os.kill(victim, signal.SIGKILL)  # mid-job; the nanny starts a new worker
+    rest = follow(service.url, job_id, after=first[-1]["id"])
+    events = first + rest
+    assert [e["id"] for e in events] == list(range(1, len(events) + 1))
+    assert [e["event"] for e in events[:2]] == ["queued", "started"] and events[-1]["event"] == "finished"
+    pops = [e["data"]["population"] for e in events if e["event"] == "population"]
+    assert pops == list(range(1, 9))
+    assert victim not in cluster.worker_pids()
+    same_populations(service_store(service, job_id), reference)
+    status = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()
+    assert status["status"] == "finished" and status["progress"]["population"] == 8
+    result = httpx.get(f"{service.url}/jobs/{job_id}/result", headers=AUTH).json()
+    assert result["stop_reason"] == "max_populations" and len(result["epsilon"]) == 8
+    pop = httpx.get(f"{service.url}/jobs/{job_id}/populations/8", headers=AUTH).json()
+    assert len(pop["distances"]) == 500 and pop["epsilon"] == result["epsilon"][-1]
+
+
+def service_store(service: Service, job_id: str) -> Path:
+    return Path(service.args[service.args.index("--store-dir") + 1]) / job_id / "store.zarr"
+
+
+def test_service_sigkilled_mid_job_resumes_identical_and_events_continue(service, reference):
+    job_id = httpx.post(f"{service.url}/jobs", json=duffing_spec(), headers=AUTH, timeout=60).json()["id"]
+    before = follow(service.url, job_id, until=lambda ev: sum(e["event"] == "population" for e in ev) >= 3)
+    service.kill()
+    assert Store.open(service_store(service, job_id)).attrs["status"] != "finished"
+    service.start()  # same store directory: the job is listed and resumed
+    after = follow(service.url, job_id, after=before[-1]["id"])
+    events = before + after
+    assert [e["id"] for e in events] == list(range(1, len(events) + 1))  # ids continue, none lost or repeated
+    assert any(e["event"] == "started" and e["data"]["resumed"] for e in after)
+    pops = [e["data"]["population"] for e in events if e["event"] == "population"]
+    assert sorted(set(pops)) == list(range(1, 9)) and events[-1]["event"] == "finished"
+    same_populations(service_store(service, job_id), reference)
+
+
+def test_twenty_jobs_and_a_hundred_event_clients(cluster, tmp_path):
+    service = Service(tmp_path / "jobs", cluster.address, max_running=2)
+    try:
+        ids = [httpx.post(f"{service.url}/jobs", json=demo_spec(seed), headers=AUTH, timeout=60).json()["id"]
+               for seed in range(20)]
+
+        async def client(job_id: str) -> list[tuple[int, str]]:
+            seen = []
+            async with httpx.AsyncClient(timeout=600) as http:
+                async with http.stream("GET", f"{service.url}/jobs/{job_id}/events", headers=AUTH) as r:
+                    assert r.status_code == 200
+                    event = None
+                    async for line in r.aiter_lines():
+                        if line.startswith("event:"):
+                            event = line.split(":", 1)[1].strip()
+                        elif line.startswith("id:"):
+                            seen.append((int(line.split(":", 1)[1]), event))
+                            if event in ("finished", "failed", "cancelled"):
+                                return seen
+            return seen
+
+        async def main():
+            return await asyncio.gather(*(client(ids[i % 20]) for i in range(100)))
+
+        results = asyncio.run(main())
+        for i, seen in enumerate(results):
+            job_id = ids[i % 20]
+            assert seen[-1][1] == "finished", (job_id, seen)
+            assert [k for k, _ in seen] == list(range(1, len(seen) + 1))
+            assert [e for _, e in seen] == ["queued", "started", "population", "population", "population", "finished"]
+        listed = httpx.get(f"{service.url}/jobs", params={"status": "finished"}, headers=AUTH).json()
+        assert {j["id"] for j in listed} >= set(ids)
+    finally:
+        service.close()
+
+
+def test_tokens_ids_and_bad_specs(service):
+    assert httpx.get(f"{service.url}/jobs").status_code == 401
+    assert httpx.get(f"{service.url}/jobs", headers={"Authorization": "Bearer wrong"}).status_code == 403
+    assert httpx.get(f"{service.url}/health").status_code == 200
+    assert httpx.get(f"{service.url}/jobs/..%2F..%2Fetc", headers=AUTH).status_code in (404, 422)
+    assert httpx.get(f"{service.url}/jobs/{'0' * 32}", headers=AUTH).status_code == 404
+    bad = duffing_spec()
+    bad["models"][0]["simulator"] = "os:system"  # no code over the wire
+    r = httpx.post(f"{service.url}/jobs", json=bad, headers=AUTH, timeout=60)
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "models[0].simulator"
+    bad = duffing_spec()
+    bad["data"]["observed"] = "/etc/passwd"  # no files over HTTP
+    r = httpx.post(f"{service.url}/jobs", json=bad, headers=AUTH, timeout=60)
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "data.observed"
+    huge = {"x": "a" * (40 * 1024 * 1024)}
+    assert httpx.post(f"{service.url}/jobs", json=huge, headers=AUTH, timeout=60).status_code == 413
+
+
+def test_upload_npz(service, tmp_path):
+    folder = ROOT / "examples" / "duffing_41"
+    np.savez(tmp_path / "data.npz", force=np.load(folder / "force.npy"), x=np.load(folder / "displacement.npy"))
+    spec = duffing_spec(max_populations=1)
+    spec["data"].update(input="npz:force", observed="npz:x")
+    with (tmp_path / "data.npz").open("rb") as f:
+        r = httpx.post(f"{service.url}/jobs/upload", data={"spec": json.dumps(spec)}, files={"data": f}, headers=AUTH,
+                       timeout=60)
+    assert r.status_code == 201, r.text
+    assert follow(service.url, r.json()["id"])[-1]["event"] == "finished"
+
+
+def test_fuzzing_the_openapi_schema_gives_no_server_error(service):
+    """schemathesis over every operation but the (streaming) event endpoint; seeded."""
+    done = subprocess.run(
+        [BIN / "schemathesis", "run", f"{service.url}/openapi.json", "--checks", "not_a_server_error",
+         "--header", f"Authorization: Bearer {TOKEN}", "--max-examples", "30", "--generation-deterministic",
+         "--exclude-path-regex", "events", "--request-timeout", "20"],
+        capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-2000:]
+    time.sleep(0)  # nothing else: the check is schemathesis' own
