@@ -75,6 +75,8 @@ def test_compose_config_is_valid():
     assert api["command"][:2] == ["abcns", "serve"] and "127.0.0.1" in api["command"] and "8123" in api["command"]
     assert "8123" in " ".join(api["healthcheck"]["test"]) and api["environment"]["ABCNS_TOKEN"] == "t"
     assert api["volumes"][0]["target"] == "/data/jobs" and "jobs" in config["volumes"]
+    assert [name for name, s in services.items() if "build" in s] == ["api"]  # one build, one image for all three
+    assert {s["pull_policy"] for s in services.values()} == {"never"}
 
 
 # -- the container path -------------------------------------------------------------------------
