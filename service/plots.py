@@ -152,7 +152,8 @@ def predictive_figure(pred: Predictive, observed: np.ndarray, dt: float | None, 
         title = f"{label} window [{a}, {z})"
         if scores is not None and label in scores.get("posterior_mean", {}):
             title += f"  NMSE mean {scores['posterior_mean'][label]:.3g}, best {scores['best'][label]:.3g}"
-        ax.set(xlabel="time [s]" if dt is not None else "sample", ylabel=ylabel, title=title)
+        ax.set(xlabel=f"time (sample interval {dt:g} in the spec's time unit)" if dt is not None else "sample",
+               ylabel=ylabel, title=title)
         ax.title.set_fontsize(9)
     axes[0].legend(fontsize=7, loc="upper right")
     fig.suptitle(f"{pred.model}: posterior predictive ({pred.trajectories.shape[0]} simulations"
