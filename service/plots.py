@@ -18,8 +18,10 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+from matplotlib import colormaps
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from abcns import Result
 from abcns.analysis import Confusion, Predictive
@@ -88,6 +90,7 @@ def marginals_figure(result: Result, model: int | str, truth: Mapping[str, float
             ax.legend(fontsize=7)
         ax.set(xlabel=name, yticks=[])
         ax.ticklabel_format(axis="x", style="sci", scilimits=(-3, 4))
+        ax.xaxis.set_major_locator(MaxNLocator(5))
     for ax in axes[d:]:
         ax.set_visible(False)
     fig.suptitle(f"{m.name}: marginal posteriors, population {result.final.t} ({theta.shape[0]} particles; "
@@ -169,11 +172,13 @@ def confusion_figure(conf: Confusion, log: bool = True) -> Figure:
     lo, hi = (finite.min(), finite.max()) if finite.size else (1e-3, 1.0)
     norm = LogNorm(max(lo, 1e-6), max(hi, lo * 10, 1e-5)) if log else None
     im = None
+    cmap = colormaps["viridis"].with_extremes(bad="0.85")  # grey: the model died in that fit, or its simulation failed
     for ax, name in zip(axes, conf.models):
         mat = conf.matrices[name]
-        im = ax.imshow(np.where(np.isfinite(mat), mat, np.nan), cmap="viridis", norm=norm)
+        im = ax.imshow(np.where(np.isfinite(mat), mat, np.nan), cmap=cmap, norm=norm)
         for (r, c), v in np.ndenumerate(mat):
-            ax.text(c, r, f"{v:.3g}" if np.isfinite(v) else "fail", ha="center", va="center", fontsize=8, color="w")
+            ax.text(c, r, f"{v:.3g}" if np.isfinite(v) else "no fit /\nfailed", ha="center", va="center", fontsize=8,
+                    color="w" if np.isfinite(v) else "k")
         k = len(conf.datasets)
         ax.set(xticks=range(k), yticks=range(k), xlabel="tested on", ylabel="fitted on")
         ax.set_xticklabels(conf.datasets, fontsize=7, rotation=30)

@@ -13,6 +13,8 @@ from examples.boucwen import evaluate as bw_evaluate
 from examples.boucwen import prepare as bw_prepare
 from examples.silverbox import evaluate as sb_evaluate
 from examples.silverbox import prepare as sb_prepare
+from service.analysis import run_to_store
+from service.spec import load
 
 ROOT = Path(__file__).resolve().parents[1]
 needs_boucwen = pytest.mark.skipif(not bw_prepare.SOURCE.exists(), reason="shared Bouc-Wen data not present")
@@ -42,9 +44,11 @@ def rmse_cells(text: str) -> list[float]:
 
 @needs_boucwen
 def test_boucwen_short_run_and_test_rmse(tmp_path):
-    analyse.main([str(ROOT / "examples" / "boucwen" / "spec.yaml"), "--out", str(tmp_path), "--seed", "3",
-                  "--particles", "100", "--max-populations", "3", "--truth", "m=2", "c=10"])
-    assert (tmp_path / "figures" / "seed3" / "summary.md").exists()
+    # the store only (analyse.py's figures are exercised by the Silverbox test)
+    spec, base = load(ROOT / "examples" / "boucwen" / "spec.yaml")
+    spec = spec.model_copy(update={"sampler": spec.sampler.model_copy(update={"particles": 100}),
+                                   "stop": spec.stop.model_copy(update={"max_populations": 3})})
+    run_to_store(spec, base, tmp_path / "seed3.zarr", seed=3)
     bw_evaluate.main(["--seed", "3", "--out", str(tmp_path), "--figures", str(tmp_path / "figures")])
     text = (tmp_path / "figures" / "seed3" / "test_rmse.md").read_text()
     assert "multisine" in text and "sine sweep" in text and "linear (fitted alone)" in text
@@ -68,3 +72,13 @@ def test_hyperparameter_study_quick(tmp_path):
     assert names == {"fig4_f0_acceptance.png", "fig5_f0_posterior.png", "fig6_pairs_acceptance.png",
                      "fig7_pairs_posterior.png", "table.md"}
     assert (tmp_path / "table.md").read_text().count("\n") == 2 + len(hyperparameters.F0) + len(hyperparameters.PAIRS)
+
+
+@needs_silverbox
+def test_silverbox_levels_confusion_quick(tmp_path):
+    from examples.silverbox import levels
+
+    levels.main(["--out", str(tmp_path / "runs"), "--figures", str(tmp_path / "fig"), "--particles", "60",
+                 "--max-populations", "2", "--levels", "low", "high"])
+    assert (tmp_path / "fig" / "confusion.png").stat().st_size > 5000
+    assert {p.name for p in (tmp_path / "fig").iterdir()} == {"low", "high", "confusion.png"}
