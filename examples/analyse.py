@@ -34,7 +34,8 @@ def summary_markdown(result, scores: dict, truth: dict[str, float], wall_s: floa
     lines = [f"- stop: {result.stop_reason.value} after {len(result.populations)} populations, "
              f"{result.n_simulations:,} simulations, {wall_s:.1f} s; final tolerance {result.final.epsilon:.5g}",
              "- model probabilities: " + ", ".join(f"{k} {v:.3f}" for k, v in probs.items()),
-             f"- selected: **{best}**", "",
+             (f"- selected: **{best}**" if sum(v == probs[best] for v in probs.values()) == 1 else
+              f"- no decision: tie at p = {probs[best]:.3f}; the table shows {best}, the first of the tied models"), "",
              "| parameter | mean | std | 95 % interval | truth | inside |", "|---|---|---|---|---|---|"]
     for name, q in result.posterior()[best].items():
         tv = truth.get(name)
