@@ -128,5 +128,57 @@ def main() -> None:
     app(prog_name="abcns")
 
 
+@app.command(name="plot")
+def plot_cmd(
+    stores: Annotated[list[Path], typer.Argument(help="finished job stores; two or more also give the §5.4 confusion matrices")],
+    out: Annotated[Path, typer.Option("--out", help="directory for the PNG figures (created)")],
+    spec: Annotated[list[Path] | None, typer.Option(
+        "--spec", help="the spec file each store was run from (in the stores' order); its directory holds the data. "
+                       "Without it: no predictive bands")] = None,
+    truth: Annotated[list[str] | None, typer.Option("--truth", help="known value, NAME=VALUE (repeatable)")] = None,
+    draws: Annotated[int | None, typer.Option(help="predictive draws (default: every particle)")] = None,
+    labels: Annotated[list[str] | None, typer.Option("--label", help="data-set names for the confusion matrix")] = None,
+) -> None:
+    """Write the figures of finished stores: tolerance, acceptance, model probabilities,
+    marginals and pairs, predictive bands (with --spec) and confusion matrices."""
+    from service.analysis import confusion_of, store_job_data
+    from service.plots import confusion_figure, plot_result, save
+    from service.runner import result_from_store
+    from service.store import Store, StoreError
+
+    known: dict[str, float] = {}
+    for item in truth or []:
+        key, sep, value = item.partition("=")
+        try:
+            known[key.strip()] = float(value)
+        except ValueError:
+            sep = ""
+        if not sep:
+            _fail(f"--truth {item!r}: expected NAME=VALUE")
+    if spec and len(spec) != len(stores):
+        _fail(f"{len(spec)} --spec for {len(stores)} stores: give one per store, in order")
+    results, datas = [], []
+    for k, path in enumerate(stores):
+        try:
+            store = Store.open(path)
+            result = result_from_store(store)
+            data = store_job_data(store, spec[k].parent) if spec else None
+        except (StoreError, SpecError, ValueError) as err:
+            _fail(str(err))
+        if not result.populations:
+            _fail(f"{path} has no complete population")
+        target = out if len(stores) == 1 else out / path.stem
+        files = plot_result(result, target, known or None, data, draws)
+        results.append(result)
+        datas.append(data)
+        for f in files.values():
+            typer.echo(str(f))
+    if len(stores) > 1 and spec:
+        conf = confusion_of(results, datas, labels or [p.stem for p in stores])
+        typer.echo(str(save(confusion_figure(conf), out / "confusion.png")))
+        typer.echo(f"confusion: best {conf.best}; mean NMSE " + ", ".join(f"{k} {v:.4g}" for k, v in conf.mean.items())
+                   + (f"; eliminated {', '.join(conf.eliminated)}" if conf.eliminated else ""))
+
+
 if __name__ == "__main__":
     sys.exit(main())

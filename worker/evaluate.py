@@ -49,7 +49,9 @@ def model_function(model: Model, simulator, distance: Distance) -> SimulateDista
     """``f(theta, rng, epsilon=inf) -> (distances, status)`` for one model."""
     names = tuple(simulator.parameter_names)
     free = [names.index(p) for p in model.priors]
-    const = {**simulator.defaults, **model.fixed}
+    # fixed values, then the simulator's defaults for what the model neither fixes nor infers
+    # (a default never overrides an inferred parameter)
+    const = {p: v for p, v in {**simulator.defaults, **model.fixed}.items() if p not in model.priors}
     const_cols = [names.index(p) for p in const if p in names]
     const_vals = np.array([const[names[j]] for j in const_cols])
     fast = isinstance(distance, NMSE) and callable(getattr(simulator, "distance_nmse", None))
@@ -133,6 +135,13 @@ def _simulator(desc: dict, force: np.ndarray | None, dt: float | None, observed:
     except SpecError as err:
         field = err.field if err.field.startswith("data") else f"{where}.{err.field}"
         raise SpecError(field, err.message) from None
+
+
+def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observed: np.ndarray, where: str,
+                  allow_import: bool = False):
+    """The simulator a job builds for one model description, over the whole record given
+    (the analysis simulates fit and test windows; the evaluator only up to the fit end)."""
+    return _simulator(desc, force, dt, observed, where, allow_import)
 
 
 def job_evaluator(description: dict, arrays: dict, allow_import: bool = False) -> tuple[list[Model], Evaluate]:

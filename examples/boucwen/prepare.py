@@ -1,0 +1,67 @@
+"""Bouc-Wen benchmark (Noël & Schoukens 2016) data for the example spec, from
+``../shared/data/boucwen/boucwen.npz`` (see its README).
+
+    python -m examples.boucwen.prepare
+
+Writes, next to this file:
+
+- ``force.npy``, ``displacement.npy``: the first 3000 samples (4 s at 750 Hz) of the training
+  multisine record (the system starts at rest: |y[0]| = 8e-6 m, the noise level); the spec
+  fits on [0, 1500) and holds out [1500, 3000);
+and :func:`load` gives the official test records the same way: ``test_multisine`` (``force``:
+two periods of the test input, ``y``: its one steady-state period, compared with the second
+simulated period) and ``test_sinesweep`` (``force``, ``y``: the full record, from rest).
+
+**The input is advanced by half a sample** (exact band-limited shift with the FFT; the
+training and multisine records are periodic, the sweep is zero-padded). Our simulators hold
+``force[i]`` over ``[t_i, t_i+1)``; the benchmark's integrator ran at 20x the rate on the
+band-limited input, so a plain hold lags it by dt/2 (8.4 degrees at the 35.6 Hz resonance).
+Measured with the published parameters on the fit window: NMSE 2.81 with the plain hold,
+0.0154 with the half-sample advance, against a noise floor of 0.0145 (100 x (8e-6 m)^2 /
+var(y)). The advance is the midpoint rule for the held value.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+SOURCE = HERE.parents[2] / "shared" / "data" / "boucwen" / "boucwen.npz"
+WINDOW = 3000
+FS = 750.0
+# published parameters (benchmark PDF, Table 1) in the simulator's form (data README)
+TRUTH = {"m": 2.0, "c": 10.0, "k": 5e4, "A": 5e4, "alpha": 800.0, "beta": -1100.0}
+NOISE_RMS = 8e-6  # m, stated in the data README (test records are noiseless)
+
+
+def advance(x: np.ndarray, samples: float, pad: int = 0) -> np.ndarray:
+    """``x(t + samples dt)`` by the FFT (exact for a periodic band-limited record; ``pad``
+    zeros appended for a record that is not periodic)."""
+    n = x.size + pad
+    spectrum = np.fft.rfft(np.concatenate([x, np.zeros(pad)]))
+    return np.fft.irfft(spectrum * np.exp(2j * np.pi * np.fft.rfftfreq(n) * samples), n)[: x.size]
+
+
+def load(source: Path = SOURCE) -> dict[str, np.ndarray]:
+    with np.load(source) as z:
+        d = dict(z)
+    if float(d["fs_hz"]) != FS:
+        raise ValueError(f"{source}: expected fs 750 Hz, got {d['fs_hz']}")
+    out = {"force": advance(d["train_multisine_u"], 0.5)[:WINDOW], "displacement": d["train_multisine_y"][:WINDOW]}
+    u = advance(d["test_multisine_u"], 0.5)
+    out["test_multisine"] = {"force": np.concatenate([u, u]), "y": d["test_multisine_y"]}
+    out["test_sinesweep"] = {"force": advance(d["test_sinesweep_u"], 0.5, pad=4096), "y": d["test_sinesweep_y"]}
+    return out
+
+
+def main() -> None:
+    d = load()
+    np.save(HERE / "force.npy", d["force"])
+    np.save(HERE / "displacement.npy", d["displacement"])
+    print(f"wrote {HERE}/force.npy, displacement.npy ({WINDOW} samples)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,149 @@
+"""Store-level analysis: rebuild a finished job's data and simulators from the spec in its
+store, then posterior predictive bands and NMSE on the fit and test windows
+(:mod:`abcns.analysis` does the maths; this module only supplies the simulations).
+
+The spec in a store names its data files relative to the spec file, which the store does
+not know: pass ``base_dir`` (the spec file's directory). The data are checked against the
+store's data hash, so a plot never mixes a run with other data.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from abcns import OK, Model, Result
+from abcns.analysis import Confusion, Predictive, confusion, fit_test_nmse, nmse, predictive
+from service.spec import JobSpec, load_array, parse
+from service.store import Store, data_hash
+from worker.evaluate import check_model, simulator_for
+
+
+@dataclass(frozen=True, eq=False)
+class JobData:
+    """A job's records, windows and one full-length simulator per model."""
+
+    spec: JobSpec
+    force: np.ndarray | None
+    observed: np.ndarray
+    dt: float | None
+    fit: tuple[int, int]
+    test: tuple[int, int] | None
+    models: dict[str, Model]
+    simulators: dict[str, object]
+
+    def simulate(self, model: str) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """``simulate(theta (n, d)) -> (values (n, T), status (n,))`` of one model over the
+        whole record: its free parameters, then its fixed values, then the simulator's
+        defaults, as the evaluator maps them."""
+        m, sim = self.models[model], self.simulators[model]
+        names = tuple(sim.parameter_names)
+        free = [names.index(p) for p in m.priors]
+        const = {p: v for p, v in {**sim.defaults, **m.fixed}.items() if p not in m.priors}
+
+        def simulate(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            theta = np.atleast_2d(theta)
+            full = np.empty((theta.shape[0], len(names)))
+            full[:, free] = theta
+            for p, v in const.items():
+                full[:, names.index(p)] = v
+            out = sim.simulate(full, None)
+            return np.ascontiguousarray(out.values), out.status
+
+        return simulate
+
+
+def job_data(spec: dict | JobSpec, base_dir: str | Path | None, expect_hash: str | None = None,
+             allow_import: bool = True) -> JobData:
+    """The job's data and simulators (whole record, not cut at the fit window)."""
+    spec = spec if isinstance(spec, JobSpec) else parse(spec)
+    base = Path(base_dir) if base_dir is not None else None
+    observed = load_array(spec.data.observed, base, "data.observed")
+    force = load_array(spec.data.input, base, "data.input") if spec.data.input is not None else None
+    if expect_hash is not None:
+        got = data_hash(*(a for a in (force, observed) if a is not None))
+        if got != expect_hash:
+            raise ValueError(f"the data under {base} are not the data this store was run on (hash {got[:12]} != "
+                             f"{expect_hash[:12]}); pass the directory of the spec the store was run from")
+    dt = spec.data.sample_interval if spec.data.input is not None else None
+    models, sims = {}, {}
+    for i, desc in enumerate(spec.models):
+        d = desc.model_dump()
+        m = Model(d["name"], d["priors"], d.get("fixed", {}), config={"simulator": d["simulator"]})
+        sim = simulator_for(d, force, dt, observed, f"models[{i}]", allow_import)
+        check_model(m, sim, f"models[{i}]")
+        models[m.name], sims[m.name] = m, sim
+    fit = tuple(spec.data.fit) if spec.data.fit else (0, observed.size)
+    test = tuple(spec.data.test) if spec.data.test else None
+    return JobData(spec, force, observed, dt, fit, test, models, sims)
+
+
+def store_job_data(store: Store, base_dir: str | Path | None) -> JobData:
+    return job_data(store.attrs["spec"], base_dir, store.attrs.get("data_hash"))
+
+
+def predictions(result: Result, data: JobData, n_draws: int | None = None, seed: int = 0
+                ) -> tuple[dict[str, Predictive], dict[str, dict]]:
+    """Per alive model of the final population: its posterior predictive over the whole
+    record (every particle, or ``n_draws`` draws with ``default_rng(seed)``) and the NMSE
+    of its posterior mean and best particle on the fit (and test) window."""
+    preds, scores = {}, {}
+    windows = {"fit": data.fit, "test": data.test}
+    for i in result.alive():
+        name = result.models[i].name
+        sim = data.simulate(name)
+        preds[name] = predictive(result, name, sim, n_draws, np.random.default_rng(seed))
+        scores[name] = fit_test_nmse(result, name, sim, data.observed, windows)
+    return preds, scores
+
+
+def confusion_of(results: list[Result], datas: list[JobData], labels: list[str] | None = None,
+                 point: str = "posterior_mean") -> Confusion:
+    """§5.4: the model fitted on data set i (``results[i]``, run on ``datas[i]``) scored by
+    the NMSE of its ``point`` estimate on data set j's test window (its fit window when it
+    has none), simulated with data set j's input."""
+
+    def score(model: str, theta: np.ndarray, j: int) -> float:
+        values, status = datas[j].simulate(model)(theta[None, :])
+        window = datas[j].test or datas[j].fit
+        return float(nmse(values[0], datas[j].observed, window)) if status[0] == OK else float("inf")
+
+    return confusion(results, score, labels, point=point)
+
+
+def run_to_store(spec: JobSpec, base_dir: str | Path | None, out: str | Path, seed: int | None = None,
+                 on_population: Callable | None = None) -> Result:
+    """Run a job in this process (serial, no Dask) into a new store at ``out``, as
+    ``abcns run`` would write it (spec, data hash, one append per population, final
+    status). For examples and tests; the CLI's Dask runner gives the same populations."""
+    import abcns
+    from abcns.run import algorithm_name
+    from service.spec import build
+    from service.store import Store, data_hash
+
+    if seed is not None:
+        spec = spec.model_copy(update={"seed": seed})
+    base = Path(base_dir) if base_dir is not None else None
+    job = build(spec, base, allow_import=True)
+    store = Store.create(out, spec=spec.model_dump(mode="json"), seed=job.seed, model_names=[m.name for m in job.models],
+                         parameter_names=[list(m.parameter_names) for m in job.models],
+                         n_particles=job.settings.particles,
+                         data_hash=data_hash(*(a for a in (job.force, job.observed) if a is not None)),
+                         algorithm=algorithm_name(job.settings))
+    total = [0]
+
+    def append(pop) -> None:
+        total[0] += pop.n_simulations
+        store.append(pop, n_simulations_total=total[0])
+        if on_population is not None:
+            on_population(pop)
+
+    result = abcns.run(job.models, job.evaluate, job.settings, job.stop, job.seed, on_population=append)
+    store.set_status("finished", result.stop_reason.value,
+                     run={"epsilon_initial_source": result.epsilon_initial_source,
+                          "n_pilot_simulations": result.n_pilot_simulations, "n_simulations": result.n_simulations,
+                          "wall_time_s": result.wall_time_s, "notes": list(result.notes)})
+    return result
