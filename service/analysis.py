@@ -17,7 +17,7 @@ import numpy as np
 
 from abcns import OK, Model, Result
 from abcns.analysis import Confusion, Predictive, confusion, fit_test_nmse, nmse, predictive
-from service.spec import JobSpec, load_array, parse
+from service.spec import JobSpec, load_data, parse
 from service.store import Store, data_hash
 from worker.evaluate import check_model, simulator_for
 
@@ -61,8 +61,7 @@ def job_data(spec: dict | JobSpec, base_dir: str | Path | None, expect_hash: str
     """The job's data and simulators (whole record, not cut at the fit window)."""
     spec = spec if isinstance(spec, JobSpec) else parse(spec)
     base = Path(base_dir) if base_dir is not None else None
-    observed = load_array(spec.data.observed, base, "data.observed")
-    force = load_array(spec.data.input, base, "data.input") if spec.data.input is not None else None
+    force, observed = load_data(spec, base)
     if expect_hash is not None:
         got = data_hash(*(a for a in (force, observed) if a is not None))
         if got != expect_hash:

@@ -36,6 +36,7 @@ class DataSpec(_Strict):
     observed: str | list[float]
     fit: Window | None = None
     test: Window | None = None
+    decimate: Annotated[int, Field(ge=1, le=1000)] = 1  # keep every q-th sample, anti-aliased; windows count kept samples
 
     @model_validator(mode="after")
     def _one_rate(self) -> DataSpec:
@@ -45,7 +46,9 @@ class DataSpec(_Strict):
 
     @property
     def sample_interval(self) -> float:
-        return self.dt if self.dt is not None else 1.0 / self.fs  # type: ignore[operator]
+        """The interval between the samples used (after decimation)."""
+        base = self.dt if self.dt is not None else 1.0 / self.fs  # type: ignore[operator]
+        return base * self.decimate
 
 
 class IntegratorSpec(_Strict):
@@ -200,11 +203,31 @@ def description(spec: JobSpec) -> dict:
     }
 
 
-def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = False) -> Job:
-    """Everything checkable before a simulation: raise SpecError or return a Job."""
+def _decimate(x: np.ndarray, q: int, field: str) -> np.ndarray:
+    from scipy.signal import decimate
+
+    try:
+        return np.ascontiguousarray(decimate(x, q, ftype="fir", zero_phase=True))
+    except ValueError as err:
+        raise SpecError("data.decimate", f"cannot decimate {field} ({x.size} samples) by {q}: {err}") from None
+
+
+def load_data(spec: JobSpec, base_dir: Path | None) -> tuple[np.ndarray | None, np.ndarray]:
+    """(input or None, observed) as the job uses them: loaded, then decimated by
+    ``data.decimate`` (FIR low-pass, zero phase, every q-th sample kept)."""
     data = spec.data
     observed = load_array(data.observed, base_dir, "data.observed")
     force = load_array(data.input, base_dir, "data.input") if data.input is not None else None
+    if data.decimate > 1:
+        observed = _decimate(observed, data.decimate, "data.observed")
+        force = _decimate(force, data.decimate, "data.input") if force is not None else None
+    return force, observed
+
+
+def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = False) -> Job:
+    """Everything checkable before a simulation: raise SpecError or return a Job."""
+    data = spec.data
+    force, observed = load_data(spec, base_dir)
     if data.test is not None:
         check_window(data.test, observed.size, "data.test")
     models, evaluate = job_evaluator(description(spec), {"force": force, "observed": observed}, allow_import)

@@ -91,3 +91,30 @@ def test_csv_and_inline_data(raw, tmp_path):
     job = build(parse(raw), tmp_path)
     np.testing.assert_array_equal(job.force, d["force"])
     shutil.rmtree(tmp_path)
+
+
+def test_decimation_is_anti_aliased_and_scales_dt(raw, tmp_path):
+    """q = 4: a tone well below the new Nyquist frequency survives (amplitude within 1 %),
+    one above it is removed (below 1 % of its amplitude: the FIR filter's stop band); dt
+    grows by q, windows count kept samples, and the job builds and runs."""
+    n, dt = 4000, 0.001
+    t = np.arange(n) * dt
+    slow = np.sin(2 * np.pi * 5 * t)  # 5 Hz; new Nyquist 125 Hz
+    fast = np.sin(2 * np.pi * 300 * t)  # 300 Hz: above it, must not alias in
+    np.save(tmp_path / "f.npy", slow + fast)
+    np.save(tmp_path / "x.npy", 1e-3 * slow)
+    raw["data"] = {"dt": dt, "input": "f.npy", "observed": "x.npy", "decimate": 4, "fit": [0, 800]}
+    raw["models"] = raw["models"][:1]
+    raw["sampler"].update(particles=100, batch_size=50, epsilon_initial=None)  # the pilot sets it
+    raw["stop"] = {"max_populations": 1, "max_simulations": 5000}
+    job = build(parse(raw), tmp_path)
+    assert job.force.size == n // 4 and job.spec.data.sample_interval == pytest.approx(4 * dt)
+    kept = slice(100, 900)  # away from the record's ends
+    t4 = t[::4][kept]
+    np.testing.assert_allclose(job.force[kept], np.sin(2 * np.pi * 5 * t4), atol=0.01)
+    r = run(job.models, job.evaluate, job.settings, job.stop, seed=0)
+    assert len(r.populations) == 1 and r.epsilon_initial_source == "pilot"
+    raw["data"]["decimate"] = 0
+    with pytest.raises(SpecError) as err:
+        parse(raw)
+    assert err.value.field == "data.decimate"
