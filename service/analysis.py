@@ -84,6 +84,17 @@ def store_job_data(store: Store, base_dir: str | Path | None) -> JobData:
     return job_data(store.attrs["spec"], base_dir, store.attrs.get("data_hash"))
 
 
+def open_run(spec_path: str | Path, store_path: str | Path) -> tuple[JobSpec, Path, Store, Result, JobData]:
+    """A finished run of an example: (the spec it ran with, the spec file's folder, its
+    store, its result, its data and simulators)."""
+    from service.runner import result_from_store
+    from service.spec import load
+
+    _, base = load(spec_path)
+    store = Store.open(store_path)
+    return parse(store.attrs["spec"]), base, store, result_from_store(store), store_job_data(store, base)
+
+
 def predictions(result: Result, data: JobData, n_draws: int | None = None, seed: int = 0
                 ) -> tuple[dict[str, Predictive], dict[str, dict]]:
     """Per alive model of the final population: its posterior predictive over the whole

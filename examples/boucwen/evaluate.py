@@ -26,10 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from abcns.analysis import bands, point_estimates  # noqa: E402
 from examples.boucwen.prepare import FS, NOISE_RMS, load  # noqa: E402
-from service.analysis import JobData, run_to_store, store_job_data  # noqa: E402
+from service.analysis import JobData, open_run, run_to_store, store_job_data  # noqa: E402
 from service.runner import result_from_store  # noqa: E402
-from service.spec import load as load_spec  # noqa: E402
-from service.spec import parse  # noqa: E402
 from service.store import Store  # noqa: E402
 from worker.evaluate import simulator_for  # noqa: E402
 
@@ -60,10 +58,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "boucwen")
     parser.add_argument("--figures", type=Path, default=HERE / "figures")
     args = parser.parse_args(argv)
-    _, base = load_spec(HERE / "spec.yaml")
-    store = Store.open(args.out / f"seed{args.seed}.zarr")
-    spec = parse(store.attrs["spec"])  # the run's own settings (particles, stop) for the linear fit too
-    result, data = result_from_store(store), store_job_data(store, base)
+    # the run's own spec (particles, stop) serves the linear fit too
+    spec, base, store, result, data = open_run(HERE / "spec.yaml", args.out / f"seed{args.seed}.zarr")
     probs = result.model_probabilities()
     selected = max(probs, key=probs.get)
 

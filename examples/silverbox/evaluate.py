@@ -26,10 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from abcns.analysis import nmse, point_estimates, predictive  # noqa: E402
 from examples.boucwen.evaluate import on_record  # noqa: E402
 from examples.silverbox.prepare import segments  # noqa: E402
-from service.analysis import run_to_store, store_job_data  # noqa: E402
+from service.analysis import open_run, run_to_store, store_job_data  # noqa: E402
 from service.runner import result_from_store  # noqa: E402
-from service.spec import load as load_spec  # noqa: E402
-from service.spec import parse  # noqa: E402
 from service.store import Store  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -43,10 +41,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "silverbox")
     parser.add_argument("--figures", type=Path, default=HERE / "figures")
     args = parser.parse_args(argv)
-    _, base = load_spec(HERE / "spec.yaml")
-    store = Store.open(args.out / f"seed{args.seed}.zarr")
-    spec = parse(store.attrs["spec"])  # the run's own settings (particles, stop) for the linear fit too
-    result, data = result_from_store(store), store_job_data(store, base)
+    # the run's own spec (particles, stop) serves the linear fit too
+    spec, base, store, result, data = open_run(HERE / "spec.yaml", args.out / f"seed{args.seed}.zarr")
     fits = {result.models[i].name: (result, data) for i in result.alive()}
     if "linear" not in fits:
         path = args.out / f"linear_seed{args.seed}.zarr"
