@@ -8,7 +8,8 @@ Each problem is run by abcns, then by pyABC, for seeds 1..S; per tolerance level
 tool's simulations and wall time are those of its first population accepted at an epsilon
 at or below the level (its own schedule, no interpolation), and the tables give the median
 and range over the seeds. ``--quick``: 100 particles, a few thousand simulations and 20 s
-per run, one seed by default (a smoke run; the figures mean nothing).
+per run, one seed by default, written to out/peers-quick.md unless --out says otherwise
+(a smoke run; the figures mean nothing).
 """
 
 from __future__ import annotations
@@ -198,7 +199,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", type=int, default=None, help="seeds 1..S (default 3; 1 with --quick)")
     parser.add_argument("--problems", nargs="+", default=list(CASES), choices=list(CASES))
     parser.add_argument("--quick", action="store_true", help="a smoke run: 100 particles, tiny budgets")
-    parser.add_argument("--out", type=Path, default=HERE / "RESULTS.md")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="default benchmarks/peers/RESULTS.md (with --quick: out/peers-quick.md, never the committed table)")
     parser.add_argument("--json", type=Path, default=None, help="also write every run's record as JSON")
     parser.add_argument("--db-dir", default=None, help="where pyABC's temporary sqlite files go (default: the system temp)")
     args = parser.parse_args(argv)
@@ -223,6 +225,8 @@ def main(argv: list[str] | None = None) -> None:
                       + ", ".join(f"{k} {v:.2f}" for k, v in r["probs"].items()), flush=True)
         all_runs[key] = runs
     text, summary = report(cases, all_runs, seeds, time.monotonic() - start, args.quick)
+    if args.out is None:
+        args.out = Path("out/peers-quick.md") if args.quick else HERE / "RESULTS.md"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     print(f"wrote {args.out}")
