@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test browser bench clean
+.PHONY: demo test browser bench bench-peers clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or: make PYTHON=python3)"; exit 1; }
@@ -32,6 +32,11 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.engine
 	$(BIN)/python -m benchmarks.simulators
 	$(BIN)/python -m benchmarks.runner
+
+# abcns side by side with pyABC (the optional extra .[bench]): writes benchmarks/peers/RESULTS.md (~30-45 min on 2 cores)
+bench-peers: $(STAMP)
+	$(BIN)/pip install --quiet -e '.[dev,bench]'
+	$(BIN)/python -m benchmarks.peers --seeds 3
 
 clean:
 	rm -rf $(VENV)
