@@ -76,11 +76,13 @@ class SerialExecutor:
 SimulateDistance = Callable[[np.ndarray, np.random.Generator], tuple[np.ndarray, np.ndarray]]
 
 
-def per_model(functions: Sequence[SimulateDistance]) -> Evaluate:
+def per_model(functions: Sequence[SimulateDistance], pass_epsilon: bool = False) -> Evaluate:
     """Make a batch evaluator from one function per model.
 
     ``functions[m](theta, rng) -> (distances, status)`` receives the rows of model ``m``
-    without padding, shape (n_m, d_m). One generator seeded from ``batch.seed`` is used for
+    without padding, shape (n_m, d_m); with ``pass_epsilon`` it is called as
+    ``functions[m](theta, rng, epsilon=batch.epsilon)`` (for early rejection). One generator
+    seeded from ``batch.seed`` is used for
     the models in index order. A numerical error raised by a function (``ArithmeticError``,
     ``ValueError``, ``LinAlgError``) marks its rows FAILED; anything else is a bug and
     propagates.
@@ -95,7 +97,10 @@ def per_model(functions: Sequence[SimulateDistance]) -> Evaluate:
             theta = batch.theta[rows]
             theta = theta[:, ~np.all(np.isnan(theta), axis=0)]
             try:
-                d, s = functions[int(m)](theta, rng)
+                if pass_epsilon:
+                    d, s = functions[int(m)](theta, rng, epsilon=batch.epsilon)
+                else:
+                    d, s = functions[int(m)](theta, rng)
             except (ArithmeticError, ValueError, np.linalg.LinAlgError):
                 continue  # rows stay FAILED with distance +inf
             distances[rows] = d

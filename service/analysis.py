@@ -19,7 +19,7 @@ from abcns import OK, Model, Result
 from abcns.analysis import Confusion, Predictive, confusion, fit_test_nmse, nmse, predictive
 from service.spec import JobSpec, load_data, parse
 from service.store import Store, data_hash
-from worker.evaluate import check_model, simulator_for
+from worker.evaluate import check_model, model_of, simulator_for
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,7 +71,7 @@ def job_data(spec: dict | JobSpec, base_dir: str | Path | None, expect_hash: str
     models, sims = {}, {}
     for i, desc in enumerate(spec.models):
         d = desc.model_dump()
-        m = Model(d["name"], d["priors"], d.get("fixed", {}), config={"simulator": d["simulator"]})
+        m = model_of(d, f"models[{i}]")
         sim = simulator_for(d, force, dt, observed, f"models[{i}]", allow_import)
         check_model(m, sim, f"models[{i}]")
         models[m.name], sims[m.name] = m, sim

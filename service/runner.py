@@ -25,6 +25,7 @@ from abcns.run import algorithm_name, iterate
 from service.dask_executor import DaskExecutor
 from service.spec import Job, JobSpec, build, description
 from service.store import Store, data_hash
+from worker.evaluate import model_of
 
 
 @dataclass
@@ -43,8 +44,7 @@ def job_key(spec: JobSpec, seed: int, dhash: str) -> str:
 
 
 def models_of(spec: dict) -> tuple[Model, ...]:
-    return tuple(Model(m["name"], m["priors"], m.get("fixed", {}), config={"simulator": m["simulator"]})
-                 for m in spec["models"])
+    return tuple(model_of(m) for m in spec["models"])
 
 
 def result_from_store(store: Store) -> Result:

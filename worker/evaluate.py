@@ -20,7 +20,6 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Sequence
-from functools import partial
 
 import numpy as np
 
@@ -87,16 +86,11 @@ def evaluator(models: Sequence[Model], simulators: Sequence, distance: Distance,
                 f"has {n_observed} samples but model {model.name!r} simulates {sim.n_samples} "
                 "(input and observed records must have the same length)",
             )
-    functions = [model_function(m, s, distance) for m, s in zip(models, simulators)]
-
-    def evaluate(batch: Batch) -> Evaluated:
-        epsilon = float(batch.epsilon) if early_rejection else np.inf
-        return per_model([partial(f, epsilon=epsilon) for f in functions])(batch)
-
-    return evaluate
+    return per_model([model_function(m, s, distance) for m, s in zip(models, simulators)], pass_epsilon=early_rejection)
 
 
-def _model(desc: dict, where: str) -> Model:
+def model_of(desc: dict, where: str = "models") -> Model:
+    """The :class:`abcns.Model` of one spec model description (errors name ``where``)."""
     try:
         return Model(desc["name"], desc["priors"], desc.get("fixed", {}), config={"simulator": desc["simulator"]})
     except SpecError as err:
@@ -110,8 +104,10 @@ def _bounds(desc: dict, factory) -> dict[str, tuple[float, float]]:
     return b
 
 
-def _simulator(desc: dict, force: np.ndarray | None, dt: float | None, observed: np.ndarray, where: str,
-               allow_import: bool):
+def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observed: np.ndarray, where: str,
+                  allow_import: bool = False):
+    """The simulator a job builds for one model description, over the record given (the
+    evaluator passes the record up to the fit end; the analysis the whole record)."""
     factory = registry.get(desc["simulator"], f"{where}.simulator", allow_import=allow_import)
     integ = {"substeps": None, "output": "displacement", **(desc.get("integrator") or {})}
     try:
@@ -135,13 +131,6 @@ def _simulator(desc: dict, force: np.ndarray | None, dt: float | None, observed:
     except SpecError as err:
         field = err.field if err.field.startswith("data") else f"{where}.{err.field}"
         raise SpecError(field, err.message) from None
-
-
-def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observed: np.ndarray, where: str,
-                  allow_import: bool = False):
-    """The simulator a job builds for one model description, over the whole record given
-    (the analysis simulates fit and test windows; the evaluator only up to the fit end)."""
-    return _simulator(desc, force, dt, observed, where, allow_import)
 
 
 def job_evaluator(description: dict, arrays: dict, allow_import: bool = False) -> tuple[list[Model], Evaluate]:
@@ -171,8 +160,8 @@ def job_evaluator(description: dict, arrays: dict, allow_import: bool = False) -
         raise SpecError("distance.name", f"unknown distance {dist['name']!r}")
     models, simulators = [], []
     for i, desc in enumerate(description["models"]):
-        models.append(_model(desc, f"models[{i}]"))
-        simulators.append(_simulator(desc, force, data.get("dt"), observed, f"models[{i}]", allow_import))
+        models.append(model_of(desc, f"models[{i}]"))
+        simulators.append(simulator_for(desc, force, data.get("dt"), observed, f"models[{i}]", allow_import))
     return models, evaluator(models, simulators, distance)
 
 
