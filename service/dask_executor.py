@@ -6,6 +6,10 @@ never whichever finishes first: that would bias the posterior toward cheap param
 When the caller has enough and closes the iterator, the surplus futures are cancelled.
 Each batch carries its own seed, so a batch Dask reruns after a worker died gives the same
 answer, and the result does not depend on the number of workers.
+
+The job's description and data go to the cluster once, as the task :func:`job_payload` that
+every batch depends on. The scheduler keeps its inputs, so if every worker holding it dies
+(or all workers are restarted) it is recomputed and the waiting batches go on.
 """
 
 from __future__ import annotations
@@ -17,18 +21,24 @@ from collections.abc import Iterable, Iterator
 from distributed import Client, Future
 
 from abcns.executor import Batch, Evaluated
-from worker.evaluate import evaluate_on_worker
+from worker.evaluate import evaluate_on_worker, job_payload
 
 
 class DaskExecutor:
-    def __init__(self, client: Client, job_key: str, payload: Future, in_flight: int | None = None):
+    def __init__(self, client: Client, job_key: str, description: dict, arrays: dict,
+                 allow_import: bool = False, in_flight: int | None = None):
         self.client = client
         self.job_key = job_key
-        self.payload = payload
         self.in_flight = in_flight
         self.nonce = uuid.uuid4().hex[:8]  # keys unique to this run of the job
+        self.payload: Future = client.submit(job_payload, description, arrays, allow_import,
+                                             key=f"abcns-{job_key[:12]}-data-{self.nonce}", pure=False)
         self.n_submitted = 0
         self.n_cancelled = 0
+
+    def close(self) -> None:
+        """Release the job's data on the cluster."""
+        self.payload.release()
 
     def _depth(self) -> int:
         if self.in_flight is not None:

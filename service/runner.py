@@ -1,7 +1,7 @@
 """The runner: one job, driven over a Dask client, every population into its zarr store.
 
-``run_job`` validates the spec, opens or creates the job's store, scatters the data to the
-workers once, and drives the abcns population iterator with a :class:`DaskExecutor`,
+``run_job`` validates the spec, opens or creates the job's store, sends the data to the
+cluster once (a task, so it survives lost workers), and drives the abcns population iterator with a :class:`DaskExecutor`,
 appending each complete population to the store (data first, counter last). Run on a store
 of an unfinished job it resumes from the last complete population: the random stream is
 keyed by (seed, population, batch), so the end result equals an uninterrupted run's.
@@ -117,9 +117,7 @@ def run_job(
                     elapsed_before_s=float(state["elapsed_s"]))
     run_info = dict(store.attrs.get("run", {}))
     store.set_status("running", job_key=key)
-    payload = client.scatter({"description": description(spec), "arrays": arrays, "allow_import": allow_import},
-                             broadcast=True, hash=False)
-    executor = DaskExecutor(client, key, payload)
+    executor = DaskExecutor(client, key, description(spec), arrays, allow_import)
     gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget)
     start, sims_start = time.monotonic(), budget.n_simulations
     # One writer thread appends populations in order while the next one is computed; the
@@ -158,6 +156,8 @@ def run_job(
         writer.shutdown(wait=True, cancel_futures=False)
         store.set_status("failed", None, job_key=key, error=f"{type(err).__name__}: {err}")
         raise
+    finally:
+        executor.close()
     writer.shutdown(wait=True)
     notes = list(run_info.get("notes", [])) + list(end.notes)
     status = "cancelled" if end.reason is StopReason.CANCELLED else "finished"

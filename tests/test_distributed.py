@@ -86,30 +86,45 @@ def test_two_workers_give_the_one_worker_result(reference, tmp_path):
     assert_same_store(ref_store, tmp_path / "two.zarr")
 
 
-def test_a_worker_killed_mid_population_changes_nothing(reference, tmp_path):
-    spec, ref_store, _ = reference
+def run_killing_workers(spec, out, n_victims: int, at_population: int = 2) -> list[int]:
+    """Run the job on two worker processes and SIGKILL ``n_victims`` of them inside
+    population ``at_population + 1``; the nannies start new ones. Returns the killed pids."""
     killed = []
-
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
             Client(cluster) as client:
         pids = client.run(os.getpid)
 
         def on_population(progress):
-            if progress.population.t == 2 and not killed:
-                victim = sorted(pids.values())[0]
+            if progress.population.t == at_population and not killed:
+                victims = sorted(pids.values())[:n_victims]
 
                 def kill():
-                    time.sleep(0.05)  # inside population 3
-                    os.kill(victim, signal.SIGKILL)
-                    killed.append(victim)
+                    time.sleep(0.05)  # inside the next population
+                    for victim in victims:
+                        os.kill(victim, signal.SIGKILL)
+                        killed.append(victim)
 
                 threading.Thread(target=kill, daemon=True).start()
 
-        run_job(parse(yaml.safe_load(spec.read_text())), spec.parent, tmp_path / "killed.zarr", client,
-                on_population=on_population)
-        assert killed
-        assert killed[0] not in client.run(os.getpid).values()  # it really died (the nanny started another)
+        run_job(parse(yaml.safe_load(spec.read_text())), spec.parent, out, client, on_population=on_population)
+        assert len(killed) == n_victims
+        alive = set(client.run(os.getpid).values())
+        assert not alive & set(killed)  # they really died (the nannies started others)
+    return killed
+
+
+def test_a_worker_killed_mid_population_changes_nothing(reference, tmp_path):
+    spec, ref_store, _ = reference
+    run_killing_workers(spec, tmp_path / "killed.zarr", n_victims=1)
     assert_same_store(ref_store, tmp_path / "killed.zarr")
+
+
+def test_every_worker_killed_at_once_changes_nothing(reference, tmp_path):
+    """The job's data lives on the cluster as a task: with every worker that held it dead,
+    the scheduler computes it again (scattered data would be lost, and the job with it)."""
+    spec, ref_store, _ = reference
+    run_killing_workers(spec, tmp_path / "all-killed.zarr", n_victims=2)
+    assert_same_store(ref_store, tmp_path / "all-killed.zarr")
 
 
 def test_cli_killed_with_sigkill_resumes_to_the_same_store(reference, tmp_path, stock_cluster):

@@ -169,10 +169,20 @@ _CACHE: OrderedDict[str, Evaluate] = OrderedDict()
 _CACHE_SIZE = 8
 
 
+def job_payload(description: dict, arrays: dict, allow_import: bool = False) -> dict:
+    """The Dask task that holds a job's description and data on the workers.
+
+    It is a task, not scattered data, on purpose: the scheduler keeps its inputs, so when
+    every worker holding the result dies it is computed again and the batches that need it
+    wait instead of failing. (Scattered data has no such lineage, and the scheduler's active
+    memory manager drops the replicas that ``broadcast=True`` made.)"""
+    return {"description": description, "arrays": arrays, "allow_import": allow_import}
+
+
 def evaluate_on_worker(job_key: str, payload: dict, batch: Batch) -> Evaluated:
-    """The Dask task: evaluate one batch of job ``job_key``. ``payload`` (description and
-    arrays, scattered once per job) is turned into an evaluator once per worker process
-    and kept for the job's later batches."""
+    """The Dask task: evaluate one batch of job ``job_key``. ``payload`` (the result of
+    :func:`job_payload`, sent once per job) is turned into an evaluator once per worker
+    process and kept for the job's later batches."""
     evaluate = _CACHE.get(job_key)
     if evaluate is None:
         _, evaluate = job_evaluator(payload["description"], payload["arrays"], payload.get("allow_import", False))
