@@ -1,11 +1,22 @@
 """The Dask executor: batches to Dask workers, results back in submission order.
 
-Batches are submitted ahead (``in_flight``, default two per worker) so every worker stays
-busy; the caller consumes results strictly in submission order (the oldest future first,
-never whichever finishes first: that would bias the posterior toward cheap parameters).
-When the caller has enough and closes the iterator, the surplus futures are cancelled.
-Each batch carries its own seed, so a batch Dask reruns after a worker died gives the same
-answer, and the result does not depend on the number of workers.
+A batch (the unit the random stream is keyed by) is small and fixed by the spec, so the
+result does not depend on how it runs; a Dask *task* evaluates a group of consecutive
+batches, sized so a task is worth its round trip. The group size adapts to what the executor
+has seen, which changes only how the work is cut, never a result:
+
+- the compute time per batch, measured on the workers, caps a task at ``TASK_SECONDS``;
+- the number of batches the previous population consumed estimates this one's need, so
+  the tasks in flight at a population's start (two per worker) hold that many batches and
+  a 20 % margin between them; past the estimate (or with none yet) the size grows with the
+  batches consumed.
+
+Tasks are submitted ahead (``in_flight`` tasks, default two per worker) so every worker stays
+busy; the caller consumes results strictly in submission order (the oldest first, never
+whichever finishes first: that would bias the posterior toward cheap parameters). When the
+caller has enough and closes the iterator, the surplus tasks are cancelled. Each batch
+carries its own seed, so a task Dask reruns after a worker died gives the same answer, and
+the result does not depend on the number of workers.
 
 The job's description and data go to the cluster once, as the task :func:`job_payload` that
 every batch depends on. The scheduler keeps its inputs, so if every worker holding it dies
@@ -14,6 +25,8 @@ every batch depends on. The scheduler keeps its inputs, so if every worker holdi
 
 from __future__ import annotations
 
+import itertools
+import math
 import uuid
 from collections import deque
 from collections.abc import Iterable, Iterator
@@ -22,6 +35,8 @@ from distributed import Client, Future
 
 from abcns.executor import Batch, Evaluated
 from worker.evaluate import evaluate_on_worker, job_payload
+
+TASK_SECONDS = 0.1  # compute time a task aims at, at most (the round trip is a few ms)
 
 
 class DaskExecutor:
@@ -33,39 +48,66 @@ class DaskExecutor:
         self.nonce = uuid.uuid4().hex[:8]  # keys unique to this run of the job
         self.payload: Future = client.submit(job_payload, description, arrays, allow_import,
                                              key=f"abcns-{job_key[:12]}-data-{self.nonce}", pure=False)
-        self.n_submitted = 0
+        self.n_submitted = 0  # tasks
         self.n_cancelled = 0
+        self.expected: int | None = None  # batches the previous map call consumed
+        self.batch_seconds: float | None = None  # compute time per batch on a worker (smoothed)
 
     def close(self) -> None:
         """Release the job's data on the cluster."""
         self.payload.release()
 
-    def _depth(self) -> int:
-        if self.in_flight is not None:
-            return self.in_flight
-        n_workers = len(self.client.scheduler_info(n_workers=-1).get("workers", {}))
-        return max(2, 2 * n_workers)
+    def _depth(self) -> tuple[int, int]:
+        """(tasks in flight, workers); one scheduler round trip per population."""
+        n_workers = max(1, len(self.client.scheduler_info(n_workers=-1).get("workers", {})))
+        return (self.in_flight if self.in_flight is not None else 2 * n_workers), n_workers
+
+    def _need(self) -> int:
+        """Batches this call is expected to consume: the previous call's count, 20 % more."""
+        return math.ceil(1.2 * self.expected) if self.expected is not None else 1
+
+    def _group_size(self, consumed: int, n_workers: int) -> int:
+        """Batches in the next task, given the batches consumed so far in this call: the
+        tasks in flight at the start cover the expected need between them; past that (or
+        with no estimate yet) the size grows with what has been consumed."""
+        size = math.ceil(max(self._need(), consumed) / (2 * n_workers))
+        if self.batch_seconds is not None and self.batch_seconds > 0:
+            size = min(size, int(TASK_SECONDS / self.batch_seconds))
+        return max(1, size)
 
     def map(self, batches: Iterable[Batch]) -> Iterator[Evaluated]:
-        pending: deque[Future] = deque()
+        pending: deque[tuple[Future, int]] = deque()  # (task, batches in it), oldest first
         it = iter(batches)
         exhausted = False
-        depth = self._depth()  # one scheduler round trip per population, not per batch
+        depth, n_workers = self._depth()
+        need = self._need()
+        consumed = submitted = 0
         try:
             while True:
-                while not exhausted and len(pending) < depth:
-                    batch = next(it, None)
-                    if batch is None:
+                # up to the expected need, ``depth`` tasks in flight; past it, one per worker,
+                # so surplus work does not hold the workers when the population is full
+                while not exhausted and len(pending) < (depth if submitted < need else n_workers):
+                    group = list(itertools.islice(it, self._group_size(consumed, n_workers)))
+                    if not group:
                         exhausted = True
                         break
-                    key = f"abcns-{self.job_key[:12]}-t{batch.population}-b{batch.index}-{self.nonce}"
-                    pending.append(self.client.submit(evaluate_on_worker, self.job_key, self.payload, batch,
-                                                      key=key, pure=False))
+                    key = (f"abcns-{self.job_key[:12]}-t{group[0].population}"
+                           f"-b{group[0].index}-{group[-1].index}-{self.nonce}")
+                    pending.append((self.client.submit(evaluate_on_worker, self.job_key, self.payload, group,
+                                                       key=key, pure=False), len(group)))
+                    submitted += len(group)
                     self.n_submitted += 1
                 if not pending:
                     return
-                yield pending.popleft().result()
+                task, size = pending.popleft()
+                evaluated, seconds = task.result()
+                self.batch_seconds = seconds / size if self.batch_seconds is None else \
+                    0.7 * self.batch_seconds + 0.3 * seconds / size
+                for result in evaluated:
+                    consumed += 1
+                    yield result
         finally:
+            self.expected = max(consumed, 1)
             if pending:
                 self.n_cancelled += len(pending)
-                self.client.cancel(list(pending))
+                self.client.cancel([task for task, _ in pending])

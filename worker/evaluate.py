@@ -18,6 +18,7 @@ it would have been). Other distances take the generic path.
 
 from __future__ import annotations
 
+import time
 from collections import OrderedDict
 from collections.abc import Sequence
 
@@ -179,10 +180,12 @@ def job_payload(description: dict, arrays: dict, allow_import: bool = False) -> 
     return {"description": description, "arrays": arrays, "allow_import": allow_import}
 
 
-def evaluate_on_worker(job_key: str, payload: dict, batch: Batch) -> Evaluated:
-    """The Dask task: evaluate one batch of job ``job_key``. ``payload`` (the result of
-    :func:`job_payload`, sent once per job) is turned into an evaluator once per worker
-    process and kept for the job's later batches."""
+def evaluate_on_worker(job_key: str, payload: dict, batches: Sequence[Batch]) -> tuple[list[Evaluated], float]:
+    """The Dask task: evaluate consecutive batches of job ``job_key``; return their results
+    and the seconds it took. ``payload`` (the result of :func:`job_payload`, sent once per
+    job) is turned into an evaluator once per worker process and kept for the job's later
+    batches."""
+    start = time.perf_counter()
     evaluate = _CACHE.get(job_key)
     if evaluate is None:
         _, evaluate = job_evaluator(payload["description"], payload["arrays"], payload.get("allow_import", False))
@@ -191,4 +194,5 @@ def evaluate_on_worker(job_key: str, payload: dict, batch: Batch) -> Evaluated:
             _CACHE.popitem(last=False)
     else:
         _CACHE.move_to_end(job_key)
-    return evaluate(batch)
+    results = [evaluate(batch) for batch in batches]
+    return results, time.perf_counter() - start
