@@ -1,6 +1,7 @@
-"""The result store: one zarr 3 directory per job, appended one population at a time.
+"""The result store: one zarr 3 directory per job, appended population by population.
 
-Layout (every array but the static coordinates grows along ``population``, chunk 1 along it):
+Layout (every array but the static coordinates grows along ``population``, in chunks of
+at most ~64 KiB: one population of a large particle array, up to 256 of a scalar):
 
 - particle level: ``model`` (population, particle) int16, ``theta`` (population, particle,
   parameter) float64 NaN-padded to the widest model, ``distance``, ``weight`` (population,
@@ -18,10 +19,10 @@ Layout (every array but the static coordinates grows along ``population``, chunk
 
 The group attributes hold ``format_version``, the spec, seed, package versions, the data
 hash, algorithm, model and parameter names, status, stop reason, run information and the
-counter ``n_populations``. An append resizes and writes every array first and bumps the
-counter last: a reader that trusts the counter never sees half a population, and rows a
-crash left beyond the counter are ignored and overwritten by the next append. zarr's local
-store writes each file atomically (temporary file, then rename).
+counter ``n_populations``. An append (of one population or several consecutive ones)
+resizes and writes every array first and bumps the counter last: a reader that trusts the
+counter never sees half a population, and rows a crash left beyond the counter are ignored
+and overwritten by the next append. zarr's local store writes each file atomically (temporary file, then rename).
 
 Written for one writer of populations (the job's runner) and any number of readers, in any
 process: every call re-reads the metadata from disk, so a ``Store`` object never goes stale.
@@ -37,11 +38,12 @@ import datetime
 import fcntl
 import hashlib
 import json
+import math
 import os
 import platform
 import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +59,7 @@ from abcns.ellipsoid import Ellipsoid, from_matrix
 from abcns.result import Population
 
 FORMAT_VERSION = 1
+CHUNK_BYTES = 64 * 1024
 # zarr writes each metadata file through a temporary "zarr.<uuid>.partial" next to it; a
 # reader listing the group while the writer updates the attributes meets that file and warns.
 PARTIAL_WARNING = r"Object at zarr\.[0-9a-f]+\.partial is not recognized as a component of a Zarr hierarchy"
@@ -160,7 +163,11 @@ class Store:
         group = zarr.open_group(str(path), mode="w-", zarr_format=3)
 
         def grow(name, tail, dtype, fill, dims):
-            group.create_array(name, shape=(0, *tail), chunks=(1, *tail), dtype=dtype,
+            # rows per chunk along population: a chunk of ~64 KiB at most (one population of
+            # theta, 256 of a scalar), so an append of several populations writes few files
+            row_bytes = np.dtype(dtype).itemsize * math.prod(tail)
+            rows = int(np.clip(CHUNK_BYTES // row_bytes, 1, 256))
+            group.create_array(name, shape=(0, *tail), chunks=(rows, *tail), dtype=dtype,
                                fill_value=fill, dimension_names=[_P, *dims])
 
         grow("population", (), "int32", 0, [])
@@ -258,21 +265,32 @@ class Store:
 
     def append(self, pop: Population, *, n_simulations_total: int) -> None:
         """Write population ``pop`` (its t must be n_populations + 1), then bump the counter."""
-        n = self.n_populations
-        if pop.t != n + 1:
-            raise StoreError(f"population {pop.t} cannot follow population {n} in {self.path}")
-        rows = self._rows(pop, int(n_simulations_total))
-        # every array resized first (the population dimension disagrees between arrays only
-        # during this step), to exactly n + 1 rows (a row a crash left is overwritten), then
-        # every row written; each step is one concurrent batch of zarr operations
-        sync(self._write_rows(rows, n))
-        self._commit(n + 1)
+        self.append_many([(pop, n_simulations_total)])
 
-    async def _write_rows(self, rows: dict[str, Any], n: int) -> None:
+    def append_many(self, pops: Sequence[tuple[Population, int]]) -> None:
+        """Write consecutive populations, each with its cumulative simulation count, then bump
+        the counter once: one resize per array whatever their number (a zarr operation costs
+        about a millisecond per array, so a fast job's appends are coalesced)."""
+        if not pops:
+            return
+        n = self.n_populations
+        for i, (pop, _) in enumerate(pops):
+            if pop.t != n + 1 + i:
+                raise StoreError(f"population {pop.t} cannot follow population {n + i} in {self.path}")
+        rows = [self._rows(pop, int(total)) for pop, total in pops]  # all validated before any write
+        stacked = {name: np.stack([np.asarray(r[name]) for r in rows]) for name in rows[0]}
+        # every array resized first (the population dimension disagrees between arrays only
+        # during this step), to exactly n + k rows (rows a crash left are overwritten), then
+        # every row written; each step is one concurrent batch of zarr operations
+        sync(self._write_rows(stacked, n))
+        self._commit(n + len(pops))
+
+    async def _write_rows(self, rows: dict[str, np.ndarray], n: int) -> None:
+        k = len(rows["population"])
         group = await zarr.api.asynchronous.open_group(store=str(self.path), mode="r+", zarr_format=3)
         arrays = await asyncio.gather(*(group.getitem(name) for name in rows))
-        await asyncio.gather(*(arr.resize((n + 1, *arr.shape[1:])) for arr in arrays))
-        await asyncio.gather(*(arr.setitem(n, value) for arr, value in zip(arrays, rows.values())))
+        await asyncio.gather(*(arr.resize((n + k, *arr.shape[1:])) for arr in arrays))
+        await asyncio.gather(*(arr.setitem(slice(n, n + k), value) for arr, value in zip(arrays, rows.values())))
 
     def _commit(self, n_populations: int) -> None:
         """Bump the counter: the population is part of the store from here on."""
