@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
+import queue
+import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,6 +80,63 @@ def summary(store: Store) -> dict:
     return out
 
 
+WRITE_INTERVAL_S = 1.0
+
+
+class PopulationWriter:
+    """Appends populations to the store in order on a background thread while the next
+    ones are computed; the progress callback runs once its population is in the store.
+    Populations that come within ``WRITE_INTERVAL_S`` of the last append go in one append, so
+    a job whose populations come fast pays a few appends a second, not one per population."""
+
+    def __init__(self, store: Store, job_key: str, on_population: Callable[[Progress], None] | None):
+        self.store, self.job_key, self.on_population = store, job_key, on_population
+        self.queue: queue.SimpleQueue = queue.SimpleQueue()
+        self.error: BaseException | None = None
+        self.last_append = -math.inf
+        self.thread = threading.Thread(target=self._run, name="abcns-store", daemon=True)
+        self.thread.start()
+
+    def put(self, pop: Population, n_simulations_total: int, info: dict | None, progress: Progress) -> None:
+        if self.error is not None:
+            raise self.error  # surface a failed write early
+        self.queue.put((pop, n_simulations_total, info, progress))
+
+    def close(self, raise_error: bool = True) -> None:
+        """Write what is queued and stop the thread."""
+        self.queue.put(None)
+        self.thread.join()
+        if raise_error and self.error is not None:
+            raise self.error
+
+    def _run(self) -> None:
+        done = False
+        while not done:
+            items = [self.queue.get()]
+            # populations that come while the last append settles join this one: at most
+            # about one append per WRITE_INTERVAL_S on a fast job (an append of any number of
+            # populations costs ~50-150 ms of CPU that the runner's own thread would miss)
+            time.sleep(max(0.0, self.last_append + WRITE_INTERVAL_S - time.monotonic()) if items[0] else 0.0)
+            while items[-1] is not None and not self.queue.empty():
+                items.append(self.queue.get())
+            if items[-1] is None:
+                done = True
+                items.pop()
+            if not items or self.error is not None:
+                continue
+            self.last_append = time.monotonic()
+            try:
+                self.store.append_many([(pop, total) for pop, total, _, _ in items])
+                infos = [info for _, _, info, _ in items if info is not None]
+                if infos:
+                    self.store.set_status("running", job_key=self.job_key, run=infos[-1])
+                if self.on_population is not None:
+                    for *_, progress in items:
+                        self.on_population(progress)
+            except BaseException as err:  # handed to the runner's thread
+                self.error = err
+
+
 def run_job(
     spec: JobSpec,
     base_dir: Path | None,
@@ -120,18 +179,7 @@ def run_job(
     executor = DaskExecutor(client, key, description(spec), arrays, allow_import)
     gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget)
     start, sims_start = time.monotonic(), budget.n_simulations
-    # One writer thread appends populations in order while the next one is computed; the
-    # progress callback runs after its population is in the store.
-    writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="abcns-store")
-    writes: list[Future] = []
-
-    def persist(pop: Population, n_total: int, info: dict | None, progress: Progress) -> None:
-        store.append(pop, n_simulations_total=n_total)
-        if info is not None:
-            store.set_status("running", job_key=key, run=info)
-        if on_population is not None:
-            on_population(progress)
-
+    writer = PopulationWriter(store, key, on_population)
     try:
         while True:
             try:
@@ -147,18 +195,14 @@ def run_job(
             dt = time.monotonic() - start
             progress = Progress(pop, budget.n_simulations, budget.elapsed(),
                                 (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0)
-            writes.append(writer.submit(persist, pop, budget.n_simulations, info, progress))
-            if writes[0].done():
-                writes.pop(0).result()  # surface a failed write early
-        for w in writes:
-            w.result()
+            writer.put(pop, budget.n_simulations, info, progress)
+        writer.close()
     except BaseException as err:
-        writer.shutdown(wait=True, cancel_futures=False)
+        writer.close(raise_error=False)  # what was computed is stored
         store.set_status("failed", None, job_key=key, error=f"{type(err).__name__}: {err}")
         raise
     finally:
         executor.close()
-    writer.shutdown(wait=True)
     notes = list(run_info.get("notes", [])) + list(end.notes)
     status = "cancelled" if end.reason is StopReason.CANCELLED else "finished"
     run_info.update(n_simulations=budget.n_simulations, wall_time_s=budget.elapsed(), notes=notes)

@@ -65,7 +65,8 @@ def reference(tmp_path_factory):
 
     def check_xarray(progress):  # a reader between populations sees every complete one
         ds = xr.open_zarr(tmp / "ref.zarr", consolidated=False)
-        reads.append((progress.population.t, ds.sizes["population"], float(ds["epsilon"].values[-1])))
+        reads.append((progress.population.t, ds.sizes["population"], float(ds["epsilon"].values[-1]),
+                      Store.open(tmp / "ref.zarr").attrs["status"]))
 
     run_local(spec, tmp / "ref.zarr", 1, on_population=check_xarray)
     return spec, tmp / "ref.zarr", reads
@@ -75,9 +76,13 @@ def test_reference_run_is_readable_with_xarray_while_running(reference):
     _, store, reads = reference
     assert len(reads) == 6
     eps = Store.open(store).populations()
-    for t, size, last_eps in reads:
-        assert size == t
-        assert last_eps == eps[t - 1].epsilon
+    # the runner coalesces the appends of populations that come within a second of each
+    # other, so a reader may already see later populations; never fewer, never half of one
+    assert reads[0][:2] == (1, 1)  # the first population is written as soon as it is done
+    for t, size, last_eps, status in reads:
+        assert t <= size <= len(eps)
+        assert last_eps == eps[size - 1].epsilon
+        assert status == "running"
 
 
 def test_two_workers_give_the_one_worker_result(reference, tmp_path):
@@ -136,7 +141,7 @@ def test_cli_killed_with_sigkill_resumes_to_the_same_store(reference, tmp_path, 
     while time.monotonic() < deadline:
         if out.exists():
             try:
-                if Store.open(out).n_populations >= 3:
+                if Store.open(out).n_populations >= 1:  # later ones come in one append a second later
                     break
             except StoreError:  # still being created
                 pass
@@ -144,7 +149,7 @@ def test_cli_killed_with_sigkill_resumes_to_the_same_store(reference, tmp_path, 
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     interrupted = Store.open(out)
-    assert 3 <= interrupted.n_populations < 6, "the run was not interrupted mid-job"
+    assert 1 <= interrupted.n_populations < 6, "the run was not interrupted mid-job"
     assert interrupted.attrs["status"] != "finished"
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
