@@ -1,7 +1,11 @@
 """End-to-end throughput of the runner on the paper §4.1 example (cubic vs cubic-quintic
 Duffing, examples/duffing_41/spec.yaml, first 40 populations), beside the simulator alone.
 
-    python -m benchmarks.runner [--populations N] [--batch-size B]
+    python -m benchmarks.runner [--populations N] [--batch-size B] [--spec SPEC]
+
+``--substeps N`` sets every model's RK4 substeps per sample (the §4.1 spec lets the
+simulator choose them from the priors): ``--substeps 128`` makes the same job's simulations
+~10x dearer, the regime where the runner's overheads are small and a second worker pays.
 
 Simulations per second counts the simulations the algorithm used (the serial-equivalent
 count stored in the result), wall time from the first batch to the last population stored.
@@ -38,8 +42,14 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--populations", type=int, default=40)
     parser.add_argument("--batch-size", type=int, default=None, help="override sampler.batch_size")
+    parser.add_argument("--spec", type=Path, default=SPEC, help="a job spec (default: paper §4.1)")
+    parser.add_argument("--substeps", type=int, default=None, help="override every model's integrator.substeps")
     args = parser.parse_args()
-    spec, base = load(SPEC)
+    spec, base = load(args.spec)
+    if args.substeps is not None:
+        spec = spec.model_copy(update={"models": [
+            m.model_copy(update={"integrator": m.integrator.model_copy(update={"substeps": args.substeps})})
+            for m in spec.models]})
     stop = spec.stop.model_copy(update={"max_populations": args.populations})
     sampler = spec.sampler.model_copy(update={"batch_size": args.batch_size or spec.sampler.batch_size})
     spec = spec.model_copy(update={"stop": stop, "sampler": sampler})
@@ -74,7 +84,8 @@ def main() -> None:
         rows.append((f"abcns runner, LocalCluster {n_workers} worker(s), zarr store (identical: {same})",
                      res.n_simulations / wall, wall))
 
-    print(f"paper §4.1, {len(reference.populations)} populations, {reference.n_simulations} simulations, "
+    at = "" if args.substeps is None else f" at {args.substeps} substeps"
+    print(f"{spec.name}{at}, {len(reference.populations)} populations, {reference.n_simulations} simulations, "
           f"batch size {job.settings.batch_size}")
     print(f"{'configuration':70s} {'sims/s':>10s} {'wall s':>8s} {'vs simulator':>12s}")
     for name, rate, wall in rows:
