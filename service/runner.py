@@ -94,6 +94,7 @@ class PopulationWriter:
         self.queue: queue.SimpleQueue = queue.SimpleQueue()
         self.error: BaseException | None = None
         self.last_append = -math.inf
+        self.closing = threading.Event()
         self.thread = threading.Thread(target=self._run, name="abcns-store", daemon=True)
         self.thread.start()
 
@@ -103,7 +104,8 @@ class PopulationWriter:
         self.queue.put((pop, n_simulations_total, info, progress))
 
     def close(self, raise_error: bool = True) -> None:
-        """Write what is queued and stop the thread."""
+        """Write what is queued now and stop the thread."""
+        self.closing.set()
         self.queue.put(None)
         self.thread.join()
         if raise_error and self.error is not None:
@@ -116,7 +118,8 @@ class PopulationWriter:
             # populations that come while the last append settles join this one: at most
             # about one append per WRITE_INTERVAL_S on a fast job (an append of any number of
             # populations costs ~50-150 ms of CPU that the runner's own thread would miss)
-            time.sleep(max(0.0, self.last_append + WRITE_INTERVAL_S - time.monotonic()) if items[0] else 0.0)
+            if items[0] is not None:  # (close() cuts the wait short)
+                self.closing.wait(max(0.0, self.last_append + WRITE_INTERVAL_S - time.monotonic()))
             while items[-1] is not None and not self.queue.empty():
                 items.append(self.queue.get())
             if items[-1] is None:
