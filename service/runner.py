@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import queue
 import threading
 import time
@@ -80,17 +81,32 @@ def summary(store: Store) -> dict:
     return out
 
 
-WRITE_INTERVAL_S = 1.0
+WRITE_INTERVAL_ENV = "ABCNS_STORE_INTERVAL_S"
+
+
+def write_interval() -> float:
+    """The coalescing interval: ``ABCNS_STORE_INTERVAL_S`` (0: one append per population)."""
+    raw = os.environ.get(WRITE_INTERVAL_ENV, "1")
+    try:
+        value = float(raw)
+    except ValueError:
+        raise SpecError(WRITE_INTERVAL_ENV, f"must be a number of seconds, got {raw!r}") from None
+    if not 0 <= value <= 3600:
+        raise SpecError(WRITE_INTERVAL_ENV, f"must be between 0 and 3600 seconds, got {value}")
+    return value
 
 
 class PopulationWriter:
     """Appends populations to the store in order on a background thread while the next
     ones are computed; the progress callback runs once its population is in the store.
-    Populations that come within ``WRITE_INTERVAL_S`` of the last append go in one append, so
-    a job whose populations come fast pays a few appends a second, not one per population."""
+    Populations that come within ``interval_s`` (default :func:`write_interval`) of the last
+    append go in one append, so a job whose populations come fast pays about one append a
+    second, not one per population."""
 
-    def __init__(self, store: Store, job_key: str, on_population: Callable[[Progress], None] | None):
+    def __init__(self, store: Store, job_key: str, on_population: Callable[[Progress], None] | None,
+                 interval_s: float | None = None):
         self.store, self.job_key, self.on_population = store, job_key, on_population
+        self.interval_s = write_interval() if interval_s is None else interval_s
         self.queue: queue.SimpleQueue = queue.SimpleQueue()
         self.error: BaseException | None = None
         self.last_append = -math.inf
@@ -116,10 +132,10 @@ class PopulationWriter:
         while not done:
             items = [self.queue.get()]
             # populations that come while the last append settles join this one: at most
-            # about one append per WRITE_INTERVAL_S on a fast job (an append of any number of
+            # about one append per interval_s on a fast job (an append of any number of
             # populations costs ~50-150 ms of CPU that the runner's own thread would miss)
             if items[0] is not None:  # (close() cuts the wait short)
-                self.closing.wait(max(0.0, self.last_append + WRITE_INTERVAL_S - time.monotonic()))
+                self.closing.wait(max(0.0, self.last_append + self.interval_s - time.monotonic()))
             while items[-1] is not None and not self.queue.empty():
                 items.append(self.queue.get())
             if items[-1] is None:
@@ -156,6 +172,7 @@ def run_job(
     if seed is not None:
         spec = spec.model_copy(update={"seed": seed})
     job: Job = build(spec, base_dir, allow_import)  # every check before anything runs
+    interval_s = write_interval()
     arrays = {"force": job.force, "observed": job.observed}
     dhash = data_hash(*(a for a in (job.force, job.observed) if a is not None))
     key = job_key(spec, job.seed, dhash)
@@ -182,7 +199,7 @@ def run_job(
     executor = DaskExecutor(client, key, description(spec), arrays, allow_import)
     gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget)
     start, sims_start = time.monotonic(), budget.n_simulations
-    writer = PopulationWriter(store, key, on_population)
+    writer = PopulationWriter(store, key, on_population, interval_s)
     try:
         while True:
             try:

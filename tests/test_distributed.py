@@ -118,15 +118,17 @@ def run_killing_workers(spec, out, n_victims: int, at_population: int = 2) -> li
     return killed
 
 
-def test_a_worker_killed_mid_population_changes_nothing(reference, tmp_path):
+def test_a_worker_killed_mid_population_changes_nothing(reference, tmp_path, monkeypatch):
+    monkeypatch.setenv("ABCNS_STORE_INTERVAL_S", "0")  # the callback of population 2 comes as it is done
     spec, ref_store, _ = reference
     run_killing_workers(spec, tmp_path / "killed.zarr", n_victims=1)
     assert_same_store(ref_store, tmp_path / "killed.zarr")
 
 
-def test_every_worker_killed_at_once_changes_nothing(reference, tmp_path):
+def test_every_worker_killed_at_once_changes_nothing(reference, tmp_path, monkeypatch):
     """The job's data lives on the cluster as a task: with every worker that held it dead,
     the scheduler computes it again (scattered data would be lost, and the job with it)."""
+    monkeypatch.setenv("ABCNS_STORE_INTERVAL_S", "0")
     spec, ref_store, _ = reference
     run_killing_workers(spec, tmp_path / "all-killed.zarr", n_victims=2)
     assert_same_store(ref_store, tmp_path / "all-killed.zarr")

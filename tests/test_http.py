@@ -42,8 +42,11 @@ class Service:
         self.start()
 
     def start(self) -> None:
+        # one append, and so one event, per population as it is done (not coalesced), so a
+        # test can act between populations of these short jobs
+        env = {**os.environ, "PYTHONPATH": str(ROOT), "ABCNS_STORE_INTERVAL_S": "0"}
         self.proc = subprocess.Popen(self.args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                     start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+                                     start_new_session=True, env=env)
 
         def healthy():
             try:

@@ -11,6 +11,7 @@ import yaml
 
 from abcns import SpecError, StopRules, run
 from examples.paper import authors_demo
+from service.runner import write_interval
 from service.spec import build, load, parse
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -118,3 +119,18 @@ def test_decimation_is_anti_aliased_and_scales_dt(raw, tmp_path):
     with pytest.raises(SpecError) as err:
         parse(raw)
     assert err.value.field == "data.decimate"
+
+
+@pytest.mark.parametrize("raw", ["soon", "-1", "nan", "1e9"])
+def test_a_bad_store_interval_is_refused_naming_the_variable(monkeypatch, raw):
+    monkeypatch.setenv("ABCNS_STORE_INTERVAL_S", raw)
+    with pytest.raises(SpecError) as err:
+        write_interval()
+    assert err.value.field == "ABCNS_STORE_INTERVAL_S"
+
+
+def test_the_store_interval_defaults_to_a_second(monkeypatch):
+    monkeypatch.delenv("ABCNS_STORE_INTERVAL_S", raising=False)
+    assert write_interval() == 1.0
+    monkeypatch.setenv("ABCNS_STORE_INTERVAL_S", "0")
+    assert write_interval() == 0.0
