@@ -11,7 +11,7 @@ has seen, which changes only how the work is cut, never a result:
   a 20 % margin between them; past the estimate (or with none yet) the size grows with the
   batches consumed.
 
-Tasks are submitted ahead (``in_flight`` tasks, default two per worker) so every worker stays
+Tasks are submitted ahead (two per worker up to the expected need) so every worker stays
 busy; the caller consumes results strictly in submission order (the oldest first, never
 whichever finishes first: that would bias the posterior toward cheap parameters). When the
 caller has enough and closes the iterator, the surplus tasks are cancelled. Each batch
@@ -40,16 +40,12 @@ TASK_SECONDS = 0.1  # compute time a task aims at, at most (the round trip is a 
 
 
 class DaskExecutor:
-    def __init__(self, client: Client, job_key: str, description: dict, arrays: dict,
-                 allow_import: bool = False, in_flight: int | None = None):
+    def __init__(self, client: Client, job_key: str, description: dict, arrays: dict, allow_import: bool = False):
         self.client = client
         self.job_key = job_key
-        self.in_flight = in_flight
         self.nonce = uuid.uuid4().hex[:8]  # keys unique to this run of the job
         self.payload: Future = client.submit(job_payload, description, arrays, allow_import,
                                              key=f"abcns-{job_key[:12]}-data-{self.nonce}", pure=False)
-        self.n_submitted = 0  # tasks
-        self.n_cancelled = 0
         self.expected: int | None = None  # batches the previous map call consumed
         self.batch_seconds: float | None = None  # compute time per batch on a worker (smoothed)
 
@@ -57,20 +53,19 @@ class DaskExecutor:
         """Release the job's data on the cluster."""
         self.payload.release()
 
-    def _depth(self) -> tuple[int, int]:
-        """(tasks in flight, workers); one scheduler round trip per population."""
-        n_workers = max(1, len(self.client.scheduler_info(n_workers=-1).get("workers", {})))
-        return (self.in_flight if self.in_flight is not None else 2 * n_workers), n_workers
+    def _n_workers(self) -> int:
+        """One scheduler round trip per population."""
+        return max(1, len(self.client.scheduler_info(n_workers=-1).get("workers", {})))
 
     def _need(self) -> int:
         """Batches this call is expected to consume: the previous call's count, 20 % more."""
         return math.ceil(1.2 * self.expected) if self.expected is not None else 1
 
-    def _group_size(self, consumed: int, n_workers: int) -> int:
+    def _group_size(self, need: int, consumed: int, n_workers: int) -> int:
         """Batches in the next task, given the batches consumed so far in this call: the
         tasks in flight at the start cover the expected need between them; past that (or
         with no estimate yet) the size grows with what has been consumed."""
-        size = math.ceil(max(self._need(), consumed) / (2 * n_workers))
+        size = math.ceil(max(need, consumed) / (2 * n_workers))
         if self.batch_seconds is not None and self.batch_seconds > 0:
             size = min(size, int(TASK_SECONDS / self.batch_seconds))
         return max(1, size)
@@ -79,15 +74,15 @@ class DaskExecutor:
         pending: deque[tuple[Future, int]] = deque()  # (task, batches in it), oldest first
         it = iter(batches)
         exhausted = False
-        depth, n_workers = self._depth()
+        n_workers = self._n_workers()
         need = self._need()
         consumed = submitted = 0
         try:
             while True:
-                # up to the expected need, ``depth`` tasks in flight; past it, one per worker,
-                # so surplus work does not hold the workers when the population is full
-                while not exhausted and len(pending) < (depth if submitted < need else n_workers):
-                    group = list(itertools.islice(it, self._group_size(consumed, n_workers)))
+                # up to the expected need, two tasks per worker in flight; past it, one, so
+                # surplus work does not hold the workers when the population is full
+                while not exhausted and len(pending) < (2 if submitted < need else 1) * n_workers:
+                    group = list(itertools.islice(it, self._group_size(need, consumed, n_workers)))
                     if not group:
                         exhausted = True
                         break
@@ -96,7 +91,6 @@ class DaskExecutor:
                     pending.append((self.client.submit(evaluate_on_worker, self.job_key, self.payload, group,
                                                        key=key, pure=False), len(group)))
                     submitted += len(group)
-                    self.n_submitted += 1
                 if not pending:
                     return
                 task, size = pending.popleft()
@@ -109,5 +103,4 @@ class DaskExecutor:
         finally:
             self.expected = max(consumed, 1)
             if pending:
-                self.n_cancelled += len(pending)
                 self.client.cancel([task for task, _ in pending])

@@ -1,8 +1,9 @@
 """The runner: one job, driven over a Dask client, every population into its zarr store.
 
 ``run_job`` validates the spec, opens or creates the job's store, sends the data to the
-cluster once (a task, so it survives lost workers), and drives the abcns population iterator with a :class:`DaskExecutor`,
-appending each complete population to the store (data first, counter last). Run on a store
+cluster once (a task, so it survives lost workers), and drives the abcns population
+iterator with a :class:`DaskExecutor`, appending each complete population to the store
+(data first, counter last). Run on a store
 of an unfinished job it resumes from the last complete population: the random stream is
 keyed by (seed, population, batch), so the end result equals an uninterrupted run's.
 """
@@ -99,14 +100,14 @@ def write_interval() -> float:
 class PopulationWriter:
     """Appends populations to the store in order on a background thread while the next
     ones are computed; the progress callback runs once its population is in the store.
-    Populations that come within ``interval_s`` (default :func:`write_interval`) of the last
-    append go in one append, so a job whose populations come fast pays about one append a
+    Populations that come within ``interval_s`` (:func:`write_interval`) of the last append
+    go in one append, so a job whose populations come fast pays about one append a
     second, not one per population."""
 
     def __init__(self, store: Store, job_key: str, on_population: Callable[[Progress], None] | None,
-                 interval_s: float | None = None):
+                 interval_s: float):
         self.store, self.job_key, self.on_population = store, job_key, on_population
-        self.interval_s = write_interval() if interval_s is None else interval_s
+        self.interval_s = interval_s
         self.queue: queue.SimpleQueue = queue.SimpleQueue()
         self.error: BaseException | None = None
         self.last_append = -math.inf

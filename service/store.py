@@ -22,7 +22,8 @@ hash, algorithm, model and parameter names, status, stop reason, run information
 counter ``n_populations``. An append (of one population or several consecutive ones)
 resizes and writes every array first and bumps the counter last: a reader that trusts the
 counter never sees half a population, and rows a crash left beyond the counter are ignored
-and overwritten by the next append. zarr's local store writes each file atomically (temporary file, then rename).
+and overwritten by the next append. zarr's local store writes each file atomically
+(temporary file, then rename).
 
 Written for one writer of populations (the job's runner) and any number of readers, in any
 process: every call re-reads the metadata from disk, so a ``Store`` object never goes stale.

@@ -91,16 +91,18 @@ def test_two_workers_give_the_one_worker_result(reference, tmp_path):
     assert_same_store(ref_store, tmp_path / "two.zarr")
 
 
-def run_killing_workers(spec, out, n_victims: int, at_population: int = 2) -> list[int]:
+def run_killing_workers(spec, out, n_victims: int) -> list[int]:
     """Run the job on two worker processes and SIGKILL ``n_victims`` of them inside
-    population ``at_population + 1``; the nannies start new ones. Returns the killed pids."""
+    population 3; the nannies start new ones. Returns the killed pids."""
     killed = []
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+    with pytest.MonkeyPatch.context() as mp, \
+            LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
             Client(cluster) as client:
         pids = client.run(os.getpid)
+        mp.setenv("ABCNS_STORE_INTERVAL_S", "0")  # population 2's callback comes as soon as it is done
 
         def on_population(progress):
-            if progress.population.t == at_population and not killed:
+            if progress.population.t == 2 and not killed:
                 victims = sorted(pids.values())[:n_victims]
 
                 def kill():
@@ -118,17 +120,15 @@ def run_killing_workers(spec, out, n_victims: int, at_population: int = 2) -> li
     return killed
 
 
-def test_a_worker_killed_mid_population_changes_nothing(reference, tmp_path, monkeypatch):
-    monkeypatch.setenv("ABCNS_STORE_INTERVAL_S", "0")  # the callback of population 2 comes as it is done
+def test_a_worker_killed_mid_population_changes_nothing(reference, tmp_path):
     spec, ref_store, _ = reference
     run_killing_workers(spec, tmp_path / "killed.zarr", n_victims=1)
     assert_same_store(ref_store, tmp_path / "killed.zarr")
 
 
-def test_every_worker_killed_at_once_changes_nothing(reference, tmp_path, monkeypatch):
+def test_every_worker_killed_at_once_changes_nothing(reference, tmp_path):
     """The job's data lives on the cluster as a task: with every worker that held it dead,
     the scheduler computes it again (scattered data would be lost, and the job with it)."""
-    monkeypatch.setenv("ABCNS_STORE_INTERVAL_S", "0")
     spec, ref_store, _ = reference
     run_killing_workers(spec, tmp_path / "all-killed.zarr", n_victims=2)
     assert_same_store(ref_store, tmp_path / "all-killed.zarr")
