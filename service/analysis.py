@@ -157,3 +157,16 @@ def run_to_store(spec: JobSpec, base_dir: str | Path | None, out: str | Path, se
                           "n_pilot_simulations": result.n_pilot_simulations, "n_simulations": result.n_simulations,
                           "wall_time_s": result.wall_time_s, "notes": list(result.notes)})
     return result
+
+
+def fit_alone(spec: JobSpec, base_dir: str | Path | None, model: str, out: str | Path, *, name: str,
+              seed: int | None = None) -> tuple[Result, JobData]:
+    """Model ``model`` of ``spec`` fitted on its own (same data, sampler and stop rules, job
+    ``name``), run into the store ``out`` unless it exists; its result and data."""
+    from service.runner import result_from_store
+
+    if not Path(out).exists():
+        alone = spec.model_copy(update={"models": [m for m in spec.models if m.name == model], "name": name})
+        run_to_store(alone, base_dir, out, seed=seed)
+    store = Store.open(out)
+    return result_from_store(store), store_job_data(store, base_dir)

@@ -26,9 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from abcns.analysis import bands, point_estimates  # noqa: E402
 from examples.boucwen.prepare import FS, NOISE_RMS, load  # noqa: E402
-from service.analysis import JobData, open_run, run_to_store, store_job_data  # noqa: E402
-from service.runner import result_from_store  # noqa: E402
-from service.store import Store  # noqa: E402
+from service.analysis import JobData, fit_alone, open_run  # noqa: E402
 from worker.evaluate import simulator_for  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -63,12 +61,8 @@ def main(argv: list[str] | None = None) -> None:
     probs = result.model_probabilities()
     selected = max(probs, key=probs.get)
 
-    linear_path = args.out / f"linear_seed{args.seed}.zarr"
-    linear_spec = spec.model_copy(update={"models": [m for m in spec.models if m.name == "linear"], "name": "boucwen-linear"})
-    if not linear_path.exists():
-        run_to_store(linear_spec, base, linear_path, seed=args.seed)
-    linear = result_from_store(Store.open(linear_path))
-    linear_data = store_job_data(Store.open(linear_path), base)
+    linear, linear_data = fit_alone(spec, base, "linear", args.out / f"linear_seed{args.seed}.zarr",
+                                    name="boucwen-linear", seed=args.seed)
 
     records = load()
     rows = []

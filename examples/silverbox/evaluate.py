@@ -26,9 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from abcns.analysis import nmse, point_estimates, predictive  # noqa: E402
 from examples.boucwen.evaluate import on_record  # noqa: E402
 from examples.silverbox.prepare import segments  # noqa: E402
-from service.analysis import open_run, run_to_store, store_job_data  # noqa: E402
-from service.runner import result_from_store  # noqa: E402
-from service.store import Store  # noqa: E402
+from service.analysis import fit_alone, open_run  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
@@ -45,11 +43,8 @@ def main(argv: list[str] | None = None) -> None:
     spec, base, store, result, data = open_run(HERE / "spec.yaml", args.out / f"seed{args.seed}.zarr")
     fits = {result.models[i].name: (result, data) for i in result.alive()}
     if "linear" not in fits:
-        path = args.out / f"linear_seed{args.seed}.zarr"
-        if not path.exists():
-            lin = spec.model_copy(update={"models": [m for m in spec.models if m.name == "linear"], "name": "silverbox-linear"})
-            run_to_store(lin, base, path, seed=args.seed)
-        fits["linear (fitted alone)"] = (result_from_store(Store.open(path)), store_job_data(Store.open(path), base))
+        fits["linear (fitted alone)"] = fit_alone(spec, base, "linear", args.out / f"linear_seed{args.seed}.zarr",
+                                                  name="silverbox-linear", seed=args.seed)
     seg = segments()
     table: dict[str, list[float]] = {}
     for label, (res, dat) in fits.items():
