@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Literal, Protocol, cast, overload
 
 import numpy as np
 
@@ -62,6 +62,20 @@ class Executor(Protocol):
         ...
 
 
+class BatchError(RuntimeError):
+    """An unexpected exception while a batch was evaluated (a bug in a simulator, not a
+    numerical failure, which is a counted rejection): the message names the batch
+    (population, index) and the exception's type."""
+
+
+def evaluate_batch(evaluate: Evaluate, batch: Batch) -> Evaluated:
+    """``evaluate(batch)``, with an unexpected exception turned into a BatchError naming the batch."""
+    try:
+        return evaluate(batch)
+    except Exception as err:
+        raise BatchError(f"population {batch.population}, batch {batch.index}: {type(err).__name__}: {err}") from err
+
+
 class SerialExecutor:
     """Evaluate one batch at a time in this process."""
 
@@ -70,13 +84,25 @@ class SerialExecutor:
 
     def map(self, batches: Iterable[Batch]) -> Iterator[Evaluated]:
         for batch in batches:
-            yield self.evaluate(batch)
+            yield evaluate_batch(self.evaluate, batch)
 
 
 SimulateDistance = Callable[[np.ndarray, np.random.Generator], tuple[np.ndarray, np.ndarray]]
 
 
-def per_model(functions: Sequence[SimulateDistance], pass_epsilon: bool = False) -> Evaluate:
+class SimulateDistanceEpsilon(Protocol):
+    """A :data:`SimulateDistance` that also takes the batch's tolerance as ``epsilon=``."""
+
+    def __call__(self, theta: np.ndarray, rng: np.random.Generator, /,
+                 epsilon: float = ...) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+@overload
+def per_model(functions: Sequence[SimulateDistance], pass_epsilon: Literal[False] = False) -> Evaluate: ...
+@overload
+def per_model(functions: Sequence[SimulateDistanceEpsilon], pass_epsilon: bool) -> Evaluate: ...
+def per_model(functions: Sequence[SimulateDistance] | Sequence[SimulateDistanceEpsilon],
+              pass_epsilon: bool = False) -> Evaluate:
     """Make a batch evaluator from one function per model.
 
     ``functions[m](theta, rng) -> (distances, status)`` receives the rows of model ``m``
@@ -98,7 +124,9 @@ def per_model(functions: Sequence[SimulateDistance], pass_epsilon: bool = False)
             theta = theta[:, ~np.all(np.isnan(theta), axis=0)]
             try:
                 if pass_epsilon:
-                    d, s = functions[int(m)](theta, rng, epsilon=batch.epsilon)
+                    # only the second overload passes True: these functions take epsilon
+                    f_eps = cast("SimulateDistanceEpsilon", functions[int(m)])
+                    d, s = f_eps(theta, rng, epsilon=batch.epsilon)
                 else:
                     d, s = functions[int(m)](theta, rng)
             except (ArithmeticError, ValueError, np.linalg.LinAlgError):

@@ -119,6 +119,12 @@ class Filled:
     n_simulations: int
     n_failed: int
     n_redraws: int
+    simulated_models: np.ndarray  # (n_simulations,) the model of every simulation counted
+
+    def counts(self, n_models: int) -> tuple[np.ndarray, np.ndarray]:
+        """(simulations, accepted particles) per model."""
+        return (np.bincount(self.simulated_models, minlength=n_models),
+                np.bincount(self.models, minlength=n_models))
 
 
 def batches(propose: Propose, *, seed: int, t: int, epsilon: float, batch_size: int) -> Iterator[Batch]:
@@ -149,6 +155,7 @@ def fill(
     """
     budget.check()
     kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    simulated: list[np.ndarray] = []
     n_kept = n_sims = n_failed = n_redraws = 0
     issued: deque[Batch] = deque()  # batches handed to the executor, oldest first
 
@@ -168,12 +175,12 @@ def fill(
             full = np.searchsorted(cum, n_needed - n_kept)  # first row where cum reaches the need
             n_rows = min(len(batch), int(full) + 1)
             left = budget.simulations_left()
-            cut = left is not None and left < n_rows
-            if cut:
-                n_rows = left  # type: ignore[assignment]
+            if cut := (left is not None and left < n_rows):
+                n_rows = left
             rows = slice(0, n_rows)
             take = np.flatnonzero(accept[rows])
             kept.append((batch.models[take], batch.theta[take], evaluated.distances[take]))
+            simulated.append(batch.models[rows])
             n_kept += take.size
             n_sims += n_rows
             n_failed += int(np.count_nonzero(~ok[rows]))
@@ -189,4 +196,4 @@ def fill(
         if close is not None:
             close()
     models, theta, distances = (np.concatenate(parts) for parts in zip(*kept))
-    return Filled(models, theta, distances, n_sims, n_failed, n_redraws)
+    return Filled(models, theta, distances, n_sims, n_failed, n_redraws, np.concatenate(simulated))

@@ -1,35 +1,53 @@
 """ABC-NS (paper Algorithm 2) with joint model selection over models of any dimension.
 
 One population t holds N particles accepted below eps_t. Finishing it (a pure function of
-the particles and a generator) gives:
+the particles and generators keyed by (seed, t)) gives:
 
 1. eps_{t+1} = the (alpha N)-th largest distance (steps 10-11, 27);
 2. weights (step 9/28): zero for e >= eps_{t+1}; otherwise ``(1/e)(1 - (e/eps_t)^2)``
    ("paper") or ``(1/eps_t)(1 - (e/eps_t)^2)`` ("kernel", the authors' demo);
-3. survivors (step 14/29): per model ``round(beta N * n_model / N)`` by largest remainder
-   (so they add up to beta N), drawn by weight without replacement from the model's
-   positive-weight particles; a model short of them gives its shortfall to the others;
-4. one ellipsoid per model with survivors (steps 15-16, 30): mean and covariance of the
-   survivors, scaled to hold them all, matrix times f0 (see ``abcns.ellipsoid`` for the
-   repair of degenerate covariances and the rule for fewer than d + 1 survivors).
+3. survivors (step 14/29): beta N in all, split over models, drawn by weight without
+   replacement from each model's positive-weight particles; a model short of them gives its
+   shortfall to the others;
+4. a bound per alive model (steps 15-16, 30): ellipsoids enlarged by f0.
 
 Population t + 1 = the survivors plus (1 - beta) N new particles: each proposal picks a
-model with survivors with equal probability, then a point uniform in its ellipsoid,
-redrawn until inside the prior box (redraws are counted, not simulated). A model with no
-survivors has no particles from then on: it is dead and stays dead. Model probabilities
-are particle shares (Eq. 12).
+model, then a point uniform in its bound, redrawn until inside the prior box (redraws are
+counted, not simulated).
+
+Two variants (``NSSettings.variant``):
+
+- ``"paper"``: exactly the published algorithm as the authors' demo runs it. Survivors per
+  model follow particle counts, one ellipsoid per model fitted to its survivors in raw
+  parameter units, proposals pick an alive model with equal probability, and the model
+  probabilities are particle shares (Eq. 12). A model with no survivors is dead.
+- ``"evidence"`` (default): the model probabilities are ABC posterior probabilities from
+  each model's evidence (``abcns.evidence``); survivors follow the probability predicted at
+  eps_{t+1} (at least 2 (d + 1) each while a model has them), proposals follow it too
+  (p / acceptance, with a floor per alive model); a model dies when it has no particle below
+  eps_{t+1}, or when its probability plus three standard errors falls below
+  ``min_model_probability``. Bounds are fitted in the unit prior box to every particle below
+  eps_{t+1} (the region the next population must sample, not only the survivors) and split
+  into several ellipsoids where that halves the volume (``abcns.bounds``).
+
+The evidence bookkeeping (``Population.evidence``) is computed in both variants; in the paper
+variant it is a diagnostic and uses its own random stream, so the paper's populations are
+exactly those of the published algorithm.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Generator, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
+from abcns import bounds as bd
 from abcns import ellipsoid as ell
+from abcns import evidence as ev
 from abcns.executor import Executor
-from abcns.filling import Budget, Propose, Stopped, draw_inside, fill, population_rng
+from abcns.filling import Budget, Filled, Propose, Stopped, draw_inside, fill, population_rng
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
 from abcns.result import Population, RunEnd
@@ -71,66 +89,209 @@ def ns_weights(distances: np.ndarray, epsilon: float, epsilon_next: float, form:
     return np.where((distances < epsilon_next) & (kernel > 0), w, 0.0)
 
 
+def geometry_rng(seed: int, t: int) -> np.random.Generator:
+    """The generator of population t's bound geometry (volume and coverage Monte Carlo):
+    its own stream, so the paper variant's survivors are unchanged by it."""
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(t, 0, 1)))
+
+
+#: Monte Carlo draws per model for the volume of its bound
+VOLUME_DRAWS = 20_000
+
+
+@dataclass(frozen=True, eq=False)
+class Step:
+    """What finishing a population gives (see :func:`finish_population`)."""
+
+    epsilon_next: float
+    weights: np.ndarray
+    survivors: np.ndarray
+    bounds: tuple[bd.Union, ...]
+    evidence: ev.Evidence
+    model_probabilities: np.ndarray
+    notes: list[str]
+
+
+def _floored_quotas(total: int, shares: np.ndarray, capacity: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """Survivor quotas proportional to ``shares``, each at least min(floor, capacity) and at
+    most its capacity; the floors are taken from the largest quotas."""
+    quota = survivor_quotas(total, shares, capacity)
+    need = np.minimum(floor, capacity)
+    while np.any(quota < need):
+        donors = np.flatnonzero(quota > need)
+        if donors.size == 0:
+            break
+        quota[int(np.argmax(need - quota))] += 1
+        quota[donors[np.argmax(quota[donors])]] -= 1
+    return quota
+
+
 def finish_population(
     models: Sequence[Model],
+    frames: Sequence[bd.Frame],
     t: int,
     epsilon: float,
     which: np.ndarray,
     theta: np.ndarray,
     distances: np.ndarray,
-    previous: Sequence[ell.Ellipsoid | None],
+    is_new: np.ndarray,
+    filled: Filled,
+    previous: Population | None,
     settings: NSSettings,
     rng: np.random.Generator,
-) -> tuple[float, np.ndarray, np.ndarray, tuple[ell.Ellipsoid | None, ...], list[str]]:
-    """(eps_next, weights normalised per model, survivor mask, next ellipsoids, notes)."""
+    geometry: np.random.Generator,
+) -> Step:
+    """eps_next, weights normalised per model, survivors, next bounds, evidence, notes."""
     n_models = len(models)
     eps_next = float(np.sort(distances)[::-1][settings.n_drop - 1])
     raw = ns_weights(distances, epsilon, eps_next, settings.weights)
     counts = np.bincount(which, minlength=n_models)
-    capacity = np.bincount(which, weights=raw > 0, minlength=n_models).astype(np.int64)
-    quotas = survivor_quotas(settings.n_survivors, counts, capacity)
-    notes = []
+    positive = raw > 0
+    capacity = np.bincount(which, weights=positive, minlength=n_models).astype(np.int64)
+    n_proposed, n_accepted = filled.counts(n_models)
+    alive_now = counts > 0
+
+    # ---- evidence at eps_t: the prediction from t - 1 combined with this population's counts
+    if previous is None:  # rejection from the priors: Z = accepted / proposed, exactly
+        log_z, var_z = ev.log_share(n_accepted, n_proposed)
+    else:
+        prev = previous.evidence
+        assert prev is not None
+        log_a, var_a = ev.log_share(n_accepted, n_proposed)
+        smooth_a, smooth_var = ev.log_share_smoothed(n_accepted, n_proposed)
+        log_a, var_a = np.where(n_accepted > 0, log_a, smooth_a), np.where(n_accepted > 0, var_a, smooth_var)
+        var_a = np.where(n_proposed > 0, var_a, np.inf)
+        # binomial error of the held-out share, plus the error of its 1/n correction (which
+        # halves the missed share: it is uncertain by as much as it corrects, 1 - c)
+        n_cov = np.maximum(prev.n_coverage, 1)
+        var_c = np.where(prev.n_coverage > 0,
+                         np.maximum(1 - prev.coverage, 1 / n_cov) / (np.maximum(prev.coverage, 1e-12) * n_cov), 0.0)
+        var_c = var_c + (1 - prev.coverage) ** 2
+        direct = log_a + prev.log_volume - np.log(np.maximum(prev.coverage, 1e-12))
+        log_z, var_z = ev.combine(prev.log_z_next, prev.log_z_next_se**2, direct, var_a + prev.log_volume_se**2 + var_c)
+    log_z = np.where(alive_now, log_z, -np.inf)
+    var_z = np.where(alive_now, var_z, np.inf)
+    p_now, _ = ev.probabilities(log_z, np.sqrt(var_z))
+
+    # ---- prediction at eps_next: the share of each model's new particles below it
+    below = distances < eps_next
+    k_new = np.bincount(which, weights=is_new & below, minlength=n_models)
+    n_new = np.bincount(which, weights=is_new, minlength=n_models)
+    k_all = np.bincount(which, weights=below, minlength=n_models)
+    k_r, n_r = np.where(n_new > 0, k_new, k_all), np.where(n_new > 0, n_new, counts)
+    log_r, var_r = ev.log_share_smoothed(k_r, n_r)
+    log_z_next = np.where(capacity > 0, log_z + log_r, -np.inf)
+    var_next = np.where(capacity > 0, var_z + var_r, np.inf)
+    p_next, se_next = ev.probabilities(log_z_next, np.sqrt(var_next))
+
+    # ---- deaths and survivor quotas
+    death = np.where(alive_now, ev.ALIVE, ev.DEAD_BEFORE).astype(np.int64)
+    notes: list[str] = []
+    if settings.evidence:
+        death[alive_now & (capacity == 0)] = ev.NO_PARTICLES
+        improbable = alive_now & (capacity > 0) & (p_next + 3 * se_next < settings.death_probability)
+        death[improbable] = ev.IMPROBABLE
+        alive_next = death == ev.ALIVE
+        shares = np.where(alive_next, p_next, 0.0)
+        floor = np.array([bd.min_points(m.n_dim) for m in models])
+        quotas = _floored_quotas(settings.n_survivors, shares, np.where(alive_next, capacity, 0), floor)
+    else:
+        quotas = survivor_quotas(settings.n_survivors, counts, capacity)
+        death[alive_now & (quotas == 0)] = ev.NO_PARTICLES
+        alive_next = death == ev.ALIVE
+    for m in map(int, np.flatnonzero(alive_now & ~alive_next)):
+        rule = ev.DEATH_RULES[int(death[m])]
+        notes.append(f"population {t}: {models[m].name} dies ({rule}; p = {p_next[m]:.3g} at the next tolerance)")
     if quotas.sum() < settings.n_survivors:
         notes.append(f"population {t}: only {quotas.sum()} particles below eps_next (ties); fewer survivors")
+
+    # ---- survivors (by weight) and bounds
     weights = np.zeros_like(raw)
     survivors = np.zeros(which.shape[0], dtype=bool)
-    ellipsoids: list[ell.Ellipsoid | None] = []
+    bounds: list[bd.Union] = []
+    log_volume = np.full(n_models, np.nan)
+    log_volume_se = np.full(n_models, np.nan)
+    cover = np.ones(n_models)
+    n_cover = np.zeros(n_models, dtype=np.int64)
     for m, model in enumerate(models):
-        rows = np.flatnonzero((which == m) & (raw > 0))
+        rows = np.flatnonzero((which == m) & positive)
         if rows.size:
             weights[rows] = raw[rows] / raw[rows].sum()
-        if quotas[m] == 0:
-            ellipsoids.append(None)
+        if not alive_next[m] or quotas[m] == 0:
+            bounds.append(())
             continue
         keep = rng.choice(rows, size=int(quotas[m]), replace=False, p=weights[rows])
         survivors[keep] = True
-        prev = previous[m] if previous[m] is not None else ell.from_box(model.low, model.high)
-        fallback = ell.from_matrix(prev.centre, prev.matrix / (settings.enlargement if prev.note != "box" else 1.0))
-        fitted = ell.fit(theta[np.sort(keep), : model.n_dim], fallback=fallback)
-        if fitted.note:
-            notes.append(f"population {t}: ellipsoid of {model.name} {fitted.note} ({quotas[m]} survivors)")
-        ellipsoids.append(ell.enlarge(fitted, settings.enlargement))
-    return eps_next, weights, survivors, tuple(ellipsoids), notes
+        frame = frames[m]
+        prev_bound = previous.ellipsoids[m] if previous is not None else ()
+        if prev_bound:
+            largest = max(prev_bound, key=lambda e: e.log_volume)
+            fallback = ell.from_matrix(largest.centre, largest.matrix / settings.enlargement)
+        else:
+            fallback = frame.box_ellipsoid()
+        if settings.evidence:
+            points = frame.to_frame(theta[rows, : model.n_dim])
+
+            def fit(p: np.ndarray, fallback: ell.Ellipsoid = fallback) -> bd.Union:
+                return bd.fit_union(p, settings.enlargement, settings.n_ellipsoids, fallback)
+
+            bound = fit(points)
+            cover[m], n_cover[m] = bd.coverage(points, fit, geometry)
+        else:
+            fitted = ell.fit(theta[np.sort(keep), : model.n_dim], fallback=fallback)
+            bound = (ell.enlarge(fitted, settings.enlargement),)
+            held = frame.to_frame(theta[rows, : model.n_dim])
+            cover[m], n_cover[m] = float(np.mean(bd.n_inside(bound, held) > 0)), rows.size
+        for e in bound:
+            if e.note:
+                notes.append(f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)")
+        bounds.append(bound)
+        log_v, log_volume_se[m] = bd.union_volume(bound, frame.inside, VOLUME_DRAWS, geometry)
+        log_volume[m] = log_v - frame.log_box_volume
+
+    # ---- proposals of t + 1
+    acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
+    if settings.evidence:
+        alloc = ev.allocation(p_next, acceptance, alive_next, settings.proposal_floor)
+        probabilities = p_now
+    else:
+        alloc = alive_next / max(1, int(np.count_nonzero(alive_next)))
+        probabilities = counts / counts.sum()
+    evidence = ev.Evidence(
+        log_z=log_z, log_z_se=np.sqrt(var_z), log_z_next=log_z_next, log_z_next_se=np.sqrt(var_next),
+        log_volume=log_volume, log_volume_se=log_volume_se, coverage=cover, n_coverage=n_cover,
+        allocation=alloc, n_proposed=n_proposed, n_accepted=n_accepted, death=death,
+    )
+    return Step(eps_next, weights, survivors, tuple(bounds), evidence, probabilities, notes)
 
 
-def ellipsoid_proposer(models: Sequence[Model], ellipsoids: Sequence[ell.Ellipsoid | None], max_redraws: int) -> Propose:
-    """Equal-probability choice among models with an ellipsoid, uniform point inside it,
-    redrawn until inside the prior box. ``redraws[i]`` is the number of out-of-box draws
-    before proposal i, exactly as a one-at-a-time loop would count them."""
-    alive = [m for m, e in enumerate(ellipsoids) if e is not None]
+def bound_proposer(
+    models: Sequence[Model], frames: Sequence[bd.Frame], bounds: Sequence[bd.Union],
+    allocation: np.ndarray | None, max_redraws: int,
+) -> Propose:
+    """Each proposal picks a model (with equal probability among those with a bound when
+    ``allocation`` is None, the paper's rule; else by ``allocation``), then a point uniform
+    in its bound, redrawn until inside the prior box. ``redraws[i]`` is the number of
+    out-of-box draws before proposal i, exactly as a one-at-a-time loop would count them."""
+    alive = [m for m, b in enumerate(bounds) if b]
 
     def propose(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        which = np.asarray(alive, dtype=np.int16)[rng.integers(len(alive), size=n)]
+        if allocation is None:
+            which = np.asarray(alive, dtype=np.int16)[rng.integers(len(alive), size=n)]
+        else:
+            which = rng.choice(len(models), size=n, p=allocation).astype(np.int16)
         theta = pad(models, n)
         redraws = np.zeros(n, dtype=np.int64)
         for m in alive:
             rows = np.flatnonzero(which == m)
             if rows.size == 0:
                 continue
-            model, e = models[m], ellipsoids[m]
-            theta[rows, : model.n_dim], redraws[rows] = draw_inside(
-                lambda k, g, e=e: ell.sample(e, k, g), model.in_prior, rows.size, rng, max_redraws
-            )
+            model, frame, bound = models[m], frames[m], bounds[m]
+
+            def draw(k: int, g: np.random.Generator, b: bd.Union = bound, f: bd.Frame = frame) -> np.ndarray:
+                return f.from_frame(bd.sample_union(b, k, g))
+
+            theta[rows, : model.n_dim], redraws[rows] = draw_inside(draw, model.in_prior, rows.size, rng, max_redraws)
         return which, theta, redraws
 
     return propose
@@ -153,33 +314,27 @@ def abc_ns(
     ``history`` resumes a run: the populations already done (at least the last one);
     ``budget`` then carries the simulations and seconds already spent.
     """
-    settings.check_models(models)
-    n_models = len(models)
+    settings.check_particles(models)
     budget = budget or Budget(stop, clock, cancel)
-    source, n_pilot, notes = "resumed" if history else "given", 0, []
+    source, n_pilot = "resumed" if history else "given", 0
+    notes: list[str] = []
 
     def end(reason: StopReason) -> RunEnd:
         return RunEnd(reason, budget.n_simulations, n_pilot, source, tuple(notes))
 
-    def complete(t, eps, which, theta, distances, filled, previous) -> Population:
-        eps_next, weights, survivors, ellipsoids, more = finish_population(
-            models, t, eps, which, theta, distances, previous, settings, population_rng(seed, t)
-        )
-        notes.extend(more)
-        counts = np.bincount(which, minlength=n_models)
+    frames = [bd.Frame(m.low, m.high, unit=settings.evidence) for m in models]
+
+    def complete(t, eps, which, theta, distances, is_new, filled, previous) -> Population:
+        step = finish_population(models, frames, t, eps, which, theta, distances, is_new, filled, previous,
+                                 settings, population_rng(seed, t), geometry_rng(seed, t))
+        notes.extend(step.notes)
         return population_from(
-            t, eps, eps_next, which, theta, distances, weights, filled, budget.elapsed(),
-            counts / counts.sum(), survivors=survivors, ellipsoids=ellipsoids,
+            t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, budget.elapsed(),
+            step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds, evidence=step.evidence,
         )
 
     def stop_after(pop: Population) -> StopReason | None:
-        if stop.epsilon_target is not None and pop.epsilon <= stop.epsilon_target:
-            return StopReason.EPSILON_TARGET
-        if stop.min_epsilon_decrease is not None and pop.epsilon - pop.epsilon_next < stop.min_epsilon_decrease:
-            return StopReason.MIN_EPSILON_DECREASE
-        if stop.max_populations is not None and pop.t >= stop.max_populations:
-            return StopReason.MAX_POPULATIONS
-        return None
+        return stop.reason_after(pop.epsilon, pop.epsilon_next, pop.t)
 
     try:
         if history:
@@ -188,12 +343,15 @@ def abc_ns(
             eps, source, n_pilot = initial_epsilon(models, settings, executor, budget, seed)
             filled = fill(prior_proposer(models), settings.particles, eps, executor, budget,
                           seed=seed, t=1, batch_size=settings.batch_size)
-            pop = complete(1, eps, filled.models, filled.theta, filled.distances, filled, [None] * n_models)
+            pop = complete(1, eps, filled.models, filled.theta, filled.distances,
+                           np.ones(filled.models.shape[0], bool), filled, None)
             yield pop
         while (reason := stop_after(pop)) is None:
             budget.check()
             t, eps = pop.t + 1, pop.epsilon_next
-            propose = ellipsoid_proposer(models, pop.ellipsoids, settings.max_redraws)
+            assert pop.evidence is not None and pop.survivors is not None  # set on every ABC-NS population
+            propose = bound_proposer(models, frames, pop.ellipsoids,
+                                     pop.evidence.allocation if settings.evidence else None, settings.max_redraws)
             filled = fill(propose, settings.n_new, eps, executor, budget,
                           seed=seed, t=t, batch_size=settings.batch_size)
             keep = np.flatnonzero(pop.survivors)
@@ -202,7 +360,8 @@ def abc_ns(
                 np.concatenate([pop.models[keep], filled.models]),
                 np.concatenate([pop.theta[keep], filled.theta]),
                 np.concatenate([pop.distances[keep], filled.distances]),
-                filled, pop.ellipsoids,
+                np.concatenate([np.zeros(keep.size, bool), np.ones(filled.models.shape[0], bool)]),
+                filled, pop,
             )
             yield pop
     except Stopped as stopped:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -63,13 +64,15 @@ class Model:
         if not self.priors:
             raise SpecError(f"models[{self.name}].priors", "a model needs at least one free parameter")
         priors: dict[str, Uniform] = {}
-        for key, value in self.priors.items():
+        # unchecked input (YAML, JSON, Python): a [low, high] pair is accepted too, validated below
+        given: Mapping[str, Any] = self.priors
+        for key, value in given.items():
             where = f"models[{self.name}].priors.{key}"
             if isinstance(value, Uniform):
                 priors[key] = value
                 continue
             try:
-                low, high = value  # type: ignore[misc]
+                low, high = value
             except (TypeError, ValueError):
                 raise SpecError(where, f"must be [low, high], got {value!r}") from None
             try:
@@ -77,16 +80,16 @@ class Model:
             except SpecError as err:
                 raise SpecError(where, err.message) from None
         fixed: dict[str, float] = {}
-        for key, value in self.fixed.items():
+        for key, number in self.fixed.items():
             where = f"models[{self.name}].fixed.{key}"
             if key in priors:
                 raise SpecError(where, "is both fixed and given a prior")
             try:
-                fval = float(value)  # type: ignore[arg-type]
+                fval = float(number)
             except (TypeError, ValueError):
-                raise SpecError(where, f"must be a number, got {value!r}") from None
+                raise SpecError(where, f"must be a number, got {number!r}") from None
             if not math.isfinite(fval):
-                raise SpecError(where, f"must be finite, got {value!r}")
+                raise SpecError(where, f"must be finite, got {number!r}")
             fixed[key] = fval
         object.__setattr__(self, "priors", priors)
         object.__setattr__(self, "fixed", fixed)

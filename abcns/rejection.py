@@ -36,11 +36,13 @@ def prior_proposer(models: Sequence[Model]) -> Propose:
 def initial_epsilon(
     models: Sequence[Model], settings, executor: Executor, budget: Budget, seed: int
 ) -> tuple[float, str, int]:
-    """(epsilon_1, "given" | "pilot", pilot simulations).
+    """(epsilon_1, "given" | "pilot" | "pilot_finite", pilot simulations).
 
     Without ``settings.epsilon_initial``, ``pilot_size`` (default N) prior-predictive
     simulations are run (population index 0 of the seed stream) and epsilon_1 is the
-    ``pilot_quantile`` quantile of their distances (failed ones count as +inf).
+    ``pilot_quantile`` quantile of their distances (failed ones count as +inf). When that
+    quantile is +inf (more than 1 - q failed or diverged) it is the quantile of the finite
+    ones ("pilot_finite"); when every one failed the run stops (``PILOT_FAILED``).
     """
     if settings.epsilon_initial is not None:
         return float(settings.epsilon_initial), "given", 0
@@ -51,12 +53,15 @@ def initial_epsilon(
         seed=seed, t=0, batch_size=settings.batch_size, accept_all=True,
     )
     eps = float(np.quantile(pilot.distances, settings.pilot_quantile, method="higher"))
+    source = "pilot"
     if not np.isfinite(eps):
-        raise ValueError(
-            f"pilot: more than {1 - settings.pilot_quantile:.0%} of {size} prior simulations failed or "
-            "diverged; give sampler.epsilon_initial or narrow the priors"
-        )
-    return eps, "pilot", budget.n_simulations - before
+        # more than 1 - q of the prior's simulations failed or diverged (wide priors): the
+        # quantile of those that did not; the failures stay counted rejections
+        finite = pilot.distances[np.isfinite(pilot.distances)]
+        if finite.size == 0:
+            raise Stopped(StopReason.PILOT_FAILED)
+        eps, source = float(np.quantile(finite, settings.pilot_quantile, method="higher")), "pilot_finite"
+    return eps, source, budget.n_simulations - before
 
 
 def uniform_weights(model_index: np.ndarray, n_models: int) -> np.ndarray:
@@ -90,7 +95,7 @@ def abc_rejection(
     cancel: Callable[[], bool] | None = None,
 ) -> Generator[Population, None, RunEnd]:
     """Algorithm 1: N particles from the priors with distance below epsilon; one population."""
-    settings.check_models(models)
+    settings.check_particles(models)
     budget = budget or Budget(stop, clock, cancel)
     source, n_pilot = "given", 0
     if history:  # the one population is done

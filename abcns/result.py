@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from abcns.ellipsoid import Ellipsoid
+from abcns.evidence import DEAD_BEFORE, DEATH_RULES, Evidence, probabilities
 from abcns.priors import Model
 from abcns.settings import StopReason
 
@@ -25,8 +26,13 @@ class Population:
     one the next population will use. Counters cover the simulations run to fill this
     population (including failed ones); ``n_redraws`` counts prior-bound redraws, which
     are not simulations. ``survivors`` marks the particles kept for t + 1 (ABC-NS) and
-    ``ellipsoids[m]`` the enlarged ellipsoid that proposes model m's particles at t + 1
-    (None for a dead model and for the baselines).
+    ``ellipsoids[m]`` the enlarged ellipsoids whose union proposes model m's particles at
+    t + 1 (one in the paper variant; empty for a dead model; the whole tuple is empty for the
+    baselines), in model m's unit prior box for the evidence variant and in raw units for
+    the paper's. ``evidence`` is ABC-NS's per-model evidence bookkeeping
+    (:class:`abcns.evidence.Evidence`), None for the baselines. ``model_probabilities`` are
+    the evidence's for ABC-NS's default variant, particle shares (Eq. 12) for the paper's,
+    importance-weight mass for ABC-SMC and shares for rejection.
     """
 
     t: int
@@ -42,8 +48,9 @@ class Population:
     n_redraws: int
     elapsed_s: float
     survivors: np.ndarray | None = None
-    ellipsoids: tuple[Ellipsoid | None, ...] = ()
+    ellipsoids: tuple[tuple[Ellipsoid, ...], ...] = ()
     model_probabilities: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    evidence: Evidence | None = None
 
     @property
     def acceptance_rate(self) -> float:
@@ -55,6 +62,12 @@ class Population:
 
     def model_counts(self, n_models: int) -> np.ndarray:
         return np.bincount(self.models, minlength=n_models)
+
+    @property
+    def particle_shares(self) -> np.ndarray:
+        """Share of particles per model (the paper's Eq. 12)."""
+        n_models = self.model_probabilities.shape[0]
+        return self.model_counts(n_models) / max(1, self.n_particles)
 
 
 @dataclass(frozen=True)
@@ -111,7 +124,7 @@ class Result:
     stop_reason: StopReason
     seed: int
     settings: dict
-    epsilon_initial_source: str  # "given" | "pilot"
+    epsilon_initial_source: str  # "given" | "pilot" | "pilot_finite" | "schedule" | "resumed"
     n_simulations: int
     n_pilot_simulations: int
     wall_time_s: float
@@ -146,6 +159,48 @@ class Result:
                     break
         return out
 
+    def death_rules(self) -> dict[str, str]:
+        """{model: the rule that killed it} (``abcns.evidence.DEATH_RULES``) for ABC-NS runs."""
+        out = {}
+        for pop in self.populations:
+            if pop.evidence is None:
+                continue
+            for i, code in enumerate(pop.evidence.death):
+                if code in DEATH_RULES and code != DEAD_BEFORE and self.models[i].name not in out:
+                    out[self.models[i].name] = DEATH_RULES[int(code)]
+        return out
+
+    def model_probability_se(self) -> dict[str, float]:
+        """Standard errors of the final model probabilities (evidence variant; else {})."""
+        pop = self.final
+        if pop.evidence is None or self.settings.get("sampler", {}).get("variant") != "evidence":
+            return {}
+        _, se = probabilities(pop.evidence.log_z, pop.evidence.log_z_se)
+        return {m.name: float(v) for m, v in zip(self.models, se)}
+
+    def warnings(self) -> list[str]:
+        """Why the answer may not be what it looks like. "undecided": the run stopped with two
+        or more models above 0.1 while the tolerance sits at one model's best fit (its best
+        distance is above half the tolerance), so a lower tolerance could still separate them
+        but that model holds it up."""
+        if not self.populations:
+            return []
+        pop = self.final
+        p = pop.model_probabilities
+        contenders = [i for i in range(len(self.models)) if p[i] > 0.1]
+        if len(contenders) < 2:
+            return []
+        out = []
+        for i in contenders:
+            d = pop.distances[pop.models == i]
+            if d.size and np.min(d) > 0.5 * pop.epsilon:
+                names = ", ".join(f"{self.models[j].name} (p = {p[j]:.2f})" for j in contenders)
+                out.append(f"undecided: {names} are all above 0.1 while the tolerance {pop.epsilon:.4g} sits at the "
+                           f"best fit of {self.models[i].name} (its best distance {np.min(d):.4g}); a tolerance below "
+                           "that would separate them")
+                break
+        return out
+
     def particles(self, model: int | str, t: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(theta (n, d_m), distances (n,), weights (n,)) of one model in population t."""
         i = self.model_names.index(model) if isinstance(model, str) else model
@@ -161,6 +216,22 @@ class Result:
                 theta, w if self.weighted_posterior else None, self.models[i].parameter_names
             )
         return out
+
+    def _named(self, values: np.ndarray) -> dict[str, float]:
+        return {m.name: float(v) for m, v in zip(self.models, values)}
+
+    def _log_evidence(self) -> dict[str, dict[str, float | None]]:
+        ev = self.final.evidence
+        if ev is None:
+            return {}
+        finite = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
+        return {m.name: {"log_z": finite(ev.log_z[i]), "se": finite(ev.log_z_se[i])} for i, m in enumerate(self.models)}
+
+    def _ellipsoid_counts(self) -> dict[str, object]:
+        """Ellipsoids per model in the final bounds, and repairs / fallbacks over the run."""
+        notes = [e.note for p in self.populations for bound in p.ellipsoids for e in bound]
+        return {"final": {m.name: len(b) for m, b in zip(self.models, self.final.ellipsoids)},
+                "repaired": notes.count("repaired"), "fallback": notes.count("fallback")}
 
     def summary(self) -> dict:
         """The JSON summary of DESIGN.md (plus a few more fields)."""
@@ -182,8 +253,15 @@ class Result:
             "failed_simulations": [p.n_failed for p in pops],
             "redraws": [p.n_redraws for p in pops],
             "model_probabilities": self.model_probabilities() if pops else {},
+            "model_probability_se": self.model_probability_se() if pops else {},
             "model_probabilities_by_population": [self.model_probabilities(p.t) for p in pops],
+            "particle_shares": self._named(pops[-1].particle_shares) if pops else {},
+            "particle_shares_by_population": [self._named(p.particle_shares) for p in pops],
+            "log_evidence": self._log_evidence() if pops else {},
             "dead_models": self.died_at(),
+            "death_rules": self.death_rules(),
+            "ellipsoids": self._ellipsoid_counts() if pops else {},
+            "warnings": self.warnings(),
             "posterior": self.posterior() if pops else {},
             "notes": list(self.notes),
             "settings": self.settings,

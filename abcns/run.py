@@ -11,7 +11,7 @@ from abcns.nested import abc_ns
 from abcns.priors import Model, SpecError
 from abcns.rejection import abc_rejection
 from abcns.result import Population, Result, RunEnd
-from abcns.settings import NSSettings, RejectionSettings, SMCSettings, StopRules
+from abcns.settings import NSSettings, RejectionSettings, SMCSettings, StopRules, check_seed
 
 Settings = NSSettings | SMCSettings | RejectionSettings
 
@@ -43,6 +43,7 @@ def iterate(
     from abcns.smc import abc_smc
 
     models = check_models(models)
+    check_seed(seed)
     if isinstance(settings, NSSettings):
         return abc_ns(models, executor, settings, stop, seed, **kwargs)
     if isinstance(settings, SMCSettings):
@@ -50,6 +51,17 @@ def iterate(
     if isinstance(settings, RejectionSettings):
         return abc_rejection(models, executor, settings, stop, seed, **kwargs)
     raise SpecError("sampler.algorithm", f"unknown settings type {type(settings).__name__}")
+
+
+def consume(gen: Generator[Population, None, RunEnd], on_population: Callable[[Population], None]) -> RunEnd:
+    """Drive a population iterator to its end: ``on_population`` for each population, then
+    the iterator's :class:`RunEnd`."""
+    while True:
+        try:
+            pop = next(gen)
+        except StopIteration as done:
+            return done.value
+        on_population(pop)
 
 
 def run(
@@ -67,19 +79,17 @@ def run(
     ``evaluate`` is a batch evaluator (run in this process) or an executor.
     ``on_population`` is called with each population as it completes.
     """
-    executor = evaluate if hasattr(evaluate, "map") else SerialExecutor(evaluate)  # type: ignore[arg-type]
+    executor = evaluate if hasattr(evaluate, "map") else SerialExecutor(evaluate)
     start = time.monotonic()
-    gen = iterate(models, executor, settings, stop, seed, **kwargs)  # type: ignore[arg-type]
+    gen = iterate(models, executor, settings, stop, seed, **kwargs)
     populations: list[Population] = []
-    while True:
-        try:
-            pop = next(gen)
-        except StopIteration as done:
-            end: RunEnd = done.value
-            break
+
+    def keep(pop: Population) -> None:
         populations.append(pop)
         if on_population is not None:
             on_population(pop)
+
+    end = consume(gen, keep)
     return Result(
         algorithm=algorithm_name(settings),
         models=tuple(models),

@@ -6,6 +6,7 @@ import enum
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import TypeGuard
 
 from abcns.priors import Model, SpecError
 
@@ -22,6 +23,16 @@ class StopReason(enum.StrEnum):
     CANCELLED = "cancelled"
     PROPOSAL_EXHAUSTED = "proposal_exhausted"  # an ellipsoid lies (almost) outside the prior
     COMPLETED = "completed"  # a one-population algorithm (rejection) finished
+    PILOT_FAILED = "pilot_failed"  # every prior-predictive simulation of the pilot failed or diverged
+
+
+# The documented valid ranges of the numeric settings (README, "Spec"): what one process
+# can hold and a run can count, not admission limits (a service sets lower ones).
+MAX_PARTICLES = 10**8  # a population of 10^8 particles of 8 parameters is ~7 GB in the runner
+MAX_BATCH_SIZE = 10**7
+MAX_COUNT = 2**62  # simulations, populations, pilot sizes, redraws: counters in int64
+MAX_SEED = 2**63 - 1  # numpy's SeedSequence takes any non-negative int; the store keeps int64
+MAX_ENLARGEMENT = 10.0  # f0 beyond 10 scales the ellipsoid past the prior box of any useful fit
 
 
 def _check(cond: bool, field: str, message: str) -> None:
@@ -29,8 +40,17 @@ def _check(cond: bool, field: str, message: str) -> None:
         raise SpecError(field, message)
 
 
-def _is_number(x: object) -> bool:
+def _is_number(x: object) -> TypeGuard[float]:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _is_int(x: object, low: int, high: int) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool) and low <= x <= high
+
+
+def check_seed(seed: object) -> None:
+    """A run's seed: an integer in [0, 2^63 - 1]."""
+    _check(_is_int(seed, 0, MAX_SEED), "seed", f"must be an integer in [0, 2^63 - 1], got {seed!r}")
 
 
 @dataclass(frozen=True)
@@ -54,23 +74,38 @@ class StopRules:
         for name in ("max_populations", "max_simulations"):
             v = getattr(self, name)
             _check(
-                v is None or (isinstance(v, int) and not isinstance(v, bool) and v >= 1),
+                v is None or _is_int(v, 1, MAX_COUNT),
                 f"stop.{name}",
-                f"must be a positive integer or null, got {v!r}",
+                f"must be an integer in [1, 2^62] or null, got {v!r}",
             )
         _check(any(v is not None for v in asdict(self).values()), "stop", "at least one stop rule must be set")
 
+    def reason_after(self, epsilon: float, epsilon_next: float, t: int, decrease: bool = True) -> StopReason | None:
+        """The rule that ends the run after population ``t`` (accepted at ``epsilon``, the
+        next tolerance ``epsilon_next``), or None to go on; ``decrease``: whether
+        ``min_epsilon_decrease`` applies (not along a given schedule). Budgets are checked
+        by :class:`abcns.filling.Budget`, inside populations too."""
+        if self.epsilon_target is not None and epsilon <= self.epsilon_target:
+            return StopReason.EPSILON_TARGET
+        if decrease and self.min_epsilon_decrease is not None and epsilon - epsilon_next < self.min_epsilon_decrease:
+            return StopReason.MIN_EPSILON_DECREASE
+        if self.max_populations is not None and t >= self.max_populations:
+            return StopReason.MAX_POPULATIONS
+        return None
 
-def _check_common(n_particles: object, batch_size: object, epsilon_initial: object) -> None:
+
+def _check_common(n_particles: object, batch_size: object, epsilon_initial: object, pilot_size: object) -> None:
+    _check(pilot_size is None or _is_int(pilot_size, 2, MAX_COUNT), "sampler.pilot_size",
+           f"must be an integer in [2, 2^62] or null, got {pilot_size!r}")
     _check(
-        isinstance(n_particles, int) and not isinstance(n_particles, bool) and n_particles >= 2,
+        _is_int(n_particles, 2, MAX_PARTICLES),
         "sampler.particles",
-        f"must be an integer >= 2, got {n_particles!r}",
+        f"must be an integer in [2, {MAX_PARTICLES:.0e}], got {n_particles!r}",
     )
     _check(
-        isinstance(batch_size, int) and not isinstance(batch_size, bool) and batch_size >= 1,
+        _is_int(batch_size, 1, MAX_BATCH_SIZE),
         "sampler.batch_size",
-        f"must be a positive integer, got {batch_size!r}",
+        f"must be an integer in [1, {MAX_BATCH_SIZE:.0e}], got {batch_size!r}",
     )
     _check(
         epsilon_initial is None or (_is_number(epsilon_initial) and epsilon_initial > 0),
@@ -94,6 +129,16 @@ class NSSettings:
         seed give the same result on any number of workers).
     max_redraws : prior-bound redraws allowed per proposal before the run stops with
         PROPOSAL_EXHAUSTED.
+    variant : "evidence" (default): model probabilities from each model's ABC evidence,
+        proposals and survivors allocated by them, bounds fitted in each model's unit prior
+        box to every particle below the next tolerance and split into several ellipsoids;
+        "paper": Algorithm 2 as published and as the authors' demo runs it (particle shares,
+        equal proposals, one ellipsoid on the survivors in raw units).
+    max_ellipsoids : most ellipsoids in a model's bound (evidence variant; default 8).
+    min_model_probability : a model dies when its probability plus three standard errors
+        falls below this (evidence variant; default 1e-3).
+    min_proposal_share : share of proposals every alive model gets at least (evidence
+        variant; default 0.05, and at most half of all proposals go to such floors).
     """
 
     particles: int = 1000
@@ -106,9 +151,28 @@ class NSSettings:
     pilot_quantile: float = 0.5
     batch_size: int = 200
     max_redraws: int = 100_000
+    variant: str = "evidence"
+    max_ellipsoids: int | None = None
+    min_model_probability: float | None = None
+    min_proposal_share: float | None = None
 
     def __post_init__(self) -> None:
-        _check_common(self.particles, self.batch_size, self.epsilon_initial)
+        _check_common(self.particles, self.batch_size, self.epsilon_initial, self.pilot_size)
+        _check(self.variant in ("evidence", "paper"), "sampler.variant", f"must be 'evidence' or 'paper', got {self.variant!r}")
+        if self.variant == "paper":
+            for name in ("max_ellipsoids", "min_model_probability", "min_proposal_share"):
+                _check(getattr(self, name) is None, f"sampler.{name}",
+                       "applies to variant 'evidence' only (the paper variant has one ellipsoid, particle shares "
+                       "and equal proposals)")
+        _check(
+            self.max_ellipsoids is None or (isinstance(self.max_ellipsoids, int) and not isinstance(self.max_ellipsoids, bool)
+                                            and 1 <= self.max_ellipsoids <= 64),
+            "sampler.max_ellipsoids", f"must be an integer in [1, 64], got {self.max_ellipsoids!r}",
+        )
+        for name, top in (("min_model_probability", 0.5), ("min_proposal_share", 0.5)):
+            v = getattr(self, name)
+            _check(v is None or (_is_number(v) and 0 <= v <= top), f"sampler.{name}",
+                   f"must lie in [0, {top}], got {v!r}")
         for name in ("alpha", "beta", "pilot_quantile"):
             v = getattr(self, name)
             _check(_is_number(v) and 0 < v < 1, f"sampler.{name}", f"must lie in (0, 1), got {v!r}")
@@ -119,19 +183,31 @@ class NSSettings:
             "from the particles left after dropping alpha N",
         )
         _check(
-            _is_number(self.enlargement) and self.enlargement >= 1,
+            _is_number(self.enlargement) and 1 <= self.enlargement <= MAX_ENLARGEMENT,
             "sampler.enlargement",
-            f"must be >= 1, got {self.enlargement!r}",
+            f"must lie in [1, {MAX_ENLARGEMENT:g}], got {self.enlargement!r}",
         )
         _check(self.weights in ("paper", "kernel"), "sampler.weights", f"must be 'paper' or 'kernel', got {self.weights!r}")
         _check(self.n_drop >= 1, "sampler.alpha", f"alpha * particles rounds to {self.n_drop}; at least 1 must drop")
         _check(self.n_new >= 1, "sampler.beta", f"(1 - beta) * particles rounds to {self.n_new}; at least 1 must be new")
-        _check(
-            self.pilot_size is None or (isinstance(self.pilot_size, int) and self.pilot_size >= 2),
-            "sampler.pilot_size",
-            f"must be an integer >= 2 or null, got {self.pilot_size!r}",
-        )
-        _check(isinstance(self.max_redraws, int) and self.max_redraws >= 1, "sampler.max_redraws", "must be >= 1")
+        _check(_is_int(self.max_redraws, 1, MAX_COUNT), "sampler.max_redraws", "must be an integer in [1, 2^62]")
+
+    @property
+    def evidence(self) -> bool:
+        return self.variant == "evidence"
+
+    @property
+    def n_ellipsoids(self) -> int:
+        """Most ellipsoids per model (1 in the paper variant)."""
+        return 1 if not self.evidence else (8 if self.max_ellipsoids is None else self.max_ellipsoids)
+
+    @property
+    def death_probability(self) -> float:
+        return 1e-3 if self.min_model_probability is None else float(self.min_model_probability)
+
+    @property
+    def proposal_floor(self) -> float:
+        return 0.05 if self.min_proposal_share is None else float(self.min_proposal_share)
 
     @property
     def n_drop(self) -> int:
@@ -145,7 +221,7 @@ class NSSettings:
     def n_new(self) -> int:
         return self.particles - self.n_survivors
 
-    def check_models(self, models: Sequence[Model]) -> None:
+    def check_particles(self, models: Sequence[Model]) -> None:
         """Is N large enough for the models' dimensions? Each model's share of survivors
         at equal model probabilities must be able to define an ellipsoid (d + 1 points)."""
         d_max = max(m.n_dim for m in models)
@@ -174,17 +250,19 @@ class SMCSettings:
     max_redraws: int = 100_000
 
     def __post_init__(self) -> None:
-        _check_common(self.particles, self.batch_size, self.epsilon_initial)
+        _check_common(self.particles, self.batch_size, self.epsilon_initial, self.pilot_size)
+        _check(_is_int(self.max_redraws, 1, MAX_COUNT), "sampler.max_redraws", "must be an integer in [1, 2^62]")
         for name in ("quantile", "pilot_quantile"):
             v = getattr(self, name)
             _check(_is_number(v) and 0 < v < 1, f"sampler.{name}", f"must lie in (0, 1), got {v!r}")
         if self.schedule is not None:
             sched = tuple(float(e) for e in self.schedule)
-            _check(len(sched) >= 1 and all(e > 0 and math.isfinite(e) for e in sched), "sampler.schedule", "must be positive")
+            _check(len(sched) >= 1 and all(e > 0 and math.isfinite(e) for e in sched), "sampler.schedule",
+                   "must hold finite positive tolerances")
             _check(all(a >= b for a, b in zip(sched, sched[1:])), "sampler.schedule", "must not increase")
             object.__setattr__(self, "schedule", sched)
 
-    def check_models(self, models: Sequence[Model]) -> None:
+    def check_particles(self, models: Sequence[Model]) -> None:
         d_max = max(m.n_dim for m in models)
         _check(
             self.particles // len(models) >= d_max + 1,
@@ -204,8 +282,9 @@ class RejectionSettings:
     batch_size: int = 200
 
     def __post_init__(self) -> None:
-        _check_common(self.particles, self.batch_size, self.epsilon_initial)
-        _check(0 < self.pilot_quantile < 1, "sampler.pilot_quantile", "must lie in (0, 1)")
+        _check_common(self.particles, self.batch_size, self.epsilon_initial, self.pilot_size)
+        _check(_is_number(self.pilot_quantile) and 0 < self.pilot_quantile < 1, "sampler.pilot_quantile",
+               f"must lie in (0, 1), got {self.pilot_quantile!r}")
 
-    def check_models(self, models: Sequence[Model]) -> None:
+    def check_particles(self, models: Sequence[Model]) -> None:
         return None

@@ -61,8 +61,10 @@ def kernel_proposer(models: Sequence[Model], p_model: np.ndarray, kernels: Seque
         for m, model in enumerate(models):
             rows = np.flatnonzero(which == m)
             if rows.size:
+                kernel = kernels[m]
+                assert kernel is not None  # drawn, so p_model[m] > 0
                 theta[rows, : model.n_dim], redraws[rows] = draw_inside(
-                    kernels[m].sample, model.in_prior, rows.size, rng, max_redraws  # type: ignore[union-attr]
+                    kernel.sample, model.in_prior, rows.size, rng, max_redraws
                 )
         return which, theta, redraws
 
@@ -83,7 +85,7 @@ def abc_smc(
 ) -> Generator[Population, None, RunEnd]:
     """Yield ABC-SMC populations until a stop rule holds or the schedule ends.
     ``history`` and ``budget`` resume a run, as for :func:`abcns.nested.abc_ns`."""
-    settings.check_models(models)
+    settings.check_particles(models)
     n_models = len(models)
     budget = budget or Budget(stop, clock, cancel)
     schedule = settings.schedule
@@ -114,13 +116,9 @@ def abc_smc(
         while True:
             if schedule is not None and pop.t >= len(schedule):
                 return RunEnd(StopReason.SCHEDULE_END, budget.n_simulations, n_pilot, source)
-            if stop.epsilon_target is not None and pop.epsilon <= stop.epsilon_target:
-                return RunEnd(StopReason.EPSILON_TARGET, budget.n_simulations, n_pilot, source)
-            if (stop.min_epsilon_decrease is not None and schedule is None
-                    and pop.epsilon - pop.epsilon_next < stop.min_epsilon_decrease):
-                return RunEnd(StopReason.MIN_EPSILON_DECREASE, budget.n_simulations, n_pilot, source)
-            if stop.max_populations is not None and pop.t >= stop.max_populations:
-                return RunEnd(StopReason.MAX_POPULATIONS, budget.n_simulations, n_pilot, source)
+            reason = stop.reason_after(pop.epsilon, pop.epsilon_next, pop.t, decrease=schedule is None)
+            if reason is not None:
+                return RunEnd(reason, budget.n_simulations, n_pilot, source)
             budget.check()
             p_model = pop.model_probabilities
             kernels = [
@@ -136,9 +134,11 @@ def abc_smc(
             for m, model in enumerate(models):
                 rows = np.flatnonzero(filled.models == m)
                 if rows.size:
+                    kernel = kernels[m]
+                    assert kernel is not None  # proposed, so p_model[m] > 0
                     x = filled.theta[rows, : model.n_dim]
                     log_w[rows] = (-np.log(n_models) - model.log_prior_volume()
-                                   - np.log(p_model[m]) - kernels[m].log_density(x))  # type: ignore[union-attr]
+                                   - np.log(p_model[m]) - kernel.log_density(x))
             w = np.exp(log_w - log_w.max())
             mass = np.bincount(filled.models, weights=w, minlength=n_models)
             norm_w = w / mass[filled.models]

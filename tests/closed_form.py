@@ -29,12 +29,33 @@ def two_models(a1=5.0, a2=20.0):
     return models, per_model([normal_simulator(1.0), normal_simulator(1.0)])
 
 
+def evidence_two_models(eps, a):
+    """Z(eps) = P(|s - S_OBS| < eps) under theta ~ U(-a, a), s ~ N(theta, 1) (quadrature)."""
+    dens = lambda s: (stats.norm.cdf(a - s) - stats.norm.cdf(-a - s)) / (2 * a)  # noqa: E731
+    return integrate.quad(dens, S_OBS - eps, S_OBS + eps)[0]
+
+
 def abc_model_probability(eps, a1=5.0, a2=20.0):
     """Exact ABC posterior p(narrow | |s - S_OBS| < eps) with equal model priors."""
-
-    def evidence(a):
-        dens = lambda s: (stats.norm.cdf(a - s) - stats.norm.cdf(-a - s)) / (2 * a)  # noqa: E731
-        return integrate.quad(dens, S_OBS - eps, S_OBS + eps)[0]
-
-    e1, e2 = evidence(a1), evidence(a2)
+    e1, e2 = evidence_two_models(eps, a1), evidence_two_models(eps, a2)
     return e1 / (e1 + e2)
+
+
+def line_and_disc(x0=0.3, y0=0.6):
+    """Deterministic distances: M1 ``|a - x0|`` with a ~ U(0, 1); M2 the distance of (a, b)
+    ~ U(0, 1)^2 to (x0, y0). For eps <= 0.3 the accepted sets lie inside the boxes, so the
+    ABC evidences are Z1 = 2 eps and Z2 = pi eps^2 exactly."""
+    models = [Model("line", {"a": (0, 1)}), Model("disc", {"a": (0, 1), "b": (0, 1)})]
+
+    def line(theta, rng):
+        return np.abs(theta[:, 0] - x0), np.full(theta.shape[0], OK, np.int8)
+
+    def disc(theta, rng):
+        return np.hypot(theta[:, 0] - x0, theta[:, 1] - y0), np.full(theta.shape[0], OK, np.int8)
+
+    return models, per_model([line, disc])
+
+
+def line_and_disc_log_evidence(eps):
+    """Exact log Z of :func:`line_and_disc` (eps <= 0.3)."""
+    return np.log([2 * eps, np.pi * eps**2])

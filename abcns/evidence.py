@@ -1,0 +1,130 @@
+"""The ABC evidence of each model, and the model probabilities it gives.
+
+The ABC posterior probability of model m at tolerance eps is
+
+    p(m | d < eps) = Z_m(eps) / sum_j Z_j(eps),   Z_m(eps) = prior mass of {theta : d < eps}
+
+(equal model priors; for a stochastic simulator, the prior expectation of P(d < eps | theta)).
+The paper reports particle shares instead (Eq. 12), which ignore how much prior volume lies
+under eps. ABC-NS already counts what Z needs, every population:
+
+- population 1 is rejection from the prior: Z_m = accepted / proposed for model m;
+- later, model m's proposals are uniform on B_m, its bound (a union of ellipsoids) intersected
+  with the prior box, so vol({d < eps_t} ∩ B_m) = a_m vol(B_m), with a_m the acceptance of
+  m's new proposals. The bound misses a share 1 - c of the accepted region (c is measured by
+  cross-validation when the bound is fitted), so the direct estimate is
+  ``log Z = log a + log V - log c``, V the prior mass of B_m (Monte Carlo, in the unit box);
+- the share r_m of m's new particles below the next tolerance predicts Z_m(eps_{t+1}) =
+  Z_m(eps_t) r_m (the nested-sampling recursion).
+
+Each population's log Z combines the prediction from the previous population and the direct
+estimate by inverse variance (binomial variances on the log scale; delta method), so the
+estimate gathers information over populations. Pure functions on arrays, one entry per model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: death codes (``Evidence.death``): why a model is dead from the next population on
+ALIVE, NO_PARTICLES, IMPROBABLE, DEAD_BEFORE = 0, 1, 2, 3
+DEATH_RULES = {NO_PARTICLES: "no_particles", IMPROBABLE: "probability", DEAD_BEFORE: "dead"}
+
+
+@dataclass(frozen=True, eq=False)
+class Evidence:
+    """Evidence bookkeeping of one population, arrays of shape (n_models,).
+
+    ``log_z``/``log_z_se``: log Z_m(eps_t) and its standard error (-inf / inf for a dead model);
+    ``log_z_next``/``log_z_next_se``: the prediction at eps_{t+1};
+    ``log_volume``/``log_volume_se``: log prior mass of the bound that proposes m's particles
+    at t + 1 (NaN when there is none); ``coverage`` (measured on ``n_coverage`` points): the
+    share of the accepted region that bound holds;
+    ``allocation``: the probability that a proposal of population t + 1 is of model m;
+    ``n_proposed``/``n_accepted``: model m's new proposals simulated in this population and
+    those accepted; ``death``: ALIVE, or why m has no particles from t + 1 on.
+    """
+
+    log_z: np.ndarray
+    log_z_se: np.ndarray
+    log_z_next: np.ndarray
+    log_z_next_se: np.ndarray
+    log_volume: np.ndarray
+    log_volume_se: np.ndarray
+    coverage: np.ndarray
+    n_coverage: np.ndarray
+    allocation: np.ndarray
+    n_proposed: np.ndarray
+    n_accepted: np.ndarray
+    death: np.ndarray
+
+    FLOATS = ("log_z", "log_z_se", "log_z_next", "log_z_next_se", "log_volume", "log_volume_se",
+              "coverage", "allocation")
+    INTS = ("n_coverage", "n_proposed", "n_accepted", "death")
+
+
+def log_share(k: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(log(k / n), its variance (1 - k/n) / k) elementwise; -inf and inf where k = 0."""
+    k, n = np.asarray(k, float), np.asarray(n, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(n > 0, k / n, 0.0)
+        log = np.where(k > 0, np.log(share), -np.inf)
+        var = np.where(k > 0, (1.0 - share) / k, np.inf)
+    return log, var
+
+
+def log_share_smoothed(k: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """log((k + 1/2) / (n + 1)) and its variance: finite for k = 0 (a ratio that must not
+    declare a model dead on its own)."""
+    k, n = np.asarray(k, float), np.asarray(n, float)
+    r = (k + 0.5) / (n + 1.0)
+    return np.log(r), (1.0 - r) / ((n + 1.0) * r)
+
+
+def combine(a: np.ndarray, var_a: np.ndarray, b: np.ndarray, var_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse-variance mean of two estimates (either may be missing: infinite variance)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    var_a, var_b = np.asarray(var_a, float), np.asarray(var_b, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wa = np.where(np.isfinite(var_a), 1.0 / np.maximum(var_a, 1e-300), 0.0)
+        wb = np.where(np.isfinite(var_b), 1.0 / np.maximum(var_b, 1e-300), 0.0)
+        total = wa + wb
+        mean = np.where(total > 0, (wa * np.where(wa > 0, a, 0.0) + wb * np.where(wb > 0, b, 0.0)) / total,
+                        np.where(np.isfinite(a), a, b))
+        var = np.where(total > 0, 1.0 / total, np.inf)
+    return mean, var
+
+
+def probabilities(log_z: np.ndarray, log_z_se: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """p_m = Z_m / sum Z and its standard error (delta method on independent log Z):
+    var p_m = p_m^2 [(1 - p_m)^2 s_m^2 + sum_{j != m} p_j^2 s_j^2]."""
+    log_z = np.asarray(log_z, float)
+    alive = np.isfinite(log_z)
+    p = np.zeros(log_z.shape)
+    if not alive.any():
+        return p, np.zeros(log_z.shape)
+    top = np.max(log_z[alive])
+    z = np.where(alive, np.exp(np.where(alive, log_z, top) - top), 0.0)
+    p = z / z.sum()
+    s2 = np.where(alive, np.asarray(log_z_se, float) ** 2, 0.0)
+    s2 = np.where(np.isfinite(s2), s2, 0.0)
+    total = np.sum(p**2 * s2)
+    var = p**2 * ((1 - p) ** 2 * s2 + (total - p**2 * s2))
+    return p, np.sqrt(var)
+
+
+def allocation(p: np.ndarray, acceptance: np.ndarray, alive: np.ndarray, floor: float) -> np.ndarray:
+    """Proposal probabilities for the next population: proportional to p_m / a_m (so the
+    accepted new particles follow the model probabilities), mixed with the uniform choice so
+    every alive model gets at least ``floor`` (at most half of the proposals in all)."""
+    n_alive = int(np.count_nonzero(alive))
+    out = np.zeros(p.shape)
+    if n_alive == 0:
+        return out
+    want = np.where(alive, p / np.clip(acceptance, 0.01, 1.0), 0.0)
+    want = want / want.sum() if want.sum() > 0 else alive / n_alive
+    f = min(floor, 0.5 / n_alive)
+    out = np.where(alive, (1.0 - n_alive * f) * want + f, 0.0)
+    return out / out.sum()

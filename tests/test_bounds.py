@@ -1,0 +1,112 @@
+"""abcns.bounds: the union of ellipsoids a model's proposals come from (evidence variant).
+
+Every check is against a quantity known exactly (volumes of balls, shares of a region), with
+the seed stated and the tolerance from the Monte Carlo standard error."""
+
+import numpy as np
+import pytest
+
+from abcns import bounds as bd
+from abcns import ellipsoid as ell
+
+
+def ball(centre, radius, n, rng):
+    """n points uniform in a 2-d disc."""
+    r = radius * np.sqrt(rng.random(n))
+    a = 2 * np.pi * rng.random(n)
+    return np.asarray(centre) + np.column_stack([r * np.cos(a), r * np.sin(a)])
+
+
+FALLBACK = ell.from_box(np.zeros(2), np.ones(2))
+
+
+def test_two_separate_discs_get_separate_ellipsoids_and_hold_every_point():
+    rng = np.random.default_rng(1)
+    points = np.vstack([ball((0.2, 0.2), 0.05, 300, rng), ball((0.8, 0.7), 0.05, 300, rng)])
+    union = bd.fit_union(points, 1.1, 8, FALLBACK)
+    single = bd.fit_union(points, 1.1, 1, FALLBACK)
+    assert len(union) >= 2 and len(single) == 1
+    assert np.all(bd.n_inside(union, points) > 0)
+    # two discs of radius 0.05 (x f0): ~0.017 in all; one ellipsoid over both is ~9x that
+    total = np.exp(np.logaddexp.reduce([e.log_volume for e in union]))
+    assert total < 0.2 * np.exp(single[0].log_volume)
+    assert total < 3 * 2 * np.pi * 0.05**2 * 1.1
+
+
+def test_a_convex_cloud_stays_one_ellipsoid():
+    """A split must halve the volume by chance fluctuations alone: a uniform disc is not split."""
+    rng = np.random.default_rng(2)
+    points = ball((0.5, 0.5), 0.2, 700, rng)
+    assert len(bd.fit_union(points, 1.1, 8, FALLBACK)) == 1
+
+
+def test_a_far_outlier_is_left_out_and_a_uniform_cloud_loses_nothing():
+    rng = np.random.default_rng(3)
+    cloud = ball((0.5, 0.5), 0.05, 700, rng)
+    whitened = (cloud - cloud.mean(axis=0)) / cloud.std(axis=0)
+    assert not np.any(bd.outliers(whitened))
+    with_far = np.vstack([cloud, [[0.95, 0.05]]])
+    union = bd.fit_union(with_far, 1.1, 8, FALLBACK)
+    assert bd.n_inside(union, with_far[-1:])[0] == 0
+    assert np.all(bd.n_inside(union, cloud) > 0)
+    # without the outlier the bound is the disc's, not one stretched to the corner
+    total = np.exp(np.logaddexp.reduce([e.log_volume for e in union]))
+    assert total < 3 * np.pi * 0.05**2 * 1.1
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_union_volume_of_two_overlapping_discs_inside_the_box(seed):
+    """Two discs of radius 0.2, centres 0.2 apart, inside the box: the area of the union is
+    2 pi r^2 - the lens, exactly."""
+    r, dist = 0.2, 0.2
+    discs = tuple(ell.from_matrix(np.array(c), r**2 * np.eye(2)) for c in ((0.4, 0.5), (0.6, 0.5)))
+    lens = 2 * r**2 * np.arccos(dist / (2 * r)) - 0.5 * dist * np.sqrt(4 * r**2 - dist**2)
+    exact = np.log(2 * np.pi * r**2 - lens)
+    log_v, se = bd.union_volume(discs, bd.in_unit_box, 20_000, np.random.default_rng(seed))
+    assert abs(log_v - exact) < 4 * se, (log_v, exact, se)
+
+
+def test_union_volume_counts_only_the_box():
+    """A disc centred on the box's corner: a quarter of it is inside."""
+    r = 0.3
+    disc = (ell.from_matrix(np.zeros(2), r**2 * np.eye(2)),)
+    log_v, se = bd.union_volume(disc, bd.in_unit_box, 20_000, np.random.default_rng(6))
+    assert abs(log_v - np.log(np.pi * r**2 / 4)) < 4 * se
+
+
+def test_sample_union_is_uniform_on_the_union():
+    """The lens of two overlapping discs holds lens / union of the draws (binomial bound),
+    not twice that (the 1/overlap correction)."""
+    r, dist = 0.2, 0.2
+    discs = tuple(ell.from_matrix(np.array(c), r**2 * np.eye(2)) for c in ((0.4, 0.5), (0.6, 0.5)))
+    lens = 2 * r**2 * np.arccos(dist / (2 * r)) - 0.5 * dist * np.sqrt(4 * r**2 - dist**2)
+    share = lens / (2 * np.pi * r**2 - lens)
+    n = 40_000
+    x = bd.sample_union(discs, n, np.random.default_rng(7))
+    assert x.shape == (n, 2) and np.all(bd.n_inside(discs, x) > 0)
+    got = np.mean(bd.n_inside(discs, x) == 2)
+    assert abs(got - share) < 4 * np.sqrt(share * (1 - share) / n), (got, share)
+
+
+def test_one_ellipsoid_draws_the_paper_stream():
+    e = ell.from_matrix(np.array([0.5, 0.5]), np.array([[0.02, 0.01], [0.01, 0.03]]))
+    a = bd.sample_union((e,), 100, np.random.default_rng(8))
+    b = ell.sample(e, 100, np.random.default_rng(8))
+    assert np.array_equal(a, b)
+
+
+def test_coverage_sees_a_bound_that_misses_part_of_the_region():
+    """Points uniform in a convex disc: coverage near 1. Points on a thin ring with a bound
+    forced to one ellipsoid cover it; a fit that keeps only the ring's left half misses the
+    held-out right half, and the coverage says about half is missed."""
+    rng = np.random.default_rng(9)
+    disc = ball((0.5, 0.5), 0.2, 600, rng)
+    c, n = bd.coverage(disc, lambda p: bd.fit_union(p, 1.1, 8, FALLBACK), np.random.default_rng(10))
+    assert n == 600 and c > 0.98
+
+    def left_only(p):
+        return bd.fit_union(p[p[:, 0] < 0.5], 1.0, 1, FALLBACK)
+
+    c, _ = bd.coverage(disc, left_only, np.random.default_rng(11))
+    # held share ~ 0.5 (the left half, slightly more from the ellipsoid's reach) -> 1 - 0.5 / 2
+    assert 0.7 < c < 0.85
