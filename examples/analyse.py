@@ -15,17 +15,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from service.analysis import predictions, run_to_store, store_job_data  # noqa: E402
-from service.plots import plot_result  # noqa: E402
-from service.runner import result_from_store  # noqa: E402
-from service.spec import load  # noqa: E402
-from service.store import Store  # noqa: E402
+from service.report.analysis import predictions, run_to_store, store_job_data
+from service.report.plots import plot_result
+from service.run.runner import result_from_store
+from service.run.store import Store
+from service.spec import load
 
 
 def summary_markdown(result, scores: dict, truth: dict[str, float], wall_s: float) -> str:

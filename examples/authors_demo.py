@@ -1,5 +1,5 @@
 """Run the authors' demo job spec (examples/authors_demo/spec.yaml: linear vs cubic Duffing
-on shared/data/abcns-reference-demo) and print the summary next to the authors' own run.
+on data/authors-demo) and print the summary next to the authors' own run.
 
     python -m examples.authors_demo [--seed N] [--json]
 """
@@ -8,15 +8,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from abcns import run  # noqa: E402
-from examples.paper import SHARED  # noqa: E402
-from service.spec import build, load  # noqa: E402
+from abcns import run
+from examples.paper import DATA
+from service.spec import build, load
 
 SPEC = Path(__file__).resolve().parent / "authors_demo" / "spec.yaml"
 
@@ -42,7 +39,7 @@ def main() -> None:
     if args.json:
         print(json.dumps(summary, indent=2))
         return
-    ref = json.loads((SHARED / "abcns-reference-demo" / "reference_run.json").read_text())
+    ref = json.loads((DATA / "authors-demo" / "reference_run.json").read_text())
     print(f"\nstopped: {summary['stop_reason']} after {summary['n_populations']} populations, "
           f"{summary['n_simulations']} simulations, {time.perf_counter() - start:.1f} s")
     print(f"authors' run: {ref['populations']} populations, ~{ref['simulations_total_approx']} simulations, "

@@ -18,16 +18,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from abcns import StopRules, run  # noqa: E402
-from examples.paper import linear_31  # noqa: E402
+from abcns import StopRules, run
+from examples.paper import linear_31
 
 F0 = (1.0, 1.05, 1.1, 1.15, 1.2)
 PAIRS = ((0.1, 0.8), (0.2, 0.7), (0.3, 0.6), (0.4, 0.5), (0.5, 0.4))

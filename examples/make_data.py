@@ -15,14 +15,11 @@ on the machine's vector width.
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from worker.simulators import Duffing, GAndK, Linear  # noqa: E402
+from worker.simulators import Duffing, GAndK, Linear
 
 HERE = Path(__file__).resolve().parent
 

@@ -18,7 +18,7 @@ from examples import make_data
 from worker.evaluate import evaluator
 from worker.simulators import Duffing, GAndK, Linear
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"  # the committed data sets, one folder each (data/README.md)
 
 
 @dataclass
@@ -33,10 +33,10 @@ class Problem:
 
 
 def authors_demo(path: Path | None = None) -> Problem:
-    """The authors' MATLAB demo (``shared/data/abcns-reference-demo``): linear vs cubic
+    """The authors' MATLAB demo (``data/authors-demo``): linear vs cubic
     Duffing, noise-free data of the cubic model, their settings, one RK4 step per sample,
     the demo's kernel weights."""
-    with np.load(path or SHARED / "abcns-reference-demo" / "demo_data.npz") as f:
+    with np.load(path or DATA / "authors-demo" / "demo_data.npz") as f:
         d = dict(f)
     force, observed, dt = d["force"], d["displacement"], float(d["dt"])
     models = [
@@ -46,7 +46,8 @@ def authors_demo(path: Path | None = None) -> Problem:
     sim = Duffing(force, dt, substeps=1, state_bound=1e3 * np.max(np.abs(observed)))
     return Problem(
         "authors-demo", models, evaluator(models, [sim, sim], NMSE(observed)),
-        NSSettings(particles=1000, alpha=0.3, beta=0.6, enlargement=1.1, weights="kernel", epsilon_initial=100),
+        NSSettings(particles=1000, alpha=0.3, beta=0.6, enlargement=1.1, weights="kernel", epsilon_initial=100,
+                   variant="paper"),
         StopRules(min_epsilon_decrease=0.01),
         truth={"cubic": {"c": 0.05, "k": 50.0, "k3": 1000.0}},
         data={"force": force, "observed": observed, "dt": np.array(dt)},

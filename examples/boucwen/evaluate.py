@@ -16,18 +16,15 @@ rest and the second is scored) and writes ``figures/seed<N>/test_rmse.md`` and
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
-from abcns.analysis import bands, point_estimates  # noqa: E402
-from examples.boucwen.prepare import FS, NOISE_RMS, load  # noqa: E402
-from service.analysis import JobData, fit_alone, open_run  # noqa: E402
-from worker.evaluate import simulator_for  # noqa: E402
+from abcns.analysis import bands, point_estimates
+from examples.boucwen.prepare import FS, NOISE_RMS, load
+from service.report.analysis import JobData, fit_alone, open_run
+from worker.evaluate import simulator_for
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]

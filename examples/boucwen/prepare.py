@@ -1,7 +1,13 @@
-"""Bouc-Wen benchmark (Noël & Schoukens 2016) data for the example spec, from
-``../shared/data/boucwen/boucwen.npz`` (see its README).
+"""Bouc-Wen benchmark (Noël & Schoukens 2016) data for the example spec, from the part of
+the benchmark committed in ``data/boucwen/boucwen_subset.npz`` (source, licence:
+``data/boucwen/README.md``).
 
-    python -m examples.boucwen.prepare
+    python -m examples.boucwen.prepare                       # from the committed subset
+    python -m examples.boucwen.prepare --source boucwen.npz  # remake the subset first
+
+``--source`` names the full benchmark converted to one npz (``train_multisine_u``/``_y``,
+``test_multisine_u``/``_y``, ``test_sinesweep_u``/``_y``, ``fs_hz``; see the data README for
+where the records come from); only that regeneration needs it.
 
 Writes, next to this file:
 
@@ -23,12 +29,13 @@ var(y)). The advance is the midpoint rule for the held value.
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-SOURCE = HERE.parents[2] / "shared" / "data" / "boucwen" / "boucwen.npz"
+SUBSET = HERE.parents[1] / "data" / "boucwen" / "boucwen_subset.npz"
 WINDOW = 3000
 FS = 750.0
 # published parameters (benchmark PDF, Table 1) in the simulator's form (data README)
@@ -44,19 +51,47 @@ def advance(x: np.ndarray, samples: float, pad: int = 0) -> np.ndarray:
     return np.fft.irfft(spectrum * np.exp(2j * np.pi * np.fft.rfftfreq(n) * samples), n)[: x.size]
 
 
-def load(source: Path = SOURCE) -> dict[str, np.ndarray]:
+def subset(source: Path) -> dict[str, np.ndarray]:
+    """The arrays the example uses, from the full benchmark npz: the first ``WINDOW`` samples
+    of the training record, both test records whole, every input advanced by half a sample
+    (over the whole record: the training and multisine records are periodic, the sweep is
+    zero-padded)."""
     with np.load(source) as z:
         d = dict(z)
     if float(d["fs_hz"]) != FS:
         raise ValueError(f"{source}: expected fs 750 Hz, got {d['fs_hz']}")
-    out = {"force": advance(d["train_multisine_u"], 0.5)[:WINDOW], "displacement": d["train_multisine_y"][:WINDOW]}
-    u = advance(d["test_multisine_u"], 0.5)
+    return {
+        "train_force": advance(d["train_multisine_u"], 0.5)[:WINDOW],
+        "train_y": d["train_multisine_y"][:WINDOW],
+        "test_multisine_force": advance(d["test_multisine_u"], 0.5),
+        "test_multisine_y": d["test_multisine_y"],
+        "test_sinesweep_force": advance(d["test_sinesweep_u"], 0.5, pad=4096),
+        "test_sinesweep_y": d["test_sinesweep_y"],
+        "fs_hz": d["fs_hz"],
+    }
+
+
+def load(path: Path = SUBSET) -> dict[str, np.ndarray]:
+    """The training window and the two official test records (the multisine's input as two
+    periods: simulated from rest, the second period is scored)."""
+    with np.load(path) as z:
+        d = dict(z)
+    if float(d["fs_hz"]) != FS:
+        raise ValueError(f"{path}: expected fs 750 Hz, got {d['fs_hz']}")
+    out = {"force": d["train_force"], "displacement": d["train_y"]}
+    u = d["test_multisine_force"]
     out["test_multisine"] = {"force": np.concatenate([u, u]), "y": d["test_multisine_y"]}
-    out["test_sinesweep"] = {"force": advance(d["test_sinesweep_u"], 0.5, pad=4096), "y": d["test_sinesweep_y"]}
+    out["test_sinesweep"] = {"force": d["test_sinesweep_force"], "y": d["test_sinesweep_y"]}
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--source", type=Path, help="the full benchmark npz: remake data/boucwen/boucwen_subset.npz from it")
+    args = parser.parse_args(argv)
+    if args.source:
+        np.savez_compressed(SUBSET, **subset(args.source))
+        print(f"wrote {SUBSET}")
     d = load()
     np.save(HERE / "force.npy", d["force"])
     np.save(HERE / "displacement.npy", d["displacement"])

@@ -15,18 +15,15 @@ NMSE (Eq. 7) on the whole 3000-sample segment. Writes ``figures/seed<N>/heldout.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
-from abcns.analysis import nmse, point_estimates, predictive  # noqa: E402
-from examples.boucwen.evaluate import on_record  # noqa: E402
-from examples.silverbox.prepare import segments  # noqa: E402
-from service.analysis import fit_alone, open_run  # noqa: E402
+from abcns.analysis import nmse, point_estimates, predictive
+from examples.boucwen.evaluate import on_record
+from examples.silverbox.prepare import segments
+from service.report.analysis import fit_alone, open_run
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]

@@ -21,38 +21,32 @@ which this script runs for you (``--figures``, default ``examples/silverbox/figu
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
-from examples.silverbox.prepare import SOURCE, TAIL, advance  # noqa: E402
-from service.analysis import run_to_store  # noqa: E402
-from service.spec import load  # noqa: E402
+from examples.silverbox.prepare import ARROW, ARROW_LENGTH, arrow
+from service.report.analysis import run_to_store
+from service.spec import load
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
-LEVELS = {"low": 6000, "mid": 20000, "high": 34000}
-LENGTH = 3200
+LEVELS = ARROW
+LENGTH = ARROW_LENGTH
 
 
 def write_datasets(out: Path, particles: int | None = None, max_populations: int | None = None,
                    levels: tuple[str, ...] = tuple(LEVELS)) -> dict[str, Path]:
-    with np.load(SOURCE) as z:
-        u, y = z["SNLS80mV_V1"], z["SNLS80mV_V2"]
-    u = advance(u - u[TAIL:].mean(), 0.5)
-    y = y - y[TAIL:].mean()
+    segments = arrow()
     base = yaml.safe_load((HERE / "spec.yaml").read_text())
     specs = {}
     for name in levels:
-        start = LEVELS[name]
+        u, y = segments[name]
         d = out / name
         d.mkdir(parents=True, exist_ok=True)
-        np.save(d / "force.npy", u[start : start + LENGTH])
-        np.save(d / "displacement.npy", y[start : start + LENGTH])
+        np.save(d / "force.npy", u)
+        np.save(d / "displacement.npy", y)
         spec = {**base, "name": f"silverbox-{name}"}
         spec["data"] = {**base["data"], "fit": [200, 1700], "test": [1700, LENGTH]}
         if particles:
