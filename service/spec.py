@@ -8,6 +8,7 @@ settings) and returns a :class:`Job` ready for ``abcns.run``. Every error is an
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,14 +16,26 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from abcns import Model, NSSettings, RejectionSettings, SMCSettings, SpecError, StopRules
 from abcns.distances import check_window
 from abcns.executor import Evaluate
-from worker.evaluate import job_evaluator
+from worker.evaluate import evaluator, job_parts
+from worker.simulators import Simulator
 
 Window = tuple[int, int]
+
+
+def _prior_pair(value: Any) -> Any:
+    """A prior is ``[low, high]``: a wrong shape is reported at the prior's own name
+    (``models[0].priors.k``), not at a missing tuple element (``...priors.k[1]``)."""
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise ValueError(f"a prior is [low, high], got {value!r}"[:200])
+    return value
+
+
+Prior = Annotated[tuple[float, float], BeforeValidator(_prior_pair)]
 
 
 class _Strict(BaseModel):
@@ -60,27 +73,33 @@ class ModelSpec(_Strict):
     name: str = Field(min_length=1)
     simulator: str
     fixed: dict[str, float] = {}
-    priors: dict[str, tuple[float, float]]
+    priors: dict[str, Prior]
     integrator: IntegratorSpec = IntegratorSpec()
 
 
 class DistanceSpec(_Strict):
     name: Literal["nmse", "summary_euclidean"] = "nmse"
-    summaries: Literal["gk", "order_statistics"] = "gk"
+    summaries: Literal["gk", "order_statistics"] | None = None  # summary_euclidean only (default gk)
 
 
 class SamplerSpec(_Strict):
     algorithm: Literal["abc-ns", "abc-smc", "rejection"] = "abc-ns"
     particles: int = 1000
-    alpha: float = 0.3
-    beta: float = 0.6
-    enlargement: float = 1.1
-    weights: Literal["paper", "kernel"] = "paper"
+    # null: the algorithm's default (abcns.NSSettings / SMCSettings); a field the chosen
+    # algorithm does not read is an error (check_applicable)
+    alpha: float | None = None  # abc-ns (0.3)
+    beta: float | None = None  # abc-ns (0.6)
+    enlargement: float | None = None  # abc-ns (1.1)
+    weights: Literal["paper", "kernel"] | None = None  # abc-ns ("paper")
     epsilon_initial: float | None = None
     pilot_size: int | None = None
     pilot_quantile: float = 0.5
     batch_size: int = 200
-    quantile: float = 0.5  # abc-smc without a schedule
+    variant: Literal["evidence", "paper"] | None = None  # abc-ns ("evidence")
+    max_ellipsoids: int | None = None  # abc-ns, evidence variant
+    min_model_probability: float | None = None  # abc-ns, evidence variant
+    min_proposal_share: float | None = None  # abc-ns, evidence variant
+    quantile: float | None = None  # abc-smc without a schedule (0.5)
     schedule: list[float] | None = None  # abc-smc
 
 
@@ -99,7 +118,7 @@ class JobSpec(_Strict):
     distance: DistanceSpec = DistanceSpec()
     sampler: SamplerSpec = SamplerSpec()
     stop: StopSpec = StopSpec()
-    seed: int = 0
+    seed: Annotated[int, Field(ge=0, le=2**63 - 1)] = 0
 
     @field_validator("distance", mode="before")
     @classmethod
@@ -117,6 +136,7 @@ class Job:
     seed: int
     force: np.ndarray | None
     observed: np.ndarray
+    simulators: list[Simulator]  # the ones ``evaluate`` runs (their substeps as chosen)
 
 
 def _field(loc: tuple) -> str:
@@ -224,23 +244,46 @@ def load_data(spec: JobSpec, base_dir: Path | None) -> tuple[np.ndarray | None, 
     return force, observed
 
 
+# each algorithm's settings; the sampler fields an algorithm reads are its settings' fields
+SETTINGS: dict[str, type[NSSettings] | type[SMCSettings] | type[RejectionSettings]] = {
+    "abc-ns": NSSettings, "abc-smc": SMCSettings, "rejection": RejectionSettings}
+
+
+def _reads(algorithm: str) -> set[str]:
+    return {f.name for f in dataclasses.fields(SETTINGS[algorithm])}
+
+
+def _given(section: BaseModel) -> set[str]:
+    """Fields the spec gives a value (null is the default, so a spec written back by
+    ``model_dump`` gives the same set)."""
+    return {name for name in section.model_fields_set if getattr(section, name) is not None}
+
+
+def check_applicable(spec: JobSpec) -> None:
+    """A field that the chosen algorithm or distance does not read is an error, as an
+    unknown field is."""
+    algorithm = spec.sampler.algorithm
+    for name in sorted(_given(spec.sampler) - {"algorithm"} - _reads(algorithm)):
+        owners = [a for a in SETTINGS if name in _reads(a)]
+        raise SpecError(f"sampler.{name}", f"does not apply to algorithm {algorithm!r} (it is read by {', '.join(owners)})")
+    if "summaries" in _given(spec.distance) and spec.distance.name != "summary_euclidean":
+        raise SpecError("distance.summaries", f"applies to distance 'summary_euclidean' only, not {spec.distance.name!r}")
+
+
 def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = False) -> Job:
     """Everything checkable before a simulation: raise SpecError or return a Job."""
+    check_applicable(spec)
     data = spec.data
     force, observed = load_data(spec, base_dir)
     if data.test is not None:
         check_window(data.test, observed.size, "data.test")
-    models, evaluate = job_evaluator(description(spec), {"force": force, "observed": observed}, allow_import)
+    models, simulators, distance = job_parts(description(spec), {"force": force, "observed": observed}, allow_import)
     s = spec.sampler
-    common = dict(particles=s.particles, epsilon_initial=s.epsilon_initial, pilot_size=s.pilot_size,
-                  pilot_quantile=s.pilot_quantile, batch_size=s.batch_size)
-    if s.algorithm == "abc-ns":
-        settings: NSSettings | SMCSettings | RejectionSettings = NSSettings(
-            alpha=s.alpha, beta=s.beta, enlargement=s.enlargement, weights=s.weights, **common)
-    elif s.algorithm == "abc-smc":
-        settings = SMCSettings(quantile=s.quantile, schedule=tuple(s.schedule) if s.schedule else None, **common)
-    else:
-        settings = RejectionSettings(**common)
-    settings.check_models(models)
+    given = {name: getattr(s, name) for name in _given(s) - {"algorithm"}}
+    if s.schedule is not None:
+        given["schedule"] = tuple(s.schedule)
+    settings = SETTINGS[s.algorithm](**given)
+    settings.check_particles(models)
     stop = StopRules(**spec.stop.model_dump())
-    return Job(spec, models, evaluate, settings, stop, spec.seed, force, observed)
+    return Job(spec, models, evaluator(models, simulators, distance), settings, stop, spec.seed, force, observed,
+               simulators)

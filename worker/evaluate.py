@@ -9,8 +9,8 @@ by the distance; rows that are not OK get distance +inf.
 (the spec's models, distance and data settings) and the data arrays; it is what a Dask
 worker runs, once per worker and job (:func:`evaluate_on_worker` caches it).
 
-When the distance is an :class:`abcns.distances.NMSE` and the simulator offers
-``distance_nmse`` (the built-in oscillators), the NMSE is computed inside the simulator
+When the distance is an :class:`abcns.distances.NMSE` and the simulator is
+:class:`~worker.simulators.NMSECapable` (the built-in oscillators), the NMSE is computed inside the simulator
 (no trajectory array) with early rejection at the batch's epsilon: a particle whose partial
 NMSE reaches epsilon stops and reports that partial NMSE (>= epsilon, so it is rejected as
 it would have been). Other distances take the generic path.
@@ -18,20 +18,21 @@ it would have been). Other distances take the generic path.
 
 from __future__ import annotations
 
+import inspect
 import time
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from abcns.distances import NMSE, Distance, SummaryEuclidean
-from abcns.executor import OK, Batch, Evaluate, Evaluated, SimulateDistance, per_model
+from abcns.executor import OK, Batch, Evaluate, Evaluated, SimulateDistanceEpsilon, evaluate_batch, per_model
 from abcns.priors import Model, SpecError
 from worker import registry
-from worker.simulators import GAndK
+from worker.simulators import NMSECapable, Simulator
 
 
-def check_model(model: Model, simulator, where: str) -> None:
+def check_model(model: Model, simulator: Simulator, where: str) -> None:
     """Every simulator parameter is inferred, fixed or defaulted; no unknown names."""
     names = tuple(simulator.parameter_names)
     for key in model.priors:
@@ -45,24 +46,39 @@ def check_model(model: Model, simulator, where: str) -> None:
         raise SpecError(f"{where}.priors", f"parameters {missing} of {simulator.name} need a prior or a fixed value")
 
 
-def model_function(model: Model, simulator, distance: Distance) -> SimulateDistance:
-    """``f(theta, rng, epsilon=inf) -> (distances, status)`` for one model."""
+def full_parameters(model: Model, simulator: Simulator) -> Callable[[np.ndarray], np.ndarray]:
+    """The one mapping from a model's free parameters (n, d) to the simulator's full
+    parameter vectors (n, p): the free ones in the simulator's columns, then the model's
+    fixed values, then the simulator's defaults for what the model neither fixes nor infers
+    (a default never overrides an inferred parameter)."""
     names = tuple(simulator.parameter_names)
     free = [names.index(p) for p in model.priors]
-    # fixed values, then the simulator's defaults for what the model neither fixes nor infers
-    # (a default never overrides an inferred parameter)
     const = {p: v for p, v in {**simulator.defaults, **model.fixed}.items() if p not in model.priors}
     const_cols = [names.index(p) for p in const if p in names]
     const_vals = np.array([const[names[j]] for j in const_cols])
-    fast = isinstance(distance, NMSE) and callable(getattr(simulator, "distance_nmse", None))
 
-    def simulate_distance(theta: np.ndarray, rng: np.random.Generator,
-                          epsilon: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    def expand(theta: np.ndarray) -> np.ndarray:
+        theta = np.atleast_2d(theta)
         full = np.empty((theta.shape[0], len(names)))
         full[:, free] = theta
         full[:, const_cols] = const_vals
-        if fast:
-            return simulator.distance_nmse(full, distance.observed, distance.start, distance.stop, epsilon)
+        return full
+
+    return expand
+
+
+def model_function(model: Model, simulator: Simulator, distance: Distance) -> SimulateDistanceEpsilon:
+    """``f(theta, rng, epsilon=inf) -> (distances, status)`` for one model."""
+    expand = full_parameters(model, simulator)
+    # the fast path needs both: the distance is the NMSE, and the simulator can compute it
+    nmse = distance if isinstance(distance, NMSE) else None
+    capable = simulator if isinstance(simulator, NMSECapable) else None
+
+    def simulate_distance(theta: np.ndarray, rng: np.random.Generator,
+                          epsilon: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        full = expand(theta)
+        if nmse is not None and capable is not None:
+            return capable.distance_nmse(full, nmse.observed, nmse.start, nmse.stop, epsilon)
         out = simulator.simulate(full, rng)
         d = np.full(theta.shape[0], np.inf)
         ok = out.status == OK
@@ -73,7 +89,7 @@ def model_function(model: Model, simulator, distance: Distance) -> SimulateDista
     return simulate_distance
 
 
-def evaluator(models: Sequence[Model], simulators: Sequence, distance: Distance,
+def evaluator(models: Sequence[Model], simulators: Sequence[Simulator], distance: Distance,
               early_rejection: bool = True) -> Evaluate:
     """The batch evaluator; ``early_rejection`` passes each batch's epsilon to the simulators."""
     if len(models) != len(simulators):
@@ -105,16 +121,45 @@ def _bounds(desc: dict, factory) -> dict[str, tuple[float, float]]:
     return b
 
 
+#: the keywords :func:`simulator_for` offers a factory driven by the input record
+INPUT_KEYWORDS = ("force", "dt", "n_samples", "substeps", "output", "state_bound")
+
+
+def _accepted(factory: Callable, offered: dict) -> dict:
+    """The keywords of ``offered`` that ``factory``'s signature names (all of them when it
+    takes ``**kwargs`` or has no signature to inspect)."""
+    try:
+        params = inspect.signature(factory).parameters.values()
+    except (TypeError, ValueError):
+        return offered
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        return offered
+    names = {p.name for p in params if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)}
+    return {k: v for k, v in offered.items() if k in names}
+
+
 def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observed: np.ndarray, where: str,
-                  allow_import: bool = False):
+                  allow_import: bool = False) -> Simulator:
     """The simulator a job builds for one model description, over the record given (the
-    evaluator passes the record up to the fit end; the analysis the whole record)."""
+    evaluator passes the record up to the fit end; the analysis the whole record).
+
+    How the factory is called depends on its ``needs_input`` attribute:
+
+    - False (g-and-k): ``factory(n_samples=observed.size)``;
+    - True (the oscillators): the input is required (a SpecError on ``data.input`` without
+      it) and the factory gets those of :data:`INPUT_KEYWORDS` (``force``, ``dt``,
+      ``n_samples``, ``substeps``, ``output``, ``state_bound``) its signature names, e.g.
+      ``Linear`` (exact, no substeps) gets no ``substeps``;
+    - absent (a plugin written before ``needs_input``): as True, except that the input may
+      be missing (``force=None``), as plugins have always been called.
+    """
     factory = registry.get(desc["simulator"], f"{where}.simulator", allow_import=allow_import)
+    needs_input = getattr(factory, "needs_input", None)
     integ = {"substeps": None, "output": "displacement", **(desc.get("integrator") or {})}
     try:
-        if factory is GAndK:
-            return GAndK(n_samples=int(observed.size))
-        if factory in registry.BUILTINS.values() and force is None:
+        if needs_input is False:
+            return factory(**_accepted(factory, {"n_samples": int(observed.size)}))
+        if needs_input and force is None:
             raise SpecError("data.input", f"simulator {desc['simulator']!r} needs an input force")
         if integ["substeps"] is None:
             integ["substeps"] = 1
@@ -127,15 +172,23 @@ def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observ
                     raise SpecError("integrator.substeps", f"cannot be chosen from the priors ({err}); give it") from None
         # the divergence guard: 1000 x the observed scale (for a displacement output)
         bound = 1e3 * float(np.max(np.abs(observed))) if integ["output"] == "displacement" else np.inf
-        return factory(force=force, dt=dt, n_samples=int(observed.size), substeps=integ["substeps"],
-                       output=integ["output"], state_bound=bound)
+        offered = dict(zip(INPUT_KEYWORDS, (force, dt, int(observed.size), integ["substeps"], integ["output"], bound),
+                           strict=True))
+        return factory(**_accepted(factory, offered))
     except SpecError as err:
         field = err.field if err.field.startswith("data") else f"{where}.{err.field}"
         raise SpecError(field, err.message) from None
 
 
 def job_evaluator(description: dict, arrays: dict, allow_import: bool = False) -> tuple[list[Model], Evaluate]:
-    """(models, evaluate) from a job description and its data.
+    """(models, evaluate) from a job description and its data (:func:`job_parts`)."""
+    models, simulators, distance = job_parts(description, arrays, allow_import)
+    return models, evaluator(models, simulators, distance)
+
+
+def job_parts(description: dict, arrays: dict,
+              allow_import: bool = False) -> tuple[list[Model], list[Simulator], Distance]:
+    """(models, simulators, distance) of a job description and its data.
 
     ``description``: ``{"models": [{name, simulator, priors, fixed, integrator}], "distance":
     {name: nmse | summary_euclidean, summaries}, "data": {"dt": float | None, "fit": [a, b] | None}}``;
@@ -150,20 +203,21 @@ def job_evaluator(description: dict, arrays: dict, allow_import: bool = False) -
     data = description.get("data", {})
     dist = description.get("distance", {"name": "nmse"})
     if dist["name"] == "nmse":
-        distance: Distance = NMSE(observed, data.get("fit"))
-        if force is not None and np.size(force) == observed.size and distance.stop < observed.size:
+        nmse = NMSE(observed, data.get("fit"))
+        if force is not None and np.size(force) == observed.size and nmse.stop < observed.size:
             # nothing after the fit window is scored: simulate only up to its end
-            force, observed = force[: distance.stop], observed[: distance.stop]
-            distance = NMSE(observed, (distance.start, distance.stop))
+            force, observed = force[: nmse.stop], observed[: nmse.stop]
+            nmse = NMSE(observed, (nmse.start, nmse.stop))
+        distance: Distance = nmse
     elif dist["name"] == "summary_euclidean":
-        distance = SummaryEuclidean(observed, dist.get("summaries", "gk"))
+        distance = SummaryEuclidean(observed, dist.get("summaries") or "gk")
     else:
         raise SpecError("distance.name", f"unknown distance {dist['name']!r}")
     models, simulators = [], []
     for i, desc in enumerate(description["models"]):
         models.append(model_of(desc, f"models[{i}]"))
         simulators.append(simulator_for(desc, force, data.get("dt"), observed, f"models[{i}]", allow_import))
-    return models, evaluator(models, simulators, distance)
+    return models, simulators, distance
 
 
 _CACHE: OrderedDict[str, Evaluate] = OrderedDict()
@@ -194,5 +248,5 @@ def evaluate_on_worker(job_key: str, payload: dict, batches: Sequence[Batch]) ->
             _CACHE.popitem(last=False)
     else:
         _CACHE.move_to_end(job_key)
-    results = [evaluate(batch) for batch in batches]
+    results = [evaluate_batch(evaluate, batch) for batch in batches]
     return results, time.perf_counter() - start

@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+from typing import Literal, TypedDict
 
 
 def _prefer_wide_vectors() -> None:
@@ -63,8 +64,10 @@ def _prefer_wide_vectors() -> None:
     from numba.core import config
     from numba.core.registry import cpu_target
 
-    if config.CPU_FEATURES is None and "_toplevel_target_context" not in vars(cpu_target):
-        config.CPU_FEATURES = wanted
+    # numba.core.config creates its settings at import time (globals() updated from the
+    # environment), so they are invisible to a type checker
+    if config.CPU_FEATURES is None and "_toplevel_target_context" not in vars(cpu_target):  # type: ignore[attr-defined]
+        config.CPU_FEATURES = wanted  # type: ignore[attr-defined]
 
 
 _prefer_wide_vectors()
@@ -78,7 +81,16 @@ _FM = {"contract"}
 _BIG = 1.7976931348623157e308  # the largest finite double
 OUTPUT_CODES = {"displacement": 0, "velocity": 1, "acceleration": 2}
 
-_JIT = {"cache": True, "fastmath": _FM, "error_model": "numpy"}
+
+class _JitOptions(TypedDict):
+    """The options every kernel is compiled with (typed so that ``njit(**_JIT)`` checks)."""
+
+    cache: bool
+    fastmath: set[str]
+    error_model: Literal["python", "numpy"]
+
+
+_JIT: _JitOptions = {"cache": True, "fastmath": _FM, "error_model": "numpy"}
 
 
 # --------------------------------------------------------------------------- shared
@@ -441,8 +453,8 @@ def zoh_coefficients(m, c, k, dt, w):
         b2 = im * dt
         norm = max(dt, abs(a21) + abs(a22))
         if not (norm <= 1e300 and abs(b2) <= 1e300):
-            for r in range(3, 9):
-                w[r, j] = np.nan
+            for row in range(3, 9):
+                w[row, j] = np.nan
             continue
         s = 0
         sc = 1.0

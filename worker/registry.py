@@ -6,20 +6,24 @@ Plugins: any installed package can add simulators through the entry-point group
 service and on every worker. The CLI (never HTTP) may also name a local
 ``package.module:factory`` directly in a spec.
 
-A simulator factory is called with keyword arguments ``force`` (the input, or None),
-``dt``, ``n_samples`` (the observed record's length), ``substeps``, ``output`` and
-``state_bound``, and returns an object with ``parameter_names``, ``defaults`` (a dict),
-``n_samples``, ``simulate(params (n, p), rng) -> SimOutput`` (values (n, n_samples) and
-status (n,) with ``abcns.OK / DIVERGED / FAILED``) and ``config() -> dict``; optionally
-``distance_nmse(params, observed, start, stop, epsilon)`` (a fused fast path) and a static
-``omega_max(bounds)`` (lets the substeps be chosen from the priors). See
-``worker/simulators.py`` for four examples.
+A simulator factory (a class or any callable) returns a
+:class:`worker.simulators.Simulator`: an object with ``name``, ``parameter_names``,
+``defaults`` (a dict), ``n_samples``, ``simulate(params (n, p), rng) -> SimOutput`` (values
+(n, n_samples) and status (n,) with ``abcns.OK / DIVERGED / FAILED``) and ``config() ->
+dict``; optionally :class:`worker.simulators.NMSECapable` (``distance_nmse(params, observed,
+start, stop, epsilon)``, a fused fast path). The factory may have a static
+``omega_max(bounds)`` (lets the substeps be chosen from the priors) and ``needs_input``:
+False: called as ``factory(n_samples=...)`` (the observed record's length); True: the input
+is required, and the factory is called with those of the keywords ``force``, ``dt``,
+``n_samples``, ``substeps``, ``output`` and ``state_bound`` its signature names (all with
+``**kwargs``); absent: as True, but ``force`` may be None (no input given). See
+``worker/simulators.py`` for four examples and :func:`worker.evaluate.simulator_for`.
 """
 
 from __future__ import annotations
 
 import importlib
-from importlib.metadata import entry_points
+from importlib.metadata import EntryPoint, entry_points
 
 from abcns.priors import SpecError
 from worker.simulators import BoucWen, Duffing, GAndK, Linear
@@ -28,7 +32,7 @@ BUILTINS: dict[str, type] = {cls.name: cls for cls in (Duffing, BoucWen, Linear,
 GROUP = "abcns.simulators"
 
 
-def plugins() -> dict[str, object]:
+def plugins() -> dict[str, EntryPoint]:
     """Entry points of the group ``abcns.simulators`` (not loaded)."""
     return {ep.name: ep for ep in entry_points(group=GROUP)}
 
@@ -44,7 +48,7 @@ def get(name: str, field: str = "simulator", allow_import: bool = False):
     eps = plugins()
     if name in eps:
         try:
-            return eps[name].load()  # type: ignore[attr-defined]
+            return eps[name].load()
         except (ImportError, AttributeError) as err:
             raise SpecError(field, f"plugin simulator {name!r} cannot be loaded: {err}") from None
     if ":" in name:

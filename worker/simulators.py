@@ -1,20 +1,20 @@
 """Batch simulators, reference grade (vectorised numpy across the batch).
 
-Protocol of a simulator (built-in or user): an object with
+The protocol a simulator (built-in or user) follows is :class:`Simulator`; a simulator
+that can compute the NMSE itself also follows :class:`NMSECapable` (the evaluator's fast
+path, :mod:`worker.evaluate`). A factory (the class, or a plugin's callable) may declare
+``needs_input``: True (the oscillators) when it is driven by the input record, False
+(g-and-k) when it only needs the observed record's length; see
+:func:`worker.evaluate.simulator_for` for the keywords each kind is called with.
 
-- ``parameter_names``: the full parameter vector's column order;
-- ``defaults``: values used for parameters a model neither fixes nor infers (may be empty);
-- ``simulate(params (n, p), rng) -> SimOutput``: outputs ``(n, n_samples)`` and a status
-  per row (``abcns.OK`` / ``DIVERGED`` / ``FAILED``); a row that is not OK may hold
-  anything, it is never read;
-- ``config() -> dict``: JSON for provenance.
-
-Forced oscillators take the excitation sampled every ``dt`` and hold ``force[i]`` constant
-over step i (zero-order hold); the state starts at rest and the output has one value per
-force sample (output[0] is the initial state, output[i + 1] the state after step i).
-Integration is classical fixed-step RK4 with ``substeps`` steps per sample (the authors'
-demo uses 1). A row whose state leaves ``state_bound`` or stops being finite is flagged
-DIVERGED and frozen at zero, so no overflow spreads and nothing garbage is returned.
+Forced oscillators (:class:`Oscillator`) take the excitation sampled every ``dt`` and hold
+``force[i]`` constant over step i (zero-order hold); the state starts at rest and the
+output has one value per force sample (output[0] is the initial state, output[i + 1] the
+state after step i). ``Duffing`` and ``BoucWen`` integrate with classical fixed-step RK4
+with ``substeps`` steps per sample (the authors' demo uses 1); ``Linear`` uses the exact
+zero-order-hold recursion. A row whose state leaves ``state_bound`` or stops being finite
+is flagged DIVERGED and frozen at zero, so no overflow spreads and nothing garbage is
+returned.
 
 Backends. ``backend="numba"`` (the default) runs the compiled kernels of
 :mod:`worker.kernels`; ``backend="numpy"`` keeps the vectorised numpy code below as the
@@ -30,12 +30,15 @@ backend a row whose squared error overflows is DIVERGED (numpy: an OK row with d
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 import scipy.linalg
 from scipy.special import ndtri
 
+from abcns.distances import NMSE
 from abcns.executor import DIVERGED, OK
 from abcns.priors import SpecError
 
@@ -48,6 +51,44 @@ _BIG = float(np.finfo(float).max)
 class SimOutput:
     values: np.ndarray  # (n, n_samples)
     status: np.ndarray  # (n,) int8
+
+
+@runtime_checkable
+class Simulator(Protocol):
+    """What the evaluator needs of a simulator (built-in or plugin).
+
+    - ``name``: shown in error messages and recorded by ``config()``;
+    - ``parameter_names``: the full parameter vector's column order;
+    - ``defaults``: values used for parameters a model neither fixes nor infers (may be empty);
+    - ``n_samples``: the length of one simulated record (must equal the observed record's);
+    - ``simulate(params (n, p), rng) -> SimOutput``: outputs ``(n, n_samples)`` and a status
+      per row (``abcns.OK`` / ``DIVERGED`` / ``FAILED``); a row that is not OK may hold
+      anything, it is never read;
+    - ``config() -> dict``: JSON for provenance.
+    """
+
+    name: str
+    parameter_names: Sequence[str]
+    defaults: Mapping[str, float]
+    n_samples: int
+
+    def simulate(self, params: np.ndarray, rng: np.random.Generator) -> SimOutput: ...
+
+    def config(self) -> dict: ...
+
+
+@runtime_checkable
+class NMSECapable(Protocol):
+    """The optional fast path: a simulator that computes the NMSE of
+    :class:`abcns.distances.NMSE` itself, without returning the trajectories.
+
+    ``distance_nmse(params (n, p), observed, start, stop, epsilon=inf) -> (distances (n,),
+    status (n,) int8)``: the NMSE of the window ``[start, stop)``; not-OK rows have distance
+    +inf; a row may stop early once its partial NMSE reaches ``epsilon`` (status OK, distance
+    ``>= epsilon``, so the accept/reject decision at ``epsilon`` is unchanged)."""
+
+    def distance_nmse(self, params: np.ndarray, observed: np.ndarray, start: int, stop: int,
+                      epsilon: float = np.inf) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 def _force(force: np.ndarray | None, dt: float) -> np.ndarray:
@@ -88,34 +129,13 @@ def _kernels():
     return kernels
 
 
-def _nmse_scale(observed: np.ndarray, start: int, stop: int, n_samples: int) -> tuple[np.ndarray, float]:
-    """Validate the observed record and window like :class:`NMSE`; return it and the scale."""
-    observed = np.ascontiguousarray(observed, dtype=float)
-    if observed.ndim != 1:
-        raise ValueError(f"observed must be 1-d, got shape {observed.shape}")
-    start, stop = int(start), int(stop)
-    if not 0 <= start < stop <= min(observed.size, n_samples) or stop - start < 2:
-        raise ValueError(f"window [{start}, {stop}) does not fit {observed.size} observed and {n_samples} "
-                         "simulated samples (or has fewer than 2 samples)")
-    segment = observed[start:stop]
-    if not np.all(np.isfinite(segment)):
-        raise ValueError("observed has non-finite values in the window")
-    variance = float(np.var(segment, ddof=1))
-    if not variance > 0.0:
-        raise ValueError("observed is constant on the window; the NMSE is undefined")
-    return observed, 100.0 / (segment.size * variance)
-
-
-def _numpy_nmse(simulator, params, observed, start, stop) -> tuple[np.ndarray, np.ndarray]:
-    """The reference ``distance_nmse``: simulate, then :class:`NMSE`."""
-    from abcns.distances import NMSE
-
-    out = simulator.simulate(params)
-    d = np.full(out.status.shape[0], np.inf)
-    ok = out.status == OK
-    if ok.any():
-        d[ok] = NMSE(observed, (start, stop))(out.values[ok])
-    return d, out.status
+def _nmse(observed: np.ndarray, start: int, stop: int, n_samples: int) -> NMSE:
+    """:class:`abcns.distances.NMSE` on ``[start, stop)`` of ``observed`` (which validates the
+    record and the window), checked to fit ``n_samples`` simulated samples."""
+    nmse = NMSE(np.ascontiguousarray(observed, dtype=float), (start, stop))
+    if nmse.stop > n_samples:
+        raise ValueError(f"window [{nmse.start}, {nmse.stop}) does not fit {n_samples} simulated samples")
+    return nmse
 
 
 #: allowance on the Bouc-Wen |z| bound for RK4's overshoot (an accurate step stays far inside)
@@ -129,19 +149,23 @@ def _linear_omega(m_min: float, c_max: float, k_max: float) -> float:
     return c_max / (2 * m_min) + float(np.sqrt(c_max**2 / (4 * m_min**2) + k_max / m_min))
 
 
-class _Oscillator:
-    """Shared ZOH-RK4 loop. Subclasses define the state and its derivative."""
+class Oscillator:
+    """A forced oscillator: the input record, the output, the divergence guard, the backend
+    dispatch and the in-kernel NMSE (:class:`NMSECapable`).
 
+    Subclasses define the numba path (``_work``: the kernel's work rows; ``_call``: the
+    kernel call), the numpy reference (``_simulate_numpy``) and ``_method()`` (what
+    ``config()`` records about the integration)."""
+
+    needs_input = True
     name = ""
     parameter_names: tuple[str, ...] = ()
     defaults: dict[str, float] = {}
-    n_state = 2
 
-    def __init__(self, force=None, dt: float = 0.01, substeps: int = 1, output: str = "displacement",
-                 state_bound: float = np.inf, backend: str = "numba", n_samples: int | None = None):
+    def __init__(self, force=None, dt: float = 0.01, output: str = "displacement", state_bound: float = np.inf,
+                 backend: str = "numba"):
         self.force = _force(force, dt)
         self.dt = float(dt)
-        self.substeps = _substeps(substeps)
         self.output = _output(output)
         self.state_bound = float(state_bound)
         self.backend = _backend(backend)
@@ -150,10 +174,13 @@ class _Oscillator:
     def n_samples(self) -> int:
         return int(self.force.size)
 
+    def _method(self) -> dict:
+        """The integration's settings for ``config()``."""
+        raise NotImplementedError
+
     def config(self) -> dict:
-        return {"simulator": self.name, "substeps": self.substeps, "output": self.output,
-                "dt": self.dt, "n_samples": int(self.force.size), "state_bound": self.state_bound,
-                "backend": self.backend}
+        return {"simulator": self.name, **self._method(), "output": self.output, "dt": self.dt,
+                "n_samples": int(self.force.size), "state_bound": self.state_bound, "backend": self.backend}
 
     # -- numba path: subclasses define the work rows and the kernel call
     def _work(self, params: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, tuple]]:
@@ -194,10 +221,41 @@ class _Oscillator:
         trajectories; particles whose partial NMSE reaches ``epsilon`` stop early (status OK,
         distance >= epsilon). Returns ``(distances (n,), status (n,) int8)``; not-OK rows
         have distance +inf."""
-        observed, scale = _nmse_scale(observed, start, stop, self.force.size)
+        nmse = _nmse(observed, start, stop, self.n_samples)
         if self.backend == "numpy":
-            return _numpy_nmse(self, params, observed, start, stop)
-        return self._run(params, observed, start, stop, scale, epsilon)
+            # the reference: simulate, then NMSE
+            out = self.simulate(params)
+            d = np.full(out.status.shape[0], np.inf)
+            ok = out.status == OK
+            if ok.any():
+                d[ok] = nmse(out.values[ok])
+            return d, out.status
+        return self._run(params, nmse.observed, nmse.start, nmse.stop, nmse.scale, epsilon)
+
+    def simulate(self, params: np.ndarray, rng: np.random.Generator | None = None) -> SimOutput:
+        """Outputs ``(n, n_samples)`` (with numba: a transposed, Fortran-ordered view) and status."""
+        if self.backend == "numba":
+            values, status = self._run(params)
+            return SimOutput(values, status)
+        return self._simulate_numpy(params)
+
+    def _simulate_numpy(self, params: np.ndarray) -> SimOutput:
+        raise NotImplementedError
+
+
+class _RK4Oscillator(Oscillator):
+    """Fixed-step RK4 with ``substeps`` steps per sample. Subclasses define the state
+    (``n_state``) and its derivative."""
+
+    n_state = 2
+
+    def __init__(self, force=None, dt: float = 0.01, substeps: int = 1, output: str = "displacement",
+                 state_bound: float = np.inf, backend: str = "numba"):
+        super().__init__(force, dt, output=output, state_bound=state_bound, backend=backend)
+        self.substeps = _substeps(substeps)
+
+    def _method(self) -> dict:
+        return {"substeps": self.substeps}
 
     def derivative(self, p: tuple, state: list[np.ndarray], f: float) -> list[np.ndarray]:
         raise NotImplementedError
@@ -215,13 +273,6 @@ class _Oscillator:
         if self.output == "velocity":
             return state[1]
         return self.derivative(p, state, f)[1]
-
-    def simulate(self, params: np.ndarray, rng: np.random.Generator | None = None) -> SimOutput:
-        """Outputs ``(n, n_samples)`` (with numba: a transposed, Fortran-ordered view) and status."""
-        if self.backend == "numba":
-            values, status = self._run(params)
-            return SimOutput(values, status)
-        return self._simulate_numpy(params)
 
     def _simulate_numpy(self, params: np.ndarray) -> SimOutput:
         params = np.atleast_2d(np.asarray(params, dtype=float))
@@ -254,7 +305,7 @@ class _Oscillator:
         return SimOutput(out, status)
 
 
-class Duffing(_Oscillator):
+class Duffing(_RK4Oscillator):
     """``m x'' + c x' + k x + k2 x^2 + k3 x^3 + k5 x^5 = f(t)`` (paper Eqs. 6, 10, 11).
 
     ``k2`` (the optional quadratic term) defaults to 0; the others must be fixed or given
@@ -292,7 +343,7 @@ class Duffing(_Oscillator):
         return [v, (f - restoring) / m]
 
 
-class BoucWen(_Oscillator):
+class BoucWen(_RK4Oscillator):
     """Bouc-Wen hysteresis, paper Eqs. (14)-(15):
 
     ``m y'' + c y' + k y + z = f(t)``,
@@ -369,7 +420,7 @@ class BoucWen(_Oscillator):
         return [v, (f - c * v - k * y - z) / m, zdot]
 
 
-class Linear:
+class Linear(Oscillator):
     """``m x'' + c x' + k x = f(t)`` by the exact zero-order-hold recursion:
     ``s_{i+1} = Phi s_i + Gamma f_i`` with ``[[Phi, Gamma], [0, 1]] = expm([[A, B], [0, 0]] dt)``.
     Exact for a force held over each sample; no substeps."""
@@ -378,21 +429,8 @@ class Linear:
     parameter_names = ("m", "c", "k")
     defaults: dict[str, float] = {}
 
-    def __init__(self, force=None, dt: float = 0.01, output: str = "displacement", state_bound: float = np.inf,
-                 substeps: int | None = None, backend: str = "numba", n_samples: int | None = None):
-        self.force = _force(force, dt)
-        self.dt = float(dt)
-        self.output = _output(output)
-        self.state_bound = float(state_bound)
-        self.backend = _backend(backend)
-
-    @property
-    def n_samples(self) -> int:
-        return int(self.force.size)
-
-    def config(self) -> dict:
-        return {"simulator": self.name, "method": "exact-zoh", "output": self.output, "dt": self.dt,
-                "n_samples": int(self.force.size), "state_bound": self.state_bound, "backend": self.backend}
+    def _method(self) -> dict:
+        return {"method": "exact-zoh"}
 
     def _work(self, params):
         K = _kernels()
@@ -404,17 +442,6 @@ class Linear:
 
     def _call(self, w, extra, kind, *args):
         _kernels().linear_run(w, self.force, kind, *args)
-
-    block = _Oscillator.block
-    _run = _Oscillator._run
-    distance_nmse = _Oscillator.distance_nmse
-
-    def simulate(self, params: np.ndarray, rng: np.random.Generator | None = None) -> SimOutput:
-        """Outputs ``(n, n_samples)`` (with numba: a transposed, Fortran-ordered view) and status."""
-        if self.backend == "numba":
-            values, status = self._run(params)
-            return SimOutput(values, status)
-        return self._simulate_numpy(params)
 
     def _simulate_numpy(self, params: np.ndarray) -> SimOutput:
         params = np.atleast_2d(np.asarray(params, dtype=float))
@@ -459,8 +486,9 @@ class GAndK:
     name = "gandk"
     parameter_names = ("A", "B", "g", "k", "c")
     defaults = {"c": 0.8}
+    needs_input = False
 
-    def __init__(self, n_samples: int = 10_000, force=None, dt: float | None = None, **_: object):
+    def __init__(self, n_samples: int = 10_000):
         if not (isinstance(n_samples, int) and n_samples >= 2):
             raise SpecError("data.observed", f"g-and-k needs at least 2 observed samples, got {n_samples!r}")
         self.n_samples = n_samples

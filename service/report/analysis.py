@@ -17,9 +17,10 @@ import numpy as np
 
 from abcns import OK, Model, Result
 from abcns.analysis import Confusion, Predictive, confusion, fit_test_nmse, nmse, predictive
+from service.run.store import Store, data_hash
 from service.spec import JobSpec, load_data, parse
-from service.store import Store, data_hash
-from worker.evaluate import check_model, model_of, simulator_for
+from worker.evaluate import check_model, full_parameters, model_of, simulator_for
+from worker.simulators import Simulator
 
 
 @dataclass(frozen=True, eq=False)
@@ -33,24 +34,17 @@ class JobData:
     fit: tuple[int, int]
     test: tuple[int, int] | None
     models: dict[str, Model]
-    simulators: dict[str, object]
+    simulators: dict[str, Simulator]
 
     def simulate(self, model: str) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
         """``simulate(theta (n, d)) -> (values (n, T), status (n,))`` of one model over the
         whole record: its free parameters, then its fixed values, then the simulator's
         defaults, as the evaluator maps them."""
-        m, sim = self.models[model], self.simulators[model]
-        names = tuple(sim.parameter_names)
-        free = [names.index(p) for p in m.priors]
-        const = {p: v for p, v in {**sim.defaults, **m.fixed}.items() if p not in m.priors}
+        sim = self.simulators[model]
+        expand = full_parameters(self.models[model], sim)
 
         def simulate(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            theta = np.atleast_2d(theta)
-            full = np.empty((theta.shape[0], len(names)))
-            full[:, free] = theta
-            for p, v in const.items():
-                full[:, names.index(p)] = v
-            out = sim.simulate(full, None)
+            out = sim.simulate(expand(theta), None)
             return np.ascontiguousarray(out.values), out.status
 
         return simulate
@@ -87,7 +81,7 @@ def store_job_data(store: Store, base_dir: str | Path | None) -> JobData:
 def open_run(spec_path: str | Path, store_path: str | Path) -> tuple[JobSpec, Path, Store, Result, JobData]:
     """A finished run of an example: (the spec it ran with, the spec file's folder, its
     store, its result, its data and simulators)."""
-    from service.runner import result_from_store
+    from service.run.runner import result_from_store
     from service.spec import load
 
     _, base = load(spec_path)
@@ -126,44 +120,21 @@ def confusion_of(results: list[Result], datas: list[JobData], labels: list[str] 
 
 def run_to_store(spec: JobSpec, base_dir: str | Path | None, out: str | Path, seed: int | None = None,
                  on_population: Callable | None = None) -> Result:
-    """Run a job in this process (serial, no Dask) into a new store at ``out``, as
-    ``abcns run`` would write it (spec, data hash, one append per population, final
-    status). For examples and tests; the CLI's Dask runner gives the same populations."""
-    import abcns
-    from abcns.run import algorithm_name
-    from service.spec import build
-    from service.store import Store, data_hash
+    """:func:`service.run.runner.run_job` in this process (the serial executor, no Dask) into the
+    store ``out``: the same store ``abcns run`` writes, the same populations. For the
+    examples, the analysis and the tests; ``on_population`` gets each Population."""
+    from service.run.runner import run_job
 
-    if seed is not None:
-        spec = spec.model_copy(update={"seed": seed})
+    progress = (lambda p: on_population(p.population)) if on_population is not None else None
     base = Path(base_dir) if base_dir is not None else None
-    job = build(spec, base, allow_import=True)
-    store = Store.create(out, spec=spec.model_dump(mode="json"), seed=job.seed, model_names=[m.name for m in job.models],
-                         parameter_names=[list(m.parameter_names) for m in job.models],
-                         n_particles=job.settings.particles,
-                         data_hash=data_hash(*(a for a in (job.force, job.observed) if a is not None)),
-                         algorithm=algorithm_name(job.settings))
-    total = [0]
-
-    def append(pop) -> None:
-        total[0] += pop.n_simulations
-        store.append(pop, n_simulations_total=total[0])
-        if on_population is not None:
-            on_population(pop)
-
-    result = abcns.run(job.models, job.evaluate, job.settings, job.stop, job.seed, on_population=append)
-    store.set_status("finished", result.stop_reason.value,
-                     run={"epsilon_initial_source": result.epsilon_initial_source,
-                          "n_pilot_simulations": result.n_pilot_simulations, "n_simulations": result.n_simulations,
-                          "wall_time_s": result.wall_time_s, "notes": list(result.notes)})
-    return result
+    return run_job(spec, base, Path(out), None, seed=seed, on_population=progress, allow_import=True)
 
 
 def fit_alone(spec: JobSpec, base_dir: str | Path | None, model: str, out: str | Path, *, name: str,
               seed: int | None = None) -> tuple[Result, JobData]:
     """Model ``model`` of ``spec`` fitted on its own (same data, sampler and stop rules, job
     ``name``), run into the store ``out`` unless it exists; its result and data."""
-    from service.runner import result_from_store
+    from service.run.runner import result_from_store
 
     if not Path(out).exists():
         alone = spec.model_copy(update={"models": [m for m in spec.models if m.name == model], "name": name})

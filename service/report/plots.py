@@ -1,6 +1,6 @@
 """The paper's figures from a result (matplotlib, object API: no pyplot state, any backend).
 
-Each ``*_figure`` function returns a :class:`matplotlib.figure.Figure`; :func:`plot_store`
+Each ``*_figure`` function returns a :class:`matplotlib.figure.Figure`; :func:`plot_result`
 writes every figure of a finished store to a directory (``abcns plot``).
 
 - :func:`tolerance_figure`: tolerance and acceptance rate per population (Figs. 2, 12, 21);
@@ -21,7 +21,7 @@ import numpy as np
 from matplotlib import colormaps
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
-from matplotlib.ticker import MaxNLocator
+from matplotlib.ticker import MaxNLocator, ScalarFormatter
 
 from abcns import Result
 from abcns.analysis import Confusion, Predictive
@@ -98,14 +98,67 @@ def marginals_figure(result: Result, model: int | str, truth: Mapping[str, float
     return fig
 
 
+def _limits(values: np.ndarray, truth: float | None) -> tuple[float, float]:
+    """The axis range of one parameter: its samples (and the truth, when given) with a 5 % margin."""
+    v = values[np.isfinite(values)]
+    if truth is not None and np.isfinite(truth):
+        v = np.append(v, truth)
+    if v.size == 0:
+        return 0.0, 1.0
+    lo, hi = float(v.min()), float(v.max())
+    pad = 0.05 * (hi - lo) if hi > lo else (0.05 * abs(lo) or 0.5)
+    return lo - pad, hi + pad
+
+
+class _NamedOffsetFormatter(ScalarFormatter):
+    """A :class:`ScalarFormatter` whose offset / power of ten goes into the axis label
+    ("c (1e-5+1.0000503e3)") instead of the offset text, which would sit on the label."""
+
+    def __init__(self, name: str):
+        super().__init__(useOffset=True)
+        self.name = name
+        self.set_powerlimits((-3, 4))
+
+    def set_locs(self, locs):
+        super().set_locs(locs)
+        off = super().get_offset()
+        if self.axis is not None:
+            self.axis.set_label_text(f"{self.name} ({off})" if off else self.name)
+
+    def get_offset(self) -> str:
+        return ""
+
+
+def _compact_ticks(axis, name: str) -> None:
+    """At most 4 ticks on round steps, labelled by :class:`_NamedOffsetFormatter` (so
+    0.050362..0.050398 does not print as long labels that run together)."""
+    axis.set_major_locator(MaxNLocator(3, steps=[1, 2, 5, 10]))
+    axis.set_major_formatter(_NamedOffsetFormatter(name))
+    axis.set_label_text(name)
+
+
 def pairs_figure(result: Result, model: int | str, truth: Mapping[str, float] | None = None) -> Figure:
+    """Corner plot of one model's final population: the diagonal is the histogram of
+    parameter i (its y axis is counts, unlabelled and tied to nothing); panel (i, j), j < i,
+    scatters parameter j (x) against parameter i (y), coloured by distance. Every panel of
+    column j shares parameter j's x axis, every off-diagonal panel of row i shares parameter
+    i's y axis; tick labels and names only on the bottom row and the first column."""
     i = result.model_names.index(model) if isinstance(model, str) else model
     m = result.models[i]
     theta, dist, _ = result.particles(i)
     d = m.n_dim
-    tv = _truth(m.parameter_names, truth)
+    names = m.parameter_names
+    tv = _truth(names, truth)
     fig = Figure(figsize=(2.4 * d + 0.8, 2.4 * d), layout="constrained")
     axes = np.array(fig.subplots(d, d, squeeze=False))
+    # shared axes share their locator and formatter: never hide labels with set_*ticklabels
+    # (that would put one panel's labels on the others), only with tick_params
+    for r in range(d):
+        for c in range(r + 1):
+            if r < d - 1:
+                axes[r, c].sharex(axes[d - 1, c])
+            if 0 < c < r:
+                axes[r, c].sharey(axes[r, 0])
     sc = None
     for r in range(d):
         for c in range(d):
@@ -116,20 +169,29 @@ def pairs_figure(result: Result, model: int | str, truth: Mapping[str, float] | 
             if r == c:
                 ax.hist(theta[:, c], bins=25, color=COLOURS[i % len(COLOURS)], alpha=0.8)
                 ax.set_yticks([])
+                ax.tick_params(axis="y", left=False, labelleft=False)
                 if tv[c] is not None:
                     ax.axvline(tv[c], color="tab:red", lw=1.5)
             else:
                 sc = ax.scatter(theta[:, c], theta[:, r], c=dist, s=4, cmap="viridis_r")
                 if tv[c] is not None and tv[r] is not None:
                     ax.plot(tv[c], tv[r], "r+", ms=12, mew=2)
-            if r == d - 1:
-                ax.set_xlabel(m.parameter_names[c])
-            else:
-                ax.set_xticklabels([])
-            if c == 0 and r > 0:
-                ax.set_ylabel(m.parameter_names[r])
-            elif c > 0:
-                ax.set_yticklabels([])
+                elif tv[c] is not None:
+                    ax.axvline(tv[c], color="tab:red", lw=1)
+                elif tv[r] is not None:
+                    ax.axhline(tv[r], color="tab:red", lw=1)
+                ax.tick_params(axis="y", labelleft=c == 0)
+            ax.tick_params(axis="x", labelbottom=r == d - 1, labelsize=8)
+            ax.tick_params(axis="y", labelsize=8)
+    for c in range(d):
+        bottom = axes[d - 1, c]
+        _compact_ticks(bottom.xaxis, names[c])
+        bottom.set_xlim(*_limits(theta[:, c], tv[c]))
+        bottom.tick_params(axis="x", labelrotation=45)
+        if c > 0:
+            first = axes[c, 0]
+            _compact_ticks(first.yaxis, names[c])
+            first.set_ylim(*_limits(theta[:, c], tv[c]))
     if sc is not None:
         fig.colorbar(sc, ax=axes[:, -1].tolist(), label="distance", shrink=0.6)
     fig.suptitle(f"{m.name}: pairs, population {result.final.t} (red: truth)", fontsize=10)
@@ -154,7 +216,7 @@ def predictive_figure(pred: Predictive, observed: np.ndarray, dt: float | None, 
         ax.plot(x, b["median"][a:z], color="tab:red", lw=1, label="predictive median")
         title = f"{label} window [{a}, {z})"
         if scores is not None and label in scores.get("posterior_mean", {}):
-            title += f"  NMSE mean {scores['posterior_mean'][label]:.3g}, best {scores['best'][label]:.3g}"
+            title += f"  NMSE mean {scores['posterior_mean'][label]:.3g} %, best {scores['best'][label]:.3g} %"
         ax.set(xlabel=f"time (sample interval {dt:g} in the spec's time unit)" if dt is not None else "sample",
                ylabel=ylabel, title=title)
         ax.title.set_fontsize(9)
@@ -184,9 +246,9 @@ def confusion_figure(conf: Confusion, log: bool = True) -> Figure:
         ax.set_xticklabels(conf.datasets, fontsize=7, rotation=30)
         ax.set_yticklabels(conf.datasets, fontsize=7)
         tag = " (best)" if name == conf.best else (" (eliminated)" if name in conf.eliminated else "")
-        ax.set_title(f"{name}{tag}\nmean NMSE {conf.mean[name]:.3g}", fontsize=9)
+        ax.set_title(f"{name}{tag}\nmean NMSE {conf.mean[name]:.3g} %", fontsize=9)
     if im is not None:
-        fig.colorbar(im, ax=axes.tolist(), label="NMSE", shrink=0.8)
+        fig.colorbar(im, ax=axes.tolist(), label="NMSE (%, Eq. 7)", shrink=0.8)
     return fig
 
 
@@ -199,7 +261,7 @@ def save(fig: Figure, path: Path) -> Path:
 def plot_result(result: Result, out: str | Path, truth: Mapping[str, float] | None = None,
                 data=None, n_draws: int | None = None, seed: int = 0) -> dict[str, Path]:
     """Write the figures of one result to ``out``; with ``data`` (a
-    :class:`service.analysis.JobData`) also the predictive bands and an ``nmse.json``."""
+    :class:`service.report.analysis.JobData`) also the predictive bands and an ``nmse.json``."""
     import json
 
     out = Path(out)
@@ -211,7 +273,7 @@ def plot_result(result: Result, out: str | Path, truth: Mapping[str, float] | No
         if result.models[i].n_dim > 1:
             files[f"pairs_{name}"] = save(pairs_figure(result, i, truth), out / f"pairs_{name}.png")
     if data is not None:
-        from service.analysis import predictions
+        from service.report.analysis import predictions
 
         preds, scores = predictions(result, data, n_draws, seed)
         for name, pred in preds.items():

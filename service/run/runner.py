@@ -1,11 +1,13 @@
-"""The runner: one job, driven over a Dask client, every population into its zarr store.
+"""The runner: one job, every population into its zarr store. The one run loop of the CLI,
+the HTTP jobs, the analysis and the examples.
 
-``run_job`` validates the spec, opens or creates the job's store, sends the data to the
-cluster once (a task, so it survives lost workers), and drives the abcns population
-iterator with a :class:`DaskExecutor`, appending each complete population to the store
-(data first, counter last). Run on a store
-of an unfinished job it resumes from the last complete population: the random stream is
-keyed by (seed, population, batch), so the end result equals an uninterrupted run's.
+``run_job`` validates the spec, opens or creates the job's store, and drives the abcns
+population iterator with an executor: a :class:`DaskExecutor` over a client (the job's
+data go to the cluster once, as a task, so they survive lost workers), or with no client
+the serial executor in this process. Each complete population is appended to the store
+(data first, counter last). Run on a store of an unfinished job it resumes from the last
+complete population: the random stream is keyed by (seed, population, batch), so the end
+result equals an uninterrupted run's, and the serial executor's equals the Dask one's.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import json
 import math
 import os
 import queue
+import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -24,11 +27,12 @@ from pathlib import Path
 from distributed import Client
 
 from abcns import Model, Population, Result, SpecError, StopReason
+from abcns.executor import SerialExecutor
 from abcns.filling import Budget
-from abcns.run import algorithm_name, iterate
-from service.dask_executor import DaskExecutor
+from abcns.run import algorithm_name, consume, iterate
+from service.run.dask_executor import DaskExecutor
+from service.run.store import Store, StoreIncomplete, data_hash
 from service.spec import Job, JobSpec, build, description
-from service.store import Store, data_hash
 from worker.evaluate import model_of
 
 
@@ -78,6 +82,8 @@ def summary(store: Store) -> dict:
     out = result_from_store(store).summary() if store.n_populations else {}
     out["status"] = store.attrs.get("status", "unknown")
     out["stop_reason"] = store.attrs.get("stop_reason")
+    if store.attrs.get("error"):
+        out["error"] = store.attrs["error"]
     out["n_populations"] = store.n_populations
     return out
 
@@ -157,19 +163,47 @@ class PopulationWriter:
                 self.error = err
 
 
+def _existing_store(path: Path, key: str, owned: bool) -> Store | None:
+    """The store of this job at ``path`` to resume, or None to create one. A store another
+    job made is an error. So is one whose creation a killed process left unfinished (no
+    ``format_version``, or no job key and no population), unless the caller ``owned`` the
+    path (the service's job folder): then it is removed, since nothing in it was ever a
+    population."""
+    if not (path.exists() and any(path.iterdir())):
+        return None
+    try:
+        store = Store.open(path)
+    except StoreIncomplete:
+        if not owned:
+            raise
+        shutil.rmtree(path)
+        return None
+    if owned and store.attrs.get("job_key") is None and store.n_populations == 0:
+        shutil.rmtree(path)
+        return None
+    if store.attrs.get("job_key") != key:
+        raise SpecError("--out", f"{path} holds another job (different spec, seed or data); choose another --out")
+    return store
+
+
 def run_job(
     spec: JobSpec,
     base_dir: Path | None,
     store_path: Path,
-    client: Client,
+    client: Client | None,
     *,
     seed: int | None = None,
     on_population: Callable[[Progress], None] | None = None,
     cancel: Callable[[], bool] | None = None,
     allow_import: bool = False,
+    owned_store: bool = False,
 ) -> Result:
-    """Run (or resume) one job to its end; return its result. ``allow_import`` lets the
-    spec name local ``package.module:factory`` simulators (the CLI; never HTTP)."""
+    """Run (or resume) one job to its end; return its result. ``client``: a Dask client, or
+    None to run in this process. ``allow_import`` lets the spec name local
+    ``package.module:factory`` simulators (the CLI, the examples; never HTTP). ``owned_store``:
+    the store path belongs to the caller (the service's job folder), so a store whose
+    creation a killed process left unfinished is made again; elsewhere (``--out``) it is an
+    error, never deleted."""
     if seed is not None:
         spec = spec.model_copy(update={"seed": seed})
     job: Job = build(spec, base_dir, allow_import)  # every check before anything runs
@@ -179,17 +213,15 @@ def run_job(
     key = job_key(spec, job.seed, dhash)
     spec_json = spec.model_dump(mode="json")
     store_path = Path(store_path)
-    if store_path.exists() and any(store_path.iterdir()):
-        store = Store.open(store_path)
-        if store.attrs.get("job_key") != key:
-            raise SpecError("--out", f"{store_path} holds another job (different spec, seed or data); choose another --out")
-        if store.attrs.get("status") == "finished":
-            return result_from_store(store)
-    else:
+    store = _existing_store(store_path, key, owned_store)
+    if store is not None and store.attrs.get("status") == "finished":
+        return result_from_store(store)
+    if store is None:
         store = Store.create(
             store_path, spec=spec_json, seed=job.seed, model_names=[m.name for m in job.models],
             parameter_names=[list(m.parameter_names) for m in job.models], n_particles=job.settings.particles,
             data_hash=dhash, algorithm=algorithm_name(job.settings),
+            max_ellipsoids=getattr(job.settings, "n_ellipsoids", 1),
         )
     history = store.populations()
     state = store.run_state()
@@ -197,33 +229,35 @@ def run_job(
                     elapsed_before_s=float(state["elapsed_s"]))
     run_info = dict(store.attrs.get("run", {}))
     store.set_status("running", job_key=key)
-    executor = DaskExecutor(client, key, description(spec), arrays, allow_import)
+    executor = (SerialExecutor(job.evaluate) if client is None
+                else DaskExecutor(client, key, description(spec), arrays, allow_import))
     gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget)
     start, sims_start = time.monotonic(), budget.n_simulations
     writer = PopulationWriter(store, key, on_population, interval_s)
+
+    def written(pop: Population) -> None:
+        info = None
+        if pop.t == 1:  # what a resume needs; the algorithm's own word comes with RunEnd
+            run_info["epsilon_initial_source"] = "given" if job.settings.epsilon_initial is not None else "pilot"
+            run_info["n_pilot_simulations"] = budget.n_simulations - pop.n_simulations
+            info = dict(run_info)
+        dt = time.monotonic() - start
+        progress = Progress(pop, budget.n_simulations, budget.elapsed(),
+                            (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0)
+        writer.put(pop, budget.n_simulations, info, progress)
+
     try:
-        while True:
-            try:
-                pop = next(gen)
-            except StopIteration as done:
-                end = done.value
-                break
-            info = None
-            if pop.t == 1:
-                run_info["epsilon_initial_source"] = "given" if job.settings.epsilon_initial is not None else "pilot"
-                run_info["n_pilot_simulations"] = budget.n_simulations - pop.n_simulations
-                info = dict(run_info)
-            dt = time.monotonic() - start
-            progress = Progress(pop, budget.n_simulations, budget.elapsed(),
-                                (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0)
-            writer.put(pop, budget.n_simulations, info, progress)
+        end = consume(gen, written)
         writer.close()
     except BaseException as err:
         writer.close(raise_error=False)  # what was computed is stored
         store.set_status("failed", None, job_key=key, error=f"{type(err).__name__}: {err}")
         raise
     finally:
-        executor.close()
+        getattr(executor, "close", lambda: None)()  # the Dask executor releases the job's data
+    if end.epsilon_initial_source != "resumed":  # the algorithm says where eps_1 came from
+        run_info["epsilon_initial_source"] = end.epsilon_initial_source
+        run_info["n_pilot_simulations"] = end.n_pilot_simulations
     notes = list(run_info.get("notes", [])) + list(end.notes)
     status = "cancelled" if end.reason is StopReason.CANCELLED else "finished"
     run_info.update(n_simulations=budget.n_simulations, wall_time_s=budget.elapsed(), notes=notes)

@@ -1,4 +1,4 @@
-"""HTTP response schemas (the request schema is the job spec, ``service.spec.JobSpec``)."""
+"""HTTP response schemas and limits (the request schema is the job spec, ``service.spec.JobSpec``)."""
 
 from __future__ import annotations
 
@@ -6,16 +6,22 @@ from typing import Any, Literal
 
 from pydantic import BaseModel
 
+NAME_MAX_CHARS = 200  # a job's or a model's name: Unicode text without control characters, at most this long
+PAGE_MAX = 10_000  # particles in one page of GET /jobs/{id}/populations/{t}
+
 Status = Literal["queued", "running", "finished", "failed", "cancelled"]
 
 
-class Progress(BaseModel):
+class ProgressOut(BaseModel):
+    """A population event's data and a job's ``progress`` (service.run.runner.Progress is the
+    in-process record it is made from)."""
+
     population: int
     epsilon: float
     epsilon_next: float | None = None
     acceptance_rate: float
     simulations: int
-    model_probabilities: dict[str, float]
+    model_probabilities: list[float]  # in the order of the job's models
     elapsed_s: float
     simulations_per_s: float | None = None
 
@@ -23,10 +29,11 @@ class Progress(BaseModel):
 class JobInfo(BaseModel):
     id: str
     name: str | None
+    models: list[str]
     status: Status
     created_at: float
     error: str | None = None
-    progress: Progress | None = None
+    progress: ProgressOut | None = None
 
 
 class JobCreated(BaseModel):
@@ -40,6 +47,8 @@ class PopulationOut(BaseModel):
     epsilon_next: float | None
     acceptance_rate: float
     n_simulations: int
+    n_particles: int  # in the population; this page holds particles offset .. offset + len(distances) - 1
+    offset: int
     model_names: list[str]
     parameter_names: list[list[str]]
     model_probabilities: list[float]
@@ -53,6 +62,7 @@ class Health(BaseModel):
     status: Literal["ok"]
     workers: int
     jobs: dict[str, int]
+    limits: dict[str, float]  # the admission limits (GET /limits)
 
 
 Summary = dict[str, Any]

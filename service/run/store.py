@@ -3,23 +3,39 @@
 Layout (every array but the static coordinates grows along ``population``, in chunks of
 at most ~64 KiB: one population of a large particle array, up to 256 of a scalar):
 
-- particle level: ``model`` (population, particle) int16, ``theta`` (population, particle,
-  parameter) float64 NaN-padded to the widest model, ``distance``, ``weight`` (population,
-  particle) float64, ``survivor`` (population, particle) bool;
+- particle level: ``model_index`` (population, particle) int16 (the particle's model, an
+  index along ``model``), ``theta`` (population, particle, parameter) float64 with one column
+  per parameter *name* (NaN where the particle's model has no such parameter),
+  ``distance``, ``weight`` (population, particle) float64, ``survivor`` (population,
+  particle) bool;
 - population level: ``population`` (the population number t, 1-based; xarray's index),
   ``epsilon``, ``epsilon_next``, ``acceptance_rate``, ``elapsed_s`` float64, ``n_accepted``,
   ``n_simulations``, ``n_failed``, ``n_redraws``, ``n_simulations_total`` (cumulative,
   pilot included) int64, ``has_survivors`` and ``has_ellipsoids`` bool (False for the
   baselines, whose records carry no survivors and no ellipsoids);
-- per model: ``model_probability`` (population, model), ``ellipsoid_centre`` (population,
-  model, parameter), ``ellipsoid_matrix`` (population, model, parameter, parameter_b) NaN
-  for a dead model, ``ellipsoid_note`` (population, model) int8 (``NOTE_CODES``; -1: none);
-- static coordinates: ``model_name`` (model), ``parameter`` (parameter) indices,
-  ``parameter_name`` (model, parameter), ``n_parameters`` (model).
+- per model: ``model_probability`` (population, model); the bounds: ``ellipsoid_centre``
+  (population, model, ellipsoid, parameter), ``ellipsoid_matrix`` (population, model,
+  ellipsoid, parameter, parameter_b), in the same named columns, NaN where there is none
+  and in the rows and columns of parameters the model does not have, ``ellipsoid_note``
+  (population, model, ellipsoid) int8 (``NOTE_CODES``; -1: none), up to ``max_ellipsoids``
+  per model; the ABC-NS evidence bookkeeping ``evidence_<field>`` (population, model) for
+  every field of :class:`abcns.evidence.Evidence`, and ``has_evidence`` per population;
+- coordinates: ``model`` (model) the model names, ``parameter`` and ``parameter_b``
+  (parameter) the parameter names of all models, in first-seen order, and
+  ``model_has_parameter`` (model, parameter) bool.
 
-The group attributes hold ``format_version``, the spec, seed, package versions, the data
-hash, algorithm, model and parameter names, status, stop reason, run information and the
-counter ``n_populations``. An append (of one population or several consecutive ones)
+So ``xarray.open_zarr(path, consolidated=False)`` is self-describing:
+``ds.model_probability.sel(model="cubic")``, ``ds.theta.sel(parameter="k")`` (NaN for the
+particles of models without ``k``; ``ds.model_index`` says whose particle it is) and
+``ds.ellipsoid_centre.sel(model="cubic", parameter="k")`` work; every variable carries
+``long_name``, ``description`` and, where it has one, ``units`` (``%`` for the NMSE).
+
+The group attributes hold ``format_version``, the spec, seed, package versions (numba,
+dask, distributed and the code's git commit included), the data hash, algorithm, model and
+parameter names (in each model's own order), status, stop reason, run information and the
+counter ``n_populations``. Attributes that are not a string or a number (the spec, lists,
+None) are stored as JSON text after the prefix ``json:`` (so ``ds.to_netcdf()`` works);
+:attr:`Store.attrs` decodes them. An append (of one population or several consecutive ones)
 resizes and writes every array first and bumps the counter last: a reader that trusts the
 counter never sees half a population, and rows a crash left beyond the counter are ignored
 and overwritten by the next append. zarr's local store writes each file atomically
@@ -38,10 +54,12 @@ import asyncio
 import datetime
 import fcntl
 import hashlib
+import importlib.metadata
 import json
 import math
 import os
 import platform
+import subprocess
 import time
 import warnings
 from collections.abc import Mapping, Sequence
@@ -57,9 +75,10 @@ from zarr.core.sync import sync
 
 import abcns
 from abcns.ellipsoid import Ellipsoid, from_matrix
+from abcns.evidence import Evidence
 from abcns.result import Population
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 3
 CHUNK_BYTES = 64 * 1024
 # zarr writes each metadata file through a temporary "zarr.<uuid>.partial" next to it; a
 # reader listing the group while the writer updates the attributes meets that file and warns.
@@ -71,10 +90,11 @@ _NOTES = {code: note for note, code in NOTE_CODES.items()}
 _RESERVED = frozenset({
     "format_version", "spec", "seed", "versions", "data_hash", "algorithm", "model_names",
     "parameter_names", "n_particles", "status", "stop_reason", "n_populations", "ellipsoid_note_codes",
-    "created_at", "updated_at",
+    "created_at", "updated_at", "max_ellipsoids",
 })
 
-_P, _N, _D, _DB, _M = "population", "particle", "parameter", "parameter_b", "model"
+_P, _N, _D, _DB, _M, _E = "population", "particle", "parameter", "parameter_b", "model", "ellipsoid"
+_EVIDENCE = {name: "float64" for name in Evidence.FLOATS} | {name: "int64" for name in Evidence.INTS}
 
 
 class StoreError(Exception):
@@ -83,6 +103,12 @@ class StoreError(Exception):
 
 class StoreNotFound(StoreError, FileNotFoundError):
     """No result store at the path."""
+
+
+class StoreIncomplete(StoreError):
+    """A zarr group whose creation did not finish (no ``format_version``, which
+    :meth:`Store.create` writes last): the process died while creating it; nothing in it
+    was ever part of a store."""
 
 
 def data_hash(*arrays: Any) -> str:
@@ -110,11 +136,108 @@ def _jsonable(value: Any, what: str) -> Any:
         raise StoreError(f"{what} must be JSON-able (finite numbers, str, list, dict): {err}") from None
 
 
+def _git_commit() -> str | None:
+    """The commit of the checkout abcns runs from (an editable install), else None."""
+    root = Path(abcns.__file__).resolve().parent.parent
+    if not (root / ".git").exists():
+        return None
+    try:
+        out = subprocess.run(["git", "-C", str(root), "describe", "--always", "--dirty", "--abbrev=12"],
+                             capture_output=True, text=True, timeout=5, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
+
+
 def _versions() -> dict[str, str]:
-    return {
+    versions = {
         "abcns": abcns.__version__, "numpy": np.__version__, "scipy": scipy.__version__,
-        "zarr": zarr.__version__, "python": platform.python_version(),
+        "zarr": zarr.__version__, "xarray": xr.__version__, "python": platform.python_version(),
     }
+    for dist in ("numba", "dask", "distributed"):
+        try:
+            versions[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            pass
+    commit = _git_commit()
+    if commit:
+        versions["git"] = commit
+    return versions
+
+
+JSON_PREFIX = "json:"
+
+
+def _encode_attrs(update: Mapping[str, Any]) -> dict[str, Any]:
+    """Attributes as netCDF can hold them: strings and numbers as they are, anything else
+    (dicts, lists, None, booleans) as JSON text marked by the prefix ``json:`` (as is a
+    string that starts with it)."""
+    out: dict[str, Any] = {}
+    for key, value in update.items():
+        plain = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if plain or (isinstance(value, str) and not value.startswith(JSON_PREFIX)):
+            out[key] = value
+        else:
+            out[key] = JSON_PREFIX + json.dumps(value, allow_nan=False)
+    return out
+
+
+def _decode_attrs(attrs: Mapping[str, Any]) -> dict[str, Any]:
+    return {key: json.loads(value[len(JSON_PREFIX):]) if isinstance(value, str) and value.startswith(JSON_PREFIX)
+            else value for key, value in attrs.items()}
+
+
+# what each variable is (``long_name``, ``description``, ``units``); ``{distance_units}`` is
+# filled from the spec's distance (``%`` for the NMSE of Eq. 7)
+_VARIABLES: dict[str, tuple[str, str, str | None]] = {
+    "population": ("population", "the population number t (1-based)", None),
+    "model_index": ("model of the particle", "index along the model dimension", None),
+    "theta": ("parameter values", "the particle's free parameters, in the units of the spec's priors; "
+              "NaN for parameters its model does not have", None),
+    "distance": ("distance", "the particle's distance to the data", "{distance_units}"),
+    "weight": ("weight", "normalised to sum to 1 within each model (ABC-NS: survivor selection)", "1"),
+    "survivor": ("survivor", "kept from the previous population (ABC-NS)", None),
+    "epsilon": ("tolerance", "the tolerance the population was accepted under", "{distance_units}"),
+    "epsilon_next": ("next tolerance", "the tolerance chosen for the next population (NaN: none, "
+                     "as after rejection or at the end of an ABC-SMC schedule)", "{distance_units}"),
+    "acceptance_rate": ("acceptance rate", "accepted / simulated in this population", "1"),
+    "elapsed_s": ("elapsed time", "wall time from the start of the run to the end of the population", "s"),
+    "n_accepted": ("accepted simulations", "in this population", "1"),
+    "n_simulations": ("simulations", "in this population (failed ones included)", "1"),
+    "n_failed": ("failed simulations", "diverged or failed in this population (counted rejections)", "1"),
+    "n_redraws": ("redraws", "proposals outside the prior box, drawn again without a simulation", "1"),
+    "n_simulations_total": ("simulations so far", "cumulative over the run, pilot included", "1"),
+    "has_survivors": ("has survivors", "False for the baselines (SMC, rejection)", None),
+    "has_ellipsoids": ("has ellipsoids", "False for the baselines (SMC, rejection)", None),
+    "model_probability": ("model probability", "p(model | data) at this population", "1"),
+    "ellipsoid_centre": ("ellipsoid centre", "the bounding ellipsoids of each model (unused slots NaN)", None),
+    "ellipsoid_matrix": ("ellipsoid matrix", "{x : (x - c)^T A (x - c) <= 1}, A in the named columns", None),
+    "ellipsoid_note": ("ellipsoid note", "codes of ellipsoid_note_codes; -1 none", None),
+    "has_evidence": ("has evidence", "ABC-NS evidence bookkeeping present", None),
+    "evidence_log_z": ("log ABC evidence", "log Z_m(eps_t), the prior mass of {d < eps_t} (-inf: dead)", None),
+    "evidence_log_z_se": ("standard error of log_z", "", None),
+    "evidence_log_z_next": ("predicted log ABC evidence", "log Z_m(eps_t+1), predicted from this population", None),
+    "evidence_log_z_next_se": ("standard error of log_z_next", "", None),
+    "evidence_log_volume": ("log bound volume", "log prior mass of the bound proposing model m at t+1 (NaN: none)", None),
+    "evidence_log_volume_se": ("standard error of log_volume", "", None),
+    "evidence_coverage": ("bound coverage", "share of the accepted region the bound holds", "1"),
+    "evidence_n_coverage": ("coverage points", "points the coverage was measured on", "1"),
+    "evidence_allocation": ("proposal share", "probability that a proposal of population t+1 is of model m", "1"),
+    "evidence_n_proposed": ("proposals", "model m's new proposals simulated in this population", "1"),
+    "evidence_n_accepted": ("accepted proposals", "model m's new proposals accepted in this population", "1"),
+    "evidence_death": ("death code", "why model m has no particles from t+1 on: "
+                       "0 alive, 1 no particles, 2 improbable, 3 dead before", None),
+    "model": ("model", "the candidate models' names", None),
+    "parameter": ("parameter", "the free parameters of all models, by name", None),
+    "parameter_b": ("parameter", "second parameter axis of ellipsoid_matrix", None),
+    "model_has_parameter": ("model has parameter", "whether the model infers that parameter", None),
+}
+
+
+def _distance_units(spec: Mapping[str, Any]) -> str:
+    distance = spec.get("distance", "nmse")
+    name = distance.get("name", "nmse") if isinstance(distance, Mapping) else distance
+    return "%" if name == "nmse" else "1"
 
 
 class Store:
@@ -125,7 +248,11 @@ class Store:
         self._n_models = len(attrs["model_names"])
         self._dims = [len(p) for p in attrs["parameter_names"]]
         self._d_max = max(self._dims)
+        union = _union(attrs["parameter_names"])
+        self._d_union = len(union)
+        self._columns = [np.array([union.index(n) for n in names]) for names in attrs["parameter_names"]]
         self._n_particles = int(attrs["n_particles"])
+        self._n_ellipsoids = int(attrs.get("max_ellipsoids", 1))
 
     # ------------------------------------------------------------------ creation, opening
 
@@ -141,6 +268,7 @@ class Store:
         n_particles: int,
         data_hash: str,
         algorithm: str,
+        max_ellipsoids: int = 1,
     ) -> Store:
         """A new, empty store at ``path`` (status "running"); refuses an existing non-empty path."""
         path = Path(path)
@@ -159,7 +287,11 @@ class Store:
         if hasattr(spec, "model_dump"):  # a pydantic JobSpec
             spec = spec.model_dump(mode="json")  # type: ignore[union-attr]
         spec = _jsonable(dict(spec), "spec")  # checked before anything is written
-        n, m, d = int(n_particles), len(model_names), max(len(p) for p in parameter_names)
+        union = _union(parameter_names)
+        n, m, d = int(n_particles), len(model_names), len(union)
+        k = int(max_ellipsoids)
+        if k < 1:
+            raise StoreError(f"max_ellipsoids must be >= 1, got {max_ellipsoids}")
 
         group = zarr.open_group(str(path), mode="w-", zarr_format=3)
 
@@ -172,7 +304,7 @@ class Store:
                                fill_value=fill, dimension_names=[_P, *dims])
 
         grow("population", (), "int32", 0, [])
-        grow("model", (n,), "int16", -1, [_N])
+        grow("model_index", (n,), "int16", -1, [_N])
         grow("theta", (n, d), "float64", np.nan, [_N, _D])
         grow("distance", (n,), "float64", np.nan, [_N])
         grow("weight", (n,), "float64", np.nan, [_N])
@@ -184,23 +316,30 @@ class Store:
         grow("has_survivors", (), "bool", False, [])
         grow("has_ellipsoids", (), "bool", False, [])
         grow("model_probability", (m,), "float64", np.nan, [_M])
-        grow("ellipsoid_centre", (m, d), "float64", np.nan, [_M, _D])
-        grow("ellipsoid_matrix", (m, d, d), "float64", np.nan, [_M, _D, _DB])
-        grow("ellipsoid_note", (m,), "int8", -1, [_M])
+        grow("ellipsoid_centre", (m, k, d), "float64", np.nan, [_M, _E, _D])
+        grow("ellipsoid_matrix", (m, k, d, d), "float64", np.nan, [_M, _E, _D, _DB])
+        grow("ellipsoid_note", (m, k), "int8", -1, [_M, _E])
+        grow("has_evidence", (), "bool", False, [])
+        for name, dtype in _EVIDENCE.items():
+            grow(f"evidence_{name}", (m,), dtype, np.nan if dtype == "float64" else -1, [_M])
 
         static = {
-            "model_name": (np.array(model_names, dtype=str), [_M]),
-            "parameter": (np.arange(d, dtype=np.int32), [_D]),
-            "parameter_b": (np.arange(d, dtype=np.int32), [_DB]),
-            "n_parameters": (np.array([len(p) for p in parameter_names], dtype=np.int32), [_M]),
-            "parameter_name": (np.array([p + [""] * (d - len(p)) for p in parameter_names], dtype=str), [_M, _D]),
+            "model": (np.array(model_names, dtype=str), [_M]),
+            "parameter": (np.array(union, dtype=str), [_D]),
+            "parameter_b": (np.array(union, dtype=str), [_DB]),
+            "model_has_parameter": (np.array([[u in p for u in union] for p in parameter_names]), [_M, _D]),
         }
         for name, (values, dims) in static.items():
             arr = group.create_array(name, shape=values.shape, dtype=values.dtype if values.dtype.kind != "U" else str,
                                      dimension_names=dims)
             arr[...] = values
-        # xarray: show names next to the model dimension
-        group["model_probability"].attrs["coordinates"] = "model_name"
+        units = _distance_units(spec)
+        for name, (long_name, description, unit) in _VARIABLES.items():
+            meta = {"long_name": long_name, "description": description or long_name}
+            if unit is not None:
+                meta["units"] = unit.format(distance_units=units)
+            group[name].attrs.update(meta)
+        group["model_index"].attrs["flag_meanings"] = " ".join(model_names)  # CF: index i is model_names[i]
 
         attrs = {
             "spec": spec,
@@ -211,6 +350,7 @@ class Store:
             "model_names": model_names,
             "parameter_names": parameter_names,
             "n_particles": n,
+            "max_ellipsoids": k,
             "ellipsoid_note_codes": NOTE_CODES,
             "status": "running",
             "stop_reason": None,
@@ -218,7 +358,7 @@ class Store:
             "updated_at": _now(),
             "n_populations": 0,
         }
-        group.attrs.update(attrs)
+        group.attrs.update(_encode_attrs(attrs))
         group.attrs["format_version"] = FORMAT_VERSION  # last: marks a complete store
         return cls(path, attrs)
 
@@ -303,13 +443,13 @@ class Store:
         fd = os.open(self.path, os.O_RDONLY)  # flock(2) on the store's directory: no extra file in the hierarchy
         try:
             fcntl.flock(fd, fcntl.LOCK_EX)
-            self._group("r+").attrs.update(update)
+            self._group("r+").attrs.update(_encode_attrs(update))
         finally:
             os.close(fd)  # releases the lock
 
     def _rows(self, pop: Population, n_simulations_total: int) -> dict[str, Any]:
         """The new row of every growing array (validated before anything is written)."""
-        n, m, d = self._n_particles, self._n_models, self._d_max
+        n, m, d, du = self._n_particles, self._n_models, self._d_max, self._d_union
         shapes = {"models": (n,), "theta": (n, d), "distances": (n,), "weights": (n,), "model_probabilities": (m,)}
         for field, shape in shapes.items():
             got = np.shape(getattr(pop, field))
@@ -318,22 +458,34 @@ class Store:
         if pop.survivors is not None and np.shape(pop.survivors) != (n,):
             raise StoreError(f"population {pop.t}: survivors has shape {np.shape(pop.survivors)}, expected ({n},)")
         if pop.ellipsoids and len(pop.ellipsoids) != m:
-            raise StoreError(f"population {pop.t}: {len(pop.ellipsoids)} ellipsoids for {m} models")
-        centre = np.full((m, d), np.nan)
-        matrix = np.full((m, d, d), np.nan)
-        note = np.full(m, -1, dtype=np.int8)
-        for i, e in enumerate(pop.ellipsoids):
-            if e is None:
-                continue
+            raise StoreError(f"population {pop.t}: {len(pop.ellipsoids)} bounds for {m} models")
+        kmax = self._n_ellipsoids
+        centre = np.full((m, kmax, du), np.nan)
+        matrix = np.full((m, kmax, du, du), np.nan)
+        note = np.full((m, kmax), -1, dtype=np.int8)
+        for i, bound in enumerate(pop.ellipsoids):
+            if len(bound) > kmax:
+                raise StoreError(f"population {pop.t}: {len(bound)} ellipsoids for model {i}; the store holds {kmax}")
             k = self._dims[i]
-            if e.centre.shape != (k,) or e.matrix.shape != (k, k):
-                raise StoreError(f"population {pop.t}: ellipsoid of model {i} has dimension {e.n_dim}, expected {k}")
-            if e.note not in NOTE_CODES:
-                raise StoreError(f"population {pop.t}: unknown ellipsoid note {e.note!r}")
-            centre[i, :k], matrix[i, :k, :k], note[i] = e.centre, e.matrix, NOTE_CODES[e.note]
+            for j, e in enumerate(bound):
+                if e.centre.shape != (k,) or e.matrix.shape != (k, k):
+                    raise StoreError(f"population {pop.t}: ellipsoid of model {i} has dimension {e.n_dim}, expected {k}")
+                if e.note not in NOTE_CODES:
+                    raise StoreError(f"population {pop.t}: unknown ellipsoid note {e.note!r}")
+                cols = self._columns[i]
+                centre[i, j, cols], note[i, j] = e.centre, NOTE_CODES[e.note]
+                matrix[i, j, cols[:, None], cols[None, :]] = e.matrix
+        evidence = {}
+        for name, dtype in _EVIDENCE.items():
+            value = np.full(m, np.nan if dtype == "float64" else -1)
+            if pop.evidence is not None:
+                value = np.asarray(getattr(pop.evidence, name))
+                if value.shape != (m,):
+                    raise StoreError(f"population {pop.t}: evidence.{name} has shape {value.shape}, expected ({m},)")
+            evidence[f"evidence_{name}"] = value.astype(dtype)
         return {
-            "model": np.asarray(pop.models, dtype=np.int16),
-            "theta": np.asarray(pop.theta, dtype=np.float64),
+            "model_index": np.asarray(pop.models, dtype=np.int16),
+            "theta": self._to_named(np.asarray(pop.models), np.asarray(pop.theta, dtype=np.float64)),
             "distance": np.asarray(pop.distances, dtype=np.float64),
             "weight": np.asarray(pop.weights, dtype=np.float64),
             "survivor": np.zeros(n, bool) if pop.survivors is None else np.asarray(pop.survivors, dtype=bool),
@@ -352,37 +504,57 @@ class Store:
             "ellipsoid_centre": centre,
             "ellipsoid_matrix": matrix,
             "ellipsoid_note": note,
+            "has_evidence": pop.evidence is not None,
+            **evidence,
             "population": pop.t,  # last: xarray's index shows t only once the row is written
         }
+
+    # ------------------------------------------------------------------ named columns
+
+    def _to_named(self, models: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """(n, widest model) in each model's own order -> (n, all parameter names)."""
+        out = np.full((theta.shape[0], self._d_union), np.nan)
+        for i, cols in enumerate(self._columns):
+            rows = np.flatnonzero(models == i)
+            out[np.ix_(rows, cols)] = theta[rows, : len(cols)]
+        return out
+
+    def _from_named(self, models: np.ndarray, named: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`_to_named` (NaN padding to the widest model)."""
+        out = np.full((named.shape[0], self._d_max), np.nan)
+        for i, cols in enumerate(self._columns):
+            rows = np.flatnonzero(models == i)
+            out[rows, : len(cols)] = named[np.ix_(rows, cols)]
+        return out
 
     # ------------------------------------------------------------------ reading
 
     def _read(self, rows: slice) -> dict[str, np.ndarray]:
         group = self._group("r")
-        names = ("population", "model", "theta", "distance", "weight", "survivor", "epsilon", "epsilon_next",
-                 "elapsed_s", "n_accepted", "n_simulations", "n_failed", "n_redraws", "has_survivors",
-                 "has_ellipsoids", "model_probability", "ellipsoid_centre", "ellipsoid_matrix", "ellipsoid_note")
-        return {name: np.asarray(group[name][rows]) for name in names}
+        return {name: np.asarray(group[name][rows]) for name in _POPULATION_ARRAYS}
 
     def _population(self, a: dict[str, np.ndarray], i: int) -> Population:
-        ellipsoids: tuple[Ellipsoid | None, ...] = ()
+        ellipsoids: tuple[tuple[Ellipsoid, ...], ...] = ()
         if a["has_ellipsoids"][i]:
-            ells: list[Ellipsoid | None] = []
-            for j, k in enumerate(self._dims):
-                code = int(a["ellipsoid_note"][i, j])
-                if code < 0:
-                    ells.append(None)
-                    continue
-                centre = np.ascontiguousarray(a["ellipsoid_centre"][i, j, :k])
-                matrix = np.ascontiguousarray(a["ellipsoid_matrix"][i, j, :k, :k])
-                ells.append(from_matrix(centre, matrix, _NOTES[code]))
-            ellipsoids = tuple(ells)
+            bounds = []
+            for j, cols in enumerate(self._columns):
+                codes = a["ellipsoid_note"][i, j]
+                bounds.append(tuple(
+                    from_matrix(np.ascontiguousarray(a["ellipsoid_centre"][i, j, e, cols]),
+                                np.ascontiguousarray(a["ellipsoid_matrix"][i, j, e][np.ix_(cols, cols)]),
+                                _NOTES[int(codes[e])])
+                    for e in range(codes.shape[0]) if codes[e] >= 0
+                ))
+            ellipsoids = tuple(bounds)
+        evidence = None
+        if a["has_evidence"][i]:
+            evidence = Evidence(**{name: a[f"evidence_{name}"][i].copy() for name in _EVIDENCE})
         return Population(
             t=int(a["population"][i]),
             epsilon=float(a["epsilon"][i]),
             epsilon_next=float(a["epsilon_next"][i]),
-            models=a["model"][i].copy(),
-            theta=a["theta"][i].copy(),
+            models=a["model_index"][i].copy(),
+            theta=self._from_named(a["model_index"][i], a["theta"][i]),
             distances=a["distance"][i].copy(),
             weights=a["weight"][i].copy(),
             n_accepted=int(a["n_accepted"][i]),
@@ -393,6 +565,7 @@ class Store:
             survivors=a["survivor"][i].copy() if a["has_survivors"][i] else None,
             ellipsoids=ellipsoids,
             model_probabilities=a["model_probability"][i].copy(),
+            evidence=evidence,
         )
 
     def populations(self) -> list[Population]:
@@ -410,6 +583,19 @@ class Store:
             raise IndexError(f"population {t} is not in {self.path} (it holds populations 1..{n})")
         a = self._read(slice(t - 1, t))
         return self._population(a, 0)
+
+    def page(self, t: int, rows: slice) -> dict[str, Any]:
+        """Particles ``rows`` of population ``t`` (1-based) and its scalars, read alone (one
+        page never reads the whole population); theta in each model's own parameter order."""
+        n = self.n_populations
+        if not 1 <= t <= n:
+            raise IndexError(f"population {t} is not in {self.path} (it holds populations 1..{n})")
+        group = self._group("r")
+        out: dict[str, Any] = {k: group[k][t - 1].item() for k in ("epsilon", "epsilon_next", "n_accepted", "n_simulations")}
+        out |= {k: np.asarray(group[k][t - 1, rows]) for k in ("model_index", "theta", "distance", "weight")}
+        out["theta"] = self._from_named(out["model_index"], out["theta"])
+        out["model_probability"] = np.asarray(group["model_probability"][t - 1])
+        return out
 
     def dataset(self, retries: int = 20) -> xr.Dataset:
         """The store as an xarray Dataset (lazy), cut to the complete populations.
@@ -449,13 +635,40 @@ def _read_attrs(path: Path) -> dict:
         group = zarr.open_group(str(path), mode="r", zarr_format=3)
     except (FileNotFoundError, ValueError, TypeError, KeyError, zarr.errors.BaseZarrError) as err:
         raise StoreError(f"{path} is not a result store (no zarr 3 group: {err})") from None
-    attrs = group.attrs.asdict()
+    attrs = _decode_attrs(group.attrs.asdict())
     version = attrs.get("format_version")
     if version is None:
-        raise StoreError(f"{path} is not a result store (no format_version attribute)")
+        raise StoreIncomplete(f"{path} is not a result store (no format_version attribute: its creation did not finish)")
     if version != FORMAT_VERSION:
         raise StoreError(f"{path} has result-store format_version {version}; this abcns reads version {FORMAT_VERSION}")
     return dict(attrs)
 
 
-__all__ = ["FORMAT_VERSION", "NOTE_CODES", "STATUSES", "Store", "StoreError", "StoreNotFound", "data_hash"]
+# the arrays a Population is read back from
+_POPULATION_ARRAYS = (
+    "population", "model_index", "theta", "distance", "weight", "survivor", "epsilon", "epsilon_next", "elapsed_s",
+    "n_accepted", "n_simulations", "n_failed", "n_redraws", "has_survivors", "has_ellipsoids", "model_probability",
+    "ellipsoid_centre", "ellipsoid_matrix", "ellipsoid_note", "has_evidence", *(f"evidence_{name}" for name in _EVIDENCE),
+)
+
+
+def dataset_attrs(ds: xr.Dataset) -> dict[str, Any]:
+    """The attributes of a dataset of the store's schema, decoded (as :attr:`Store.attrs`)."""
+    return _decode_attrs(ds.attrs)
+
+
+def dataset_populations(ds: xr.Dataset) -> list[Population]:
+    """The populations a dataset of the store's schema holds (``Store.dataset()``,
+    ``xarray.open_zarr`` of a store, or ``service.report.export.to_dataset``)."""
+    reader = Store(Path(str(ds.encoding.get("source", "<dataset>"))), dataset_attrs(ds))
+    arrays = {name: np.asarray(ds[name].values) for name in _POPULATION_ARRAYS}
+    return [reader._population(arrays, i) for i in range(ds.sizes["population"])]
+
+
+def _union(parameter_names: Sequence[Sequence[str]]) -> list[str]:
+    """Every model's parameter names, each once, in first-seen order."""
+    return list(dict.fromkeys(name for names in parameter_names for name in names))
+
+
+__all__ = ["FORMAT_VERSION", "NOTE_CODES", "STATUSES", "Store", "StoreError", "StoreIncomplete", "StoreNotFound",
+           "data_hash"]

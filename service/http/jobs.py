@@ -1,0 +1,498 @@
+"""Many jobs, one cluster: the queue, the job threads, and each job's event log.
+
+Every job lives in its own folder of the store directory:
+
+- ``job.json``: the record (id, status, created_at, error, name, model names, crash count),
+  small and rewritten on every change of status;
+- ``spec.json``: the spec as submitted, its data replaced by references to ``data.npz``
+  (written once);
+- ``data.npz``: the job's arrays (``input``, ``observed``);
+- ``events.jsonl``: its events, ids 1, 2, ...;
+- ``store.zarr``: its populations.
+
+The manager keeps only the records in memory (no spec, no data, no events): the spec is
+read when the job starts, the events when a client asks for them. A restarted service lists
+every job from the folders (a folder it cannot read is skipped and logged, never an error
+of the job list) and puts the queued and running ones back in the queue; a running one
+resumes from its last complete population (the runner's resume), so it ends exactly as an
+uninterrupted run, and its events continue. A job found ``running`` was running when the
+service died; it is resumed at most ``max_resumes`` times, then marked failed with the
+reason, so a job that kills the service cannot do it again on every restart.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import re
+import shutil
+import threading
+import time
+import uuid
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from distributed import Client
+
+from abcns import SpecError
+from service.http.limits import Limits, admit
+from service.run.runner import Progress, run_job, summary
+from service.run.store import Store, StoreError
+from service.spec import JobSpec, build
+
+TERMINAL = ("finished", "failed", "cancelled")
+STATUSES = ("queued", "running", *TERMINAL)
+EVENT_TYPES = ("queued", "started", "population", *TERMINAL)
+DATA_FILE = "data.npz"
+JOB_ID = re.compile(r"[0-9a-f]{32}")
+log = logging.getLogger("abcns.jobs")
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(data))
+    os.replace(tmp, path)  # atomic: a reader sees the old or the new file
+
+
+def clean_text(s: str) -> str:
+    """``s`` with anything that is not Unicode text (a lone surrogate) written as an escape:
+    what a record written before names were checked may hold."""
+    return s.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+class EventLog:
+    """Append-only events of one job, on disk; async readers wake on append.
+
+    Only the last id and the last event's name are kept in memory; readers read the file
+    (a line at a time from where they were). ``append`` may be called from any thread;
+    ``follow`` runs on the service's event loop."""
+
+    def __init__(self, path: Path, loop: asyncio.AbstractEventLoop | None):
+        self.path = path
+        self.loop = loop
+        self.lock = threading.Lock()
+        self.last_id = 0
+        self.last_event: str | None = None
+        self.last_population: dict | None = None
+        self._changed = asyncio.Event() if loop is not None else None
+        self._scan()
+
+    def _scan(self) -> None:
+        """Find the last event; a line cut by a crash (and anything after it) is cut off the
+        file, so the events appended next follow the last complete one."""
+        if not self.path.exists():
+            return
+        good = 0
+        with self.path.open("rb") as f:
+            for line in f:
+                try:
+                    if not line.endswith(b"\n"):
+                        raise ValueError("a line cut short")
+                    e = json.loads(line)
+                    self.last_id, self.last_event = int(e["id"]), str(e["event"])
+                    if self.last_event == "population":
+                        self.last_population = e["data"]
+                except (ValueError, KeyError, TypeError):
+                    break
+                good += len(line)
+        if good < self.path.stat().st_size:
+            with self.path.open("r+b") as f:
+                f.truncate(good)
+
+    def append(self, event: str, data: dict) -> dict:
+        with self.lock:
+            record = {"id": self.last_id + 1, "event": event, "data": data, "time": time.time()}
+            with self.path.open("a") as f:
+                f.write(json.dumps(record) + "\n")
+            self.last_id, self.last_event = record["id"], event
+            if event == "population":
+                self.last_population = data
+        if self.loop is not None and not self.loop.is_closed():
+            self.loop.call_soon_threadsafe(self._notify)
+        return record
+
+    def _notify(self) -> None:
+        changed, self._changed = self._changed, asyncio.Event()
+        changed.set()  # type: ignore[union-attr]
+
+    def read(self, pos: int = 0) -> tuple[list[dict], int]:
+        """The complete events from byte ``pos`` on, and the position after them."""
+        try:
+            with self.path.open("rb") as f:
+                f.seek(pos)
+                chunk = f.read()
+        except FileNotFoundError:  # purged
+            return [], pos
+        end = chunk.rfind(b"\n") + 1  # a line being appended is read next time
+        events = [json.loads(line) for line in chunk[:end].splitlines() if line.strip()]
+        return events, pos + end
+
+    def ended(self) -> bool:
+        return self.last_event in TERMINAL
+
+    async def follow(self, after: int, closing: asyncio.Event, heartbeat_s: float = 15.0):
+        """Every event after ``after``, then each new one, until a terminal event; at once
+        to the end for an ended job (``after`` past its last event included), and at once
+        when ``closing`` is set (the service is stopping). ``None`` is a keep-alive."""
+        pos = 0
+        while True:
+            waiter = self._changed
+            ended = self.ended()  # before reading: an ended log's terminal line is on disk
+            events, pos = self.read(pos)
+            for e in events:
+                if e["id"] <= after:
+                    continue
+                after = e["id"]
+                yield e
+                if e["event"] in TERMINAL:
+                    return
+            if ended or closing.is_set():
+                return
+            wait = [asyncio.ensure_future(waiter.wait()), asyncio.ensure_future(closing.wait())]  # type: ignore[union-attr]
+            done, pending = await asyncio.wait(wait, timeout=heartbeat_s, return_when=asyncio.FIRST_COMPLETED)
+            for p in pending:
+                p.cancel()
+            if not done:
+                yield None  # a keep-alive; the caller decides what to send
+
+
+@dataclass
+class JobRecord:
+    """What the manager keeps of a job: its metadata, never its spec or data."""
+
+    id: str
+    folder: Path
+    name: str
+    models: list[str]
+    status: str
+    created_at: float
+    error: str | None = None
+    crashes: int = 0  # times the service died while this job ran
+    progress: dict | None = None
+    cancel: threading.Event = field(default_factory=threading.Event)
+    events: EventLog | None = None
+
+    @property
+    def store_path(self) -> Path:
+        return self.folder / "store.zarr"
+
+    def spec(self) -> dict:
+        return json.loads((self.folder / "spec.json").read_text())
+
+    def save(self) -> None:
+        _write_json(self.folder / "job.json", {
+            "id": self.id, "status": self.status, "created_at": self.created_at, "error": self.error,
+            "name": self.name, "models": self.models, "crashes": self.crashes})
+
+    def public(self) -> dict[str, Any]:
+        return {"id": self.id, "name": self.name, "models": self.models, "status": self.status,
+                "created_at": self.created_at, "error": self.error, "progress": self.progress}
+
+    @classmethod
+    def read(cls, folder: Path, loop: asyncio.AbstractEventLoop | None) -> JobRecord:
+        """The record in ``folder``; ValueError (or OSError) if it is not one. A record of
+        the first layout (the spec, data included, inside job.json) is split into job.json
+        and spec.json (the spec unchanged, so a resume finds its store's job key)."""
+        raw = json.loads((folder / "job.json").read_text())
+        if not isinstance(raw, dict):
+            raise ValueError("job.json is not an object")
+        if "spec" in raw:
+            spec = raw.pop("spec")
+            raw["name"] = spec.get("name", "job")
+            raw["models"] = [m["name"] for m in spec["models"]]
+            _write_json(folder / "spec.json", spec)
+        if raw.get("id") != folder.name or not JOB_ID.fullmatch(folder.name):
+            raise ValueError(f"id {raw.get('id')!r} is not its folder's name")
+        if raw.get("status") not in STATUSES:
+            raise ValueError(f"unknown status {raw.get('status')!r}")
+        name, models = raw.get("name"), raw.get("models")
+        if not isinstance(name, str) or not isinstance(models, list) or not all(isinstance(m, str) for m in models):
+            raise ValueError("name or model names missing")
+        error = raw.get("error")
+        job = cls(folder.name, folder, clean_text(name), [clean_text(m) for m in models], raw["status"],
+                  float(raw["created_at"]), clean_text(error) if isinstance(error, str) else None,
+                  int(raw.get("crashes", 0)))
+        if not (folder / "spec.json").is_file():
+            raise ValueError("no spec.json")
+        job.events = EventLog(folder / "events.jsonl", loop)
+        job.progress = job.events.last_population
+        job.save()  # the current layout
+        return job
+
+
+class QueueFull(Exception):
+    """Too many jobs wait already (HTTP 429 with Retry-After)."""
+
+
+class JobManager:
+    """The queue and the running jobs of one service process."""
+
+    def __init__(self, store_dir: Path, client: Client, max_running: int, loop: asyncio.AbstractEventLoop | None,
+                 max_resumes: int = 1, limits: Limits | None = None, max_queued: int | None = None,
+                 scheduler_address: str | None = None):
+        self.store_dir = Path(store_dir)
+        self.store_dir.mkdir(parents=True, exist_ok=True)
+        self.client = client
+        self.scheduler_address = scheduler_address  # None: an embedded cluster, which cannot go away alone
+        self.client_lock = threading.Lock()
+        self.max_running = max_running
+        self.max_resumes = max_resumes
+        self.limits = limits or Limits()
+        self.max_queued = max_queued
+        self.loop = loop
+        self.jobs: dict[str, JobRecord] = {}
+        self.queue: deque[str] = deque()
+        self.running: set[str] = set()
+        self.lock = threading.Lock()
+        self.wake = threading.Condition(self.lock)
+        self.stopping = False
+        self.closing = asyncio.Event()  # set on the loop when the service stops: every event stream ends
+        self._load()
+        self.dispatcher = threading.Thread(target=self._dispatch, name="abcns-dispatcher", daemon=True)
+        self.dispatcher.start()
+
+    # ------------------------------------------------------------------ state
+    def _load(self) -> None:
+        """Every job in the store directory; unfinished ones go back in the queue."""
+        found = []
+        for folder in self.store_dir.iterdir():
+            if not (folder.is_dir() and (folder / "job.json").is_file()):
+                continue
+            try:
+                found.append(JobRecord.read(folder, self.loop))
+            except (OSError, ValueError, KeyError, TypeError) as err:
+                log.warning("skipping the job folder %s: %s", folder, err)
+        for job in sorted(found, key=lambda j: j.created_at):
+            self.jobs[job.id] = job
+            if job.status == "running":  # the service died while it ran
+                job.crashes += 1
+                if job.crashes > self.max_resumes:
+                    self._end(job, "failed", f"the service stopped {job.crashes} times while this job ran (it may be "
+                                             f"what stops it); not resumed again (ABCNS_MAX_RESUMES={self.max_resumes})")
+                    continue
+            if job.status not in TERMINAL:
+                job.status = "queued"
+                job.save()
+                self.queue.append(job.id)
+
+    def submit(self, spec: JobSpec, arrays: dict[str, np.ndarray]) -> JobRecord:
+        """Queue a job: its arrays (``input``, ``observed``) go to data.npz beside the spec,
+        which refers to them; everything is validated before it is queued (SpecError
+        naming the field, and nothing left behind)."""
+        if self.max_queued is not None and len(self.queue) >= self.max_queued:
+            raise QueueFull(f"{len(self.queue)} jobs are waiting (the limit is {self.max_queued}); try again later")
+        job_id = uuid.uuid4().hex
+        folder = self.store_dir / job_id
+        folder.mkdir()
+        try:
+            np.savez(folder / DATA_FILE, **arrays)
+            data = spec.data.model_copy(update={k: f"{DATA_FILE}:{k}" for k in arrays})
+            spec = spec.model_copy(update={"data": data})
+            built = build(spec, folder, allow_import=False)  # raises SpecError naming the field
+            spec = admit(spec, built, self.limits)  # the service's limits (SpecError) and default budget
+            _write_json(folder / "spec.json", spec.model_dump(mode="json"))
+            job = JobRecord(job_id, folder, spec.name, [m.name for m in spec.models], "queued", time.time())
+            job.events = EventLog(folder / "events.jsonl", self.loop)
+            job.save()
+        except BaseException:
+            shutil.rmtree(folder, ignore_errors=True)
+            raise
+        job.events.append("queued", {"id": job_id, "name": job.name, "models": job.models})
+        with self.lock:
+            self.jobs[job_id] = job
+            self.queue.append(job_id)
+            self.wake.notify_all()
+        return job
+
+    def get(self, job_id: str) -> JobRecord | None:
+        return self.jobs.get(job_id)
+
+    def list(self, status: str | None = None) -> list[JobRecord]:
+        jobs = sorted(list(self.jobs.values()), key=lambda j: j.created_at)
+        return [j for j in jobs if status is None or j.status == status]
+
+    def counts(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for j in list(self.jobs.values()):
+            out[j.status] = out.get(j.status, 0) + 1
+        return out
+
+    def cancel(self, job_id: str) -> JobRecord:
+        job = self.jobs[job_id]
+        with self.lock:
+            if job.status == "queued":
+                self.queue.remove(job_id)
+                self._end(job, "cancelled", None)
+                return job
+        job.cancel.set()  # a running job stops between batches; what it did stays in the store
+        return job
+
+    def purge(self, job_id: str) -> bool:
+        """Delete an ended job and its folder; False if it has not ended."""
+        with self.lock:
+            job = self.jobs.get(job_id)
+            if job is None or job.status not in TERMINAL:
+                return False
+            del self.jobs[job_id]
+        shutil.rmtree(job.folder, ignore_errors=True)
+        return True
+
+    def result(self, job: JobRecord) -> dict | None:
+        try:
+            return summary(Store.open(job.store_path))
+        except StoreError:
+            return None
+
+    # ------------------------------------------------------------------ running
+    def _dispatch(self) -> None:
+        while True:
+            # outside the lock: replacing a client that gave up may take seconds, and submit()
+            # must not wait for it
+            connected = self.stopping or self._connected()
+            with self.lock:
+                if self.stopping:
+                    return
+                if not connected or not self.queue or len(self.running) >= self.max_running:
+                    self.wake.wait(timeout=1.0)  # a new job, a free slot, or the scheduler back: look again
+                    continue
+                job = self.jobs[self.queue.popleft()]
+                self.running.add(job.id)
+            threading.Thread(target=self._run, args=(job,), name=f"abcns-job-{job.id[:8]}", daemon=True).start()
+
+    @staticmethod
+    def _progress(pop, n_simulations_total: int, elapsed_s: float, rate: float | None) -> dict:
+        """A population event: model probabilities in the job's model order (the names are
+        in the ``queued`` event and the job's record, never repeated here)."""
+        return {
+            "population": pop.t, "epsilon": pop.epsilon, "epsilon_next": pop.epsilon_next,
+            "acceptance_rate": pop.acceptance_rate, "simulations": int(n_simulations_total),
+            "model_probabilities": [float(p) for p in pop.model_probabilities],
+            "elapsed_s": float(elapsed_s), "simulations_per_s": rate,
+        }
+
+    def _backfill(self, job: JobRecord) -> None:
+        """Population events for populations in the store but not in the log (the service
+        died between a store append and its event)."""
+        try:
+            store = Store.open(job.store_path)
+        except StoreError:
+            return
+        seen = job.progress["population"] if job.progress else 0
+        if store.n_populations <= seen:
+            return
+        totals = store.dataset()["n_simulations_total"].values
+        for t in range(seen + 1, store.n_populations + 1):
+            pop = store.population(t)
+            job.progress = self._progress(pop, totals[t - 1], pop.elapsed_s, None)
+            job.events.append("population", job.progress)  # type: ignore[union-attr]
+
+    def _connected(self) -> bool:
+        """Is the client connected to a scheduler? A client that gave up reconnecting is
+        replaced by a new one to the same address (a restarted scheduler)."""
+        with self.client_lock:  # the dispatcher and job threads ask: one replacement at a time
+            status = getattr(self.client, "status", "running")
+            if status in ("closed", "closing", "failed") and self.scheduler_address and not self.stopping:
+                try:
+                    self.client = Client(self.scheduler_address, timeout=5)
+                    log.warning("reconnected to the scheduler at %s with a new client", self.scheduler_address)
+                except (OSError, TimeoutError, AssertionError) as err:  # AssertionError: a scheduler still starting
+                    log.warning("the scheduler at %s does not answer yet: %r", self.scheduler_address, err)
+                    return False
+                status = self.client.status
+            return status == "running"
+
+    def _scheduler_id(self) -> str | None:
+        try:
+            return self.client.scheduler_info(n_workers=0).get("id")
+        except Exception:  # noqa: BLE001 - not connected
+            return None
+
+    def _lost_scheduler(self, started_on: str | None) -> bool:
+        """After a failure: did the scheduler the job ran on go away (killed, restarted)? Then
+        its futures are gone, and the job's failure is not the job's."""
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and not self._connected():
+            time.sleep(0.2)  # the client reconnects by itself when the scheduler is back soon
+        return started_on is not None and self._scheduler_id() != started_on
+
+    def _run(self, job: JobRecord) -> None:
+        resumed = job.store_path.exists()
+        started_on = self._scheduler_id()
+        job.status = "running"
+        job.save()
+        job.events.append("started", {"resumed": resumed})  # type: ignore[union-attr]
+
+        def on_population(p: Progress) -> None:
+            job.progress = self._progress(p.population, p.n_simulations_total, p.elapsed_s, p.simulations_per_s)
+            job.events.append("population", job.progress)  # type: ignore[union-attr]
+
+        try:
+            if resumed:
+                self._backfill(job)
+            spec = JobSpec.model_validate(job.spec())
+            result = run_job(spec, job.folder, job.store_path, self.client, on_population=on_population,
+                             cancel=lambda: job.cancel.is_set() or self.stopping, owned_store=True)
+            if result.stop_reason.value == "cancelled" and self.stopping and not job.cancel.is_set():
+                job.status = "queued"  # the service is stopping: the job resumes when it starts again
+                job.save()
+            else:
+                self._end(job, "cancelled" if result.stop_reason.value == "cancelled" else "finished", None)
+        except (SpecError, StoreError) as err:
+            self._end(job, "failed", str(err))
+        except Exception as err:  # noqa: BLE001 - a job's failure must not take the service down
+            if not self.stopping and self._lost_scheduler(started_on):
+                # the scheduler died under the job: back to the front of the queue, resumed from
+                # its last complete population once a scheduler answers again
+                job.status = "queued"
+                job.save()
+                job.events.append("requeued", {"reason": f"lost the scheduler ({type(err).__name__}: {err})"})  # type: ignore[union-attr]
+                with self.lock:
+                    self.queue.appendleft(job.id)
+            else:
+                self._end(job, "failed", f"{type(err).__name__}: {err}")
+        finally:
+            with self.lock:
+                self.running.discard(job.id)
+                self.wake.notify_all()
+
+    def _end(self, job: JobRecord, status: str, error: str | None) -> None:
+        job.status, job.error = status, error
+        job.save()
+        data: dict[str, Any] = {"status": status}
+        if error:
+            data["error"] = error
+        result = self.result(job)
+        if result:
+            probs = result.get("model_probabilities") or {}
+            data.update(stop_reason=result.get("stop_reason"), n_populations=result.get("n_populations"),
+                        n_simulations=result.get("n_simulations"),
+                        model_probabilities=[probs.get(m) for m in job.models])
+        job.events.append(status, data)  # type: ignore[union-attr]
+
+    def begin_shutdown(self) -> None:
+        """Stop taking jobs, stop the running ones between batches, end every event stream.
+        Thread-safe (the stream side is scheduled on the loop)."""
+        with self.lock:
+            self.stopping = True
+            self.wake.notify_all()
+        if self.loop is not None and not self.loop.is_closed():
+            self.loop.call_soon_threadsafe(self.closing.set)
+
+    def shutdown(self, timeout_s: float) -> None:
+        """Stop; running jobs stop between batches and stay queued for the next start. A job
+        still running after ``timeout_s`` is recorded as queued all the same (it resumes
+        from its last complete population; the service did not die under it)."""
+        self.begin_shutdown()
+        deadline = time.monotonic() + timeout_s
+        while self.running and time.monotonic() < deadline:
+            time.sleep(0.05)
+        for job_id in list(self.running):
+            job = self.jobs[job_id]
+            if job.status == "running":
+                job.status = "queued"
+                job.save()

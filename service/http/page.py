@@ -1,0 +1,228 @@
+"""The pages: ``/`` lists the jobs, ``/jobs/{id}/view`` follows one, ``/docs`` is Swagger UI.
+
+Plain HTML, SVG and a small inline script: no build step, nothing fetched from the
+internet. The script reads the event stream with ``fetch`` (so it can send the bearer
+token, which EventSource cannot) and reconnects with ``Last-Event-ID``. A token is taken
+from ``#token=...`` in the address once and kept in the tab's sessionStorage.
+
+Everything that comes from a job (its name, its models' names, numbers) is put in the page
+as text (``textContent``, DOM nodes), never as HTML; and the pages are served with a
+Content-Security-Policy (:data:`CSP`) that runs only this module's own scripts (by hash)
+and connects only to the service, so a name that holds markup can neither run nor send
+the token anywhere.
+"""
+
+import base64
+import hashlib
+
+
+def _hash(text: str) -> str:
+    return "'sha256-" + base64.b64encode(hashlib.sha256(text.encode()).digest()).decode() + "'"
+
+
+STYLE = r"""
+ body{font:14px/1.4 system-ui,sans-serif;margin:1.5em;color:#222;max-width:1100px}
+ h1{font-size:1.3em;margin:0 0 .5em} table{border-collapse:collapse} td,th{padding:.25em .7em;border-bottom:1px solid #ddd;text-align:left}
+ .grid{display:grid;grid-template-columns:1fr 1fr;gap:1em} .card{border:1px solid #ddd;border-radius:6px;padding:.6em}
+ .card h2{font-size:1em;margin:0 0 .3em} .kv span{display:inline-block;margin-right:1.4em} .kv b{font-variant-numeric:tabular-nums}
+ svg{width:100%;height:220px} .axis{stroke:#999;stroke-width:1} .lbl{font-size:10px;fill:#555}
+ .hist{display:inline-block;margin:0 .6em .6em 0} .hist svg{width:240px;height:90px} .gap{margin-top:1em}
+ .status-running{color:#b60} .status-finished{color:#070} .status-failed{color:#b00} .status-cancelled{color:#777}
+#warnings{color:#a40;margin:.5em 0;padding-left:1.2em}
+"""
+
+COMMON_JS = r"""
+const TOKEN_KEY = "abcns-token";
+(function(){ const m = location.hash.match(/token=([^&]+)/); if (m) { sessionStorage.setItem(TOKEN_KEY, decodeURIComponent(m[1])); history.replaceState(null, "", location.pathname); } })();
+function headers(extra) { const h = Object.assign({}, extra || {}); const t = sessionStorage.getItem(TOKEN_KEY); if (t) h["Authorization"] = "Bearer " + t; return h; }
+async function getJSON(url) { const r = await fetch(url, {headers: headers()}); if (!r.ok) throw new Error(url + ": " + r.status); return r.json(); }
+function fmt(x, d) { if (x === null || x === undefined) return "-"; if (typeof x !== "number") return String(x); const a = Math.abs(x); return (a !== 0 && (a < 1e-3 || a >= 1e5)) ? x.toExponential(d || 3) : x.toPrecision(d || 4); }
+// elements, never markup: every string becomes a text node
+function el(tag, attrs, ...children) { const e = document.createElement(tag); for (const [k, v] of Object.entries(attrs || {})) e.setAttribute(k, String(v)); e.append(...children.map(c => typeof c === "number" ? String(c) : c)); return e; }
+const SVG_NS = "http://www.w3.org/2000/svg";
+function sv(tag, attrs, ...children) { const e = document.createElementNS(SVG_NS, tag); for (const [k, v] of Object.entries(attrs || {})) e.setAttribute(k, String(v)); e.append(...children.map(String)); return e; }
+function text(id, value) { document.getElementById(id).textContent = value; }
+"""
+
+INDEX_JS = r"""
+async function refresh() {
+  try {
+    const jobs = await getJSON("/jobs");
+    const rows = jobs.reverse().map(j => el("tr", {},
+      el("td", {}, el("a", {href: "/jobs/" + encodeURIComponent(j.id) + "/view"}, j.id.slice(0, 8))), el("td", {}, j.name || ""),
+      el("td", {class: "status-" + j.status}, j.status), el("td", {}, j.progress ? j.progress.population : "-"),
+      el("td", {}, j.progress ? fmt(j.progress.epsilon) : "-"), el("td", {}, j.progress ? j.progress.simulations : "-")));
+    document.getElementById("jobs").replaceChildren(...rows);
+    text("error", "");
+  } catch (e) { text("error", String(e)); }
+}
+refresh(); setInterval(refresh, 2000);
+"""
+
+VIEW_JS = r"""
+const jobId = location.pathname.split("/")[2];
+text("job", jobId.slice(0, 8));
+const pops = [];  // population events
+const COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#17becf"];
+const HIST_PARTICLES = 50000, PAGE = 10000;  // the marginals use at most this many particles of a population
+let modelNames = [], lastId = 0, ended = false, histBusy = false, histShown = 0;
+
+function line(svg, series, opts) {
+  const W = 500, H = 200, L = 46, B = 18, T = 8;
+  svg.setAttribute("viewBox", `0 0 ${W} ${H + B}`);
+  const xs = series.flatMap(s => s.points.map(p => p[0])), ys = series.flatMap(s => s.points.map(p => p[1]));
+  if (!xs.length) { svg.replaceChildren(); return; }
+  let x0 = Math.min(...xs), x1 = Math.max(...xs); if (x1 === x0) x1 = x0 + 1;
+  let y0 = opts.y0 !== undefined ? opts.y0 : Math.min(...ys), y1 = opts.y1 !== undefined ? opts.y1 : Math.max(...ys); if (y1 === y0) y1 = y0 + 1;
+  const X = x => L + (x - x0) / (x1 - x0) * (W - L - 5), Y = y => T + (1 - (y - y0) / (y1 - y0)) * (H - T);
+  const out = [sv("line", {class: "axis", x1: L, y1: H, x2: W, y2: H}), sv("line", {class: "axis", x1: L, y1: T, x2: L, y2: H}),
+    sv("text", {class: "lbl", x: 2, y: T + 8}, opts.fmt(y1)), sv("text", {class: "lbl", x: 2, y: H}, opts.fmt(y0)),
+    sv("text", {class: "lbl", x: L, y: H + 14}, x0), sv("text", {class: "lbl", x: W - 30, y: H + 14}, x1)];
+  for (const s of series) {
+    const d = s.points.map((p, i) => (i ? "L" : "M") + X(p[0]).toFixed(1) + "," + Y(p[1]).toFixed(1)).join("");
+    out.push(sv("path", {d: d, fill: "none", stroke: s.color, "stroke-width": 1.6}));
+  }
+  svg.replaceChildren(...out);
+}
+
+function hist(values, label) {
+  const W = 240, H = 90, n = 20;
+  let lo = Math.min(...values), hi = Math.max(...values); if (hi === lo) { hi = lo + 1; }
+  const counts = new Array(n).fill(0); for (const v of values) counts[Math.min(n - 1, Math.floor((v - lo) / (hi - lo) * n))]++;
+  const m = Math.max(...counts), bw = W / n;
+  const svg = sv("svg", {viewBox: `0 0 ${W} ${H}`}, ...counts.map((c, i) => sv("rect", {x: (i * bw).toFixed(1),
+    y: (H - c / m * H).toFixed(1), width: (bw - 1).toFixed(1), height: (c / m * H).toFixed(1), fill: "#1f77b4"})));
+  return el("div", {class: "hist"}, el("div", {class: "lbl"}, `${label}: ${fmt(lo)} .. ${fmt(hi)}`), svg);
+}
+
+function leader(probs) { let k = 0; probs.forEach((p, i) => { if (p > probs[k]) k = i; }); return k; }
+
+function render() {
+  const p = pops[pops.length - 1];
+  if (p) {
+    text("population", p.population); text("epsilon", fmt(p.epsilon)); text("acceptance", p.acceptance_rate.toFixed(3));
+    text("simulations", p.simulations); text("elapsed", p.elapsed_s.toFixed(1));
+    const k = leader(p.model_probabilities);
+    text("leader", (modelNames[k] || "model " + (k + 1)) + " (" + p.model_probabilities[k].toFixed(2) + ")");
+  }
+  line(document.getElementById("eps"), [{color: COLORS[0], points: pops.map(q => [q.population, Math.log10(q.epsilon)])}],
+       {fmt: v => fmt(Math.pow(10, v), 3)});  // a log axis labelled with the tolerance itself
+  line(document.getElementById("acc"), [{color: COLORS[2], points: pops.map(q => [q.population, q.acceptance_rate])}],
+       {y0: 0, y1: 1, fmt: v => v.toFixed(1)});
+  const n = pops.length ? pops[0].model_probabilities.length : 0;
+  line(document.getElementById("probs"), Array.from({length: n}, (_, i) => ({color: COLORS[i % COLORS.length],
+       points: pops.map(q => [q.population, q.model_probabilities[i]])})), {y0: 0, y1: 1, fmt: v => v.toFixed(1)});
+  const legend = Array.from({length: n}, (_, i) => { const s = el("span", {}, "\u25A0 " + (modelNames[i] || "model " + (i + 1)) + "  ");
+    s.style.color = COLORS[i % COLORS.length]; return s; });
+  document.getElementById("legend").replaceChildren(...legend);
+}
+
+// the marginals of the leading model of the last population: one fetch at a time, and
+// again as long as a newer population came meanwhile (so the panel never lags behind)
+async function histograms() {
+  if (histBusy) return;
+  histBusy = true;
+  try {
+    while (pops.length && pops[pops.length - 1].population !== histShown) {
+      const t = pops[pops.length - 1].population;
+      let pop = await getJSON(`/jobs/${jobId}/populations/${t}?limit=${PAGE}`);
+      const theta = pop.theta, models = pop.models;
+      while (pop.offset + pop.distances.length < Math.min(pop.n_particles, HIST_PARTICLES) && pop.distances.length) {
+        pop = await getJSON(`/jobs/${jobId}/populations/${t}?offset=${pop.offset + pop.distances.length}&limit=${PAGE}`);
+        theta.push(...pop.theta); models.push(...pop.models);
+      }
+      const lead = leader(pop.model_probabilities);
+      const rows = theta.filter((_, i) => models[i] === lead);
+      const part = models.length < pop.n_particles ? ` (first ${models.length} of ${pop.n_particles} particles)` : "";
+      document.getElementById("hists").replaceChildren(el("div", {class: "lbl", id: "hist-title"}, `${pop.model_names[lead]}, population ${t}${part}`),
+        ...pop.parameter_names[lead].map((nm, j) => hist(rows.map(r => r[j]), nm)));
+      histShown = t;
+    }
+  } catch (e) { /* the next population retries */ } finally { histBusy = false; }
+}
+
+async function showWarnings() {  // the summary's warnings (an undecided run, ...), once the job has ended
+  try {
+    const s = await getJSON(`/jobs/${jobId}/result`);
+    document.getElementById("warnings").replaceChildren(...(s.warnings || []).map(w => el("li", {}, "warning: " + w)));
+  } catch (e) { text("error", String(e)); }
+}
+
+function setStatus(s) { const e = document.getElementById("status"); e.textContent = s; e.className = "status-" + s; }
+
+function handle(ev) {
+  if (ev.id) lastId = parseInt(ev.id, 10);
+  let data = {}; try { data = JSON.parse(ev.data || "{}"); } catch (e) {}
+  if (ev.event === "population") { pops.push(data); render(); histograms(); setStatus("running"); }
+  else if (ev.event === "started") setStatus("running");
+  else if (ev.event === "queued") { if (data.models) modelNames = data.models; setStatus("queued"); }
+  else if (ev.event === "requeued") setStatus("queued");  // the scheduler went away; resumed when it is back
+  else if (["finished", "failed", "cancelled"].includes(ev.event)) { ended = true; setStatus(ev.event); histograms(); showWarnings(); }
+}
+
+async function stream() {
+  while (!ended) {
+    try {
+      const h = headers({"Accept": "text/event-stream"}); if (lastId) h["Last-Event-ID"] = String(lastId);
+      const r = await fetch(`/jobs/${jobId}/events`, {headers: h});
+      if (!r.ok) throw new Error("events: " + r.status);
+      const reader = r.body.getReader(), dec = new TextDecoder(); let buf = "";
+      for (;;) {
+        const {value, done} = await reader.read(); if (done) break;
+        buf += dec.decode(value, {stream: true});
+        let k; while ((k = buf.indexOf("\n\n")) >= 0) {
+          const block = buf.slice(0, k); buf = buf.slice(k + 2);
+          const ev = {}; for (const ln of block.split("\n")) { const c = ln.indexOf(":"); if (c <= 0) continue;
+            const f = ln.slice(0, c), v = ln.slice(c + 1).replace(/^ /, ""); ev[f] = ev[f] ? ev[f] + "\n" + v : v; }
+          if (ev.event || ev.data) handle(ev);
+        }
+      }
+      text("error", "");
+    } catch (e) { text("error", String(e)); }
+    if (!ended) await new Promise(res => setTimeout(res, 1000));
+  }
+}
+
+getJSON(`/jobs/${jobId}`).then(j => { text("name", j.name || ""); modelNames = j.models || modelNames; setStatus(j.status); render(); })
+  .catch(e => text("error", String(e))).finally(stream);
+"""
+
+_HEAD = '<meta charset="utf-8"><meta name="viewport" content="width=device-width, initial-scale=1">' \
+        f"<style>{STYLE}</style><script>{COMMON_JS}</script>"
+
+INDEX = ("<!doctype html><html><head><title>abcns jobs</title>" + _HEAD + "</head><body>\n<h1>abcns jobs</h1>\n"
+         "<table><thead><tr><th>job</th><th>name</th><th>status</th><th>population</th><th>epsilon</th>"
+         "<th>simulations</th></tr></thead>\n<tbody id=\"jobs\"></tbody></table>\n<p id=\"error\"></p>\n"
+         f"<script>{INDEX_JS}</script></body></html>")
+
+VIEW = ("<!doctype html><html><head><title>abcns job</title>" + _HEAD + r"""</head><body>
+<h1>job <span id="job"></span> <small id="name"></small></h1>
+<div class="kv card"><span>status <b id="status">-</b></span><span>population <b id="population">-</b></span>
+<span>epsilon <b id="epsilon">-</b></span><span>acceptance <b id="acceptance">-</b></span>
+<span>simulations <b id="simulations">-</b></span><span>elapsed <b id="elapsed">-</b> s</span>
+<span>leading model <b id="leader">-</b></span></div>
+<ul id="warnings"></ul>
+<div class="grid gap">
+ <div class="card"><h2>tolerance per population (log)</h2><svg id="eps"></svg></div>
+ <div class="card"><h2>acceptance rate per population</h2><svg id="acc"></svg></div>
+ <div class="card"><h2>model probabilities per population</h2><svg id="probs"></svg><div id="legend"></div></div>
+ <div class="card"><h2>marginals of the leading model (last population)</h2><div id="hists"></div></div>
+</div>
+<p id="error"></p>
+""" + f"<script>{VIEW_JS}</script></body></html>")
+
+# only these scripts and this style run; fetch only to the service; no frames, forms or base
+CSP = (f"default-src 'none'; script-src {_hash(COMMON_JS)} {_hash(INDEX_JS)} {_hash(VIEW_JS)}; style-src {_hash(STYLE)}; "
+       "connect-src 'self'; img-src 'self' data:; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
+
+# Swagger UI from the swagger-ui-bundle-v2 wheel (served by the app under /docs/assets/);
+# its own inline styles need style-src 'unsafe-inline', its scripts are ours and its bundle
+DOCS_INIT = ('window.ui = SwaggerUIBundle({url: "/openapi.json", dom_id: "#swagger-ui", deepLinking: true, '
+             'validatorUrl: null, presets: [SwaggerUIBundle.presets.apis], layout: "BaseLayout"});')
+DOCS = ('<!doctype html><html><head><meta charset="utf-8"><title>abcns API</title>'
+        '<link rel="stylesheet" href="/docs/assets/swagger-ui.css"><link rel="icon" href="/docs/assets/favicon-32x32.png">'
+        '</head><body><div id="swagger-ui"></div><script src="/docs/assets/swagger-ui-bundle.js"></script>'
+        f"<script>{DOCS_INIT}</script></body></html>")
+DOCS_CSP = (f"default-src 'none'; script-src 'self' {_hash(DOCS_INIT)}; style-src 'self' 'unsafe-inline'; "
+            "img-src 'self' data:; connect-src 'self'; font-src 'self' data:; base-uri 'none'; form-action 'none'; "
+            "frame-ancestors 'none'")

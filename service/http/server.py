@@ -1,0 +1,117 @@
+"""``abcns serve``: the app under uvicorn, with the service's connection limits and shutdown.
+
+- A request's headers must arrive within ``header_timeout_s`` of the connection (or of its
+  first byte after a keep-alive pause; an idle keep-alive connection closes after 5 s), and
+  its body within ``body_timeout_s`` of its headers, else the connection is closed (a 408
+  when no answer has started): a slow client cannot hold a connection open. Headers are
+  limited to 16 KiB (h11), bodies to ``max_request_bytes`` (413).
+- SIGTERM (or Ctrl+C) first ends every event stream and stops the running jobs between
+  batches (they are requeued, and resume at the next start), then uvicorn closes the
+  connections (waiting at most 3 s for answers in flight) and the app shuts down (running
+  jobs get ``shutdown_timeout_s`` to stop).
+- The address is printed at start, and every request is logged (uvicorn's access log).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+import h11
+import uvicorn
+from fastapi import FastAPI
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+from service.http.api import begin_shutdown, create_app
+from service.http.settings import Settings
+
+GRACE_S = 3.0  # uvicorn waits this long for answers in flight after SIGTERM (streams end at once)
+log = logging.getLogger("uvicorn.error")
+
+
+class DeadlineProtocol(H11Protocol):
+    """uvicorn's h11 protocol with a deadline for a request's headers and one for its body."""
+
+    header_timeout_s = 5.0
+    body_timeout_s = 30.0
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._phase: str | None = None
+        self._timer: asyncio.TimerHandle | None = None
+        self._watch(new_connection=True)
+
+    def _arm(self, phase: str | None, delay: float = 0.0) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self._phase = phase
+        if phase is not None:
+            self._timer = self.loop.call_later(delay, self._late)
+
+    def _watch(self, new_connection: bool = False) -> None:
+        state = self.conn.their_state
+        if state is h11.SEND_BODY:
+            if self._phase != "body":
+                self._arm("body", self.body_timeout_s)
+        elif state is h11.IDLE:
+            # a new connection, or bytes of the next request after a keep-alive pause
+            if self._phase != "headers" and (new_connection or self.conn.trailing_data[0]):
+                self._arm("headers", self.header_timeout_s)
+        elif self._phase is not None:
+            self._arm(None)
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if not self.transport.is_closing():
+            self._watch()
+
+    def on_response_complete(self) -> None:
+        self._arm(None)  # uvicorn's keep-alive timeout takes over
+        super().on_response_complete()
+        if not self.transport.is_closing():
+            self._watch()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._arm(None)
+        super().connection_lost(exc)
+
+    def _late(self) -> None:
+        phase, self._timer = self._phase, None
+        if self.transport.is_closing():
+            return
+        client = f"{self.client[0]}:{self.client[1]}" if self.client else "?"
+        log.warning("%s: closing a connection whose request %s did not arrive in time", client, phase)
+        cycle = self.cycle
+        if phase == "body" and cycle is not None and not cycle.response_started:
+            cycle.disconnected = True  # the app's receive() now says http.disconnect; its answer goes nowhere
+            cycle.message_event.set()
+            body = b"the request body did not arrive in time\n"
+            for event in (h11.Response(status_code=408, reason=b"Request Timeout", headers=[
+                    (b"content-type", b"text/plain; charset=utf-8"), (b"content-length", str(len(body)).encode()),
+                    (b"connection", b"close")]), h11.Data(data=body), h11.EndOfMessage()):
+                self.transport.write(self.conn.send(event))
+        self.transport.close()
+
+
+class Server(uvicorn.Server):
+    """uvicorn's server; a signal to stop first ends the streams and stops the jobs."""
+
+    def __init__(self, config: uvicorn.Config, app: FastAPI):
+        super().__init__(config)
+        self.abcns_app = app
+
+    def handle_exit(self, sig, frame) -> None:  # type: ignore[no-untyped-def]
+        if not self.should_exit:
+            begin_shutdown(self.abcns_app)
+        super().handle_exit(sig, frame)
+
+
+def serve(settings: Settings, host: str, port: int, access_log: bool = True) -> None:
+    app = create_app(settings)
+    protocol = type("AbcnsProtocol", (DeadlineProtocol,), {"header_timeout_s": settings.header_timeout_s,
+                                                            "body_timeout_s": settings.body_timeout_s})
+    config = uvicorn.Config(app, host=host, port=port, http=protocol, log_level="info", access_log=access_log,
+                            timeout_keep_alive=5, timeout_graceful_shutdown=int(GRACE_S),
+                            h11_max_incomplete_event_size=16 * 1024)
+    Server(config, app).run()

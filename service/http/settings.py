@@ -1,0 +1,42 @@
+"""Service settings (environment ``ABCNS_*`` or ``abcns serve`` options), created at app
+start-up, never at import."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from service.http.limits import Limits
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="ABCNS_", extra="forbid")
+
+    store_dir: Path = Path("abcns-jobs")  # one folder per job: job.json, events.jsonl, store.zarr
+    scheduler: str | None = None  # a Dask scheduler address; None: an embedded LocalCluster
+    workers: int | None = Field(default=None, ge=1)  # LocalCluster worker processes (default: one per core)
+    token: str | None = None  # with a token, every API request needs "Authorization: Bearer TOKEN"
+    max_running: int = Field(default=1, ge=1)  # jobs running at once; the rest wait in the queue
+    max_request_bytes: int = Field(default=32 * 1024 * 1024, ge=1024)
+    max_resumes: int = Field(default=1, ge=0)  # resumes of a job the service died under, before it is failed
+    max_array_samples: int = Field(default=2**25, ge=1)  # samples of one uploaded array (32 Mi: 256 MiB as float64)
+    header_timeout_s: float = Field(default=5.0, gt=0)  # a request's headers must arrive within this
+    body_timeout_s: float = Field(default=30.0, gt=0)  # and its body within this of its headers (else 408)
+    shutdown_timeout_s: float = Field(default=10.0, gt=0)  # on SIGTERM: running jobs get this to stop between batches
+    # admission limits (service/http/limits.py): a job over one is refused with 422 naming the field
+    max_particles: int = Field(default=Limits.max_particles, ge=2)
+    max_batch_size: int = Field(default=Limits.max_batch_size, ge=1)
+    max_substeps: int = Field(default=Limits.max_substeps, ge=1)
+    max_samples: int = Field(default=Limits.max_samples, ge=2)
+    max_models: int = Field(default=Limits.max_models, ge=1)
+    max_memory_mb: float = Field(default=Limits.max_memory_mb, gt=0)
+    max_job_seconds: float = Field(default=Limits.max_job_seconds, gt=0)  # also the default budget of a job
+    max_job_simulations: int = Field(default=Limits.max_job_simulations, ge=1)  # likewise
+    max_queued: int = Field(default=64, ge=1)  # jobs waiting; beyond: 429 with Retry-After
+    retry_after_s: int = Field(default=30, ge=1)
+
+    @property
+    def limits(self) -> Limits:
+        return Limits(**{name: getattr(self, name) for name in Limits.__dataclass_fields__})
