@@ -8,16 +8,12 @@ tolerance schedule). Serial, in-process, reference numpy simulators.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from abcns import Result, SMCSettings, StopRules, run  # noqa: E402
-from examples.paper import authors_demo, linear_31  # noqa: E402
+from abcns import Result, SMCSettings, StopRules, run
+from examples.paper import authors_demo, linear_31
 
 
 def table(title: str, r: Result) -> None:

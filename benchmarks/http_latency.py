@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from conftest import StockCluster  # noqa: E402
-from test_http import AUTH, Service, duffing_spec  # noqa: E402
+from http_helpers import AUTH, Service, duffing_spec  # noqa: E402
 
 
 def main() -> None:

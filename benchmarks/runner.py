@@ -18,22 +18,18 @@ from __future__ import annotations
 
 import argparse
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from distributed import Client, LocalCluster
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from distributed import Client, LocalCluster  # noqa: E402
-
-from abcns import run  # noqa: E402
-from abcns.filling import batches  # noqa: E402
-from abcns.rejection import prior_proposer  # noqa: E402
-from service.runner import run_job  # noqa: E402
-from service.spec import build, load  # noqa: E402
+from abcns import run
+from abcns.filling import batches
+from abcns.rejection import prior_proposer
+from service.run.runner import run_job
+from service.spec import build, load
 
 SPEC = Path(__file__).resolve().parents[1] / "examples" / "duffing_41" / "spec.yaml"
 

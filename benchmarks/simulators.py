@@ -1,6 +1,6 @@
 """Simulator throughput: simulations per second per core, numba kernels vs the numpy reference.
 
-Run: ``python benchmarks/simulators.py [--repeats N] [--skip-numpy] [--skip-compile]``.
+Run: ``python -m benchmarks.simulators [--repeats N] [--skip-numpy] [--skip-compile]``.
 
 One thread (NUMBA_NUM_THREADS=1; the kernels are not parallel anyway), batch 1000, best of
 ``--repeats`` runs (the machine may be shared: the best run is the least disturbed one).
@@ -28,21 +28,19 @@ import os
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
 
-import numpy as np  # noqa: E402
+import numpy as np
+
+from worker.simulators import BoucWen, Duffing, Linear
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from worker.simulators import BoucWen, Duffing, Linear  # noqa: E402
-
 CEILING = 57e9  # flop/s per core
 BATCH = 1000
 

@@ -67,6 +67,14 @@ def stock_cluster(tmp_path):
     cluster.close()
 
 
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """A stock cluster shared by the tests of one module."""
+    c = StockCluster(tmp_path_factory.mktemp("dask"))
+    yield c
+    c.close()
+
+
 def wait_until(predicate, timeout: float, what: str, interval: float = 0.05):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

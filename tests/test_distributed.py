@@ -16,14 +16,14 @@ import xarray as xr
 import yaml
 from distributed import Client, LocalCluster
 
-from service.runner import run_job
+from service.run.runner import run_job
+from service.run.store import Store, StoreError
 from service.spec import parse
-from service.store import Store, StoreError
 
 pytestmark = pytest.mark.distributed
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-DEMO = ROOT.parent / "shared" / "data" / "abcns-reference-demo" / "demo_data.npz"
+DEMO = ROOT / "data" / "authors-demo" / "demo_data.npz"
 
 
 def small_spec(tmp_path: Path, **stop) -> Path:

@@ -10,7 +10,7 @@ import xarray as xr
 from zarr.errors import UnstableSpecificationWarning
 
 from abcns import OK, Model, NSSettings, StopRules, per_model, run
-from service.export import from_dataset, to_dataset, to_inference_data
+from service.report.export import from_dataset, to_dataset, to_inference_data
 
 
 def small_run(seed: int = 5):
@@ -55,7 +55,7 @@ def test_dataset_round_trip(result, tmp_path):
             assert (p.t, p.epsilon, p.epsilon_next, p.n_simulations, p.acceptance_rate) == \
                    (q.t, q.epsilon, q.epsilon_next, q.n_simulations, q.acceptance_rate)
     with pytest.raises(ValueError, match="not an abcns result"):
-        from_dataset(ds.assign_attrs(format="other"))
+        from_dataset(ds.assign_attrs(format_version=1))
 
 
 def test_inference_data(result):

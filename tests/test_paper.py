@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from abcns import SMCSettings, StopRules, run
-from examples.paper import SHARED, authors_demo, gandk_32, linear_31
+from examples.paper import DATA, authors_demo, gandk_32, linear_31
 
 pytestmark = pytest.mark.slow
 SEED = 1
@@ -21,7 +21,7 @@ def demo_run():
 
 def test_authors_demo_selects_cubic_with_the_reference_posterior(demo_run):
     problem, r = demo_run
-    ref = json.loads((SHARED / "abcns-reference-demo" / "reference_run.json").read_text())
+    ref = json.loads((DATA / "authors-demo" / "reference_run.json").read_text())
     assert r.model_probabilities()["cubic"] >= 0.99
     post = r.posterior()["cubic"]
     for name, truth, ref_std in zip(("c", "k", "k3"), (0.05, 50.0, 1000.0), ref["final_posterior_cubic"]["std"]):
@@ -31,7 +31,7 @@ def test_authors_demo_selects_cubic_with_the_reference_posterior(demo_run):
 
 def test_authors_demo_costs_like_the_reference(demo_run):
     _, r = demo_run
-    ref = json.loads((SHARED / "abcns-reference-demo" / "reference_run.json").read_text())
+    ref = json.loads((DATA / "authors-demo" / "reference_run.json").read_text())
     assert 0.5 * ref["populations"] <= len(r.populations) <= 1.5 * ref["populations"]
     assert 0.5 * ref["simulations_total_approx"] <= r.n_simulations <= 1.5 * ref["simulations_total_approx"]
     assert np.mean([p.acceptance_rate for p in r.populations]) >= 0.4
@@ -47,10 +47,19 @@ def linear_runs():
     return problem, ns, smc
 
 
-def test_linear_31_posterior_means_within_one_percent(linear_runs):
+def test_linear_31_posterior_means_at_the_truth_to_monte_carlo_error(linear_runs):
+    """The data are noise-free, so the tolerance ball of the last population is centred on the
+    truth (the NMSE is quadratic in the parameters near it) and the posterior mean differs
+    from the truth by Monte Carlo error only: standard error std / sqrt(N), N = 1000
+    particles (c: 0.067 / 31.6 = 0.0021, k: 6.6 / 31.6 = 0.21). Measured on seeds 1-7:
+    -1.2 to +2.1 standard errors; allowed 4. (The 1 % of the truth this replaces was 94 and
+    480 standard errors.)"""
     problem, ns, smc = linear_runs
+    theta, _, _ = ns.particles("linear")
     for name, truth in problem.truth["linear"].items():
-        assert abs(ns.posterior()["linear"][name]["mean"] - truth) < 0.01 * truth, name
+        post = ns.posterior()["linear"][name]
+        se = post["std"] / np.sqrt(theta.shape[0])
+        assert abs(post["mean"] - truth) < 4 * se, (name, post["mean"] - truth, se)
 
 
 def test_linear_31_ns_beats_smc_on_the_same_schedule(linear_runs):
@@ -66,14 +75,16 @@ def test_linear_31_ns_beats_smc_on_the_same_schedule(linear_runs):
 def test_gandk_32_truth_inside_every_95_interval():
     """With independent random numbers per simulation the distance has a noise floor
     (~0.24 at the truth) and the single ellipsoid bounds a curved region, so acceptance
-    falls fast; the run is cut at 12,000 simulations (eps ~ 10-14, measured). The truth
-    must lie in every 95 % interval; at this budget only k is well identified (measured
-    interval ~[0.03, 2.4] of the prior [0, 10]), so its interval must be narrower than 30 %
-    of the prior range and a posterior that misses k fails."""
+    falls fast; the run is cut at 12,000 simulations. The truth must lie in every 95 %
+    interval; at this budget only k is well identified. The bounds come from the spread of
+    the run over seeds 1-5 (measured): k's 95 % interval 1.04, 0.92, 0.89, 1.08, 0.91 wide
+    (mean 0.97, sd 0.09; the prior U(0, 10) would give 9.5), final tolerance 3.30, 2.14, 1.92,
+    3.35, 2.22 (mean 2.6, sd 0.68): each must stay below the mean + 4 sd, 1.33 and 5.3, so
+    a posterior that misses k or a run that stalls fails."""
     problem = gandk_32()
     r = run(problem.models, problem.evaluate, problem.settings, StopRules(max_simulations=12_000), seed=SEED)
     post = r.posterior()["gandk"]
     for name, truth in problem.truth["gandk"].items():
         assert post[name]["q2_5"] <= truth <= post[name]["q97_5"], (name, post[name])
-    assert post["k"]["q97_5"] - post["k"]["q2_5"] < 3.0, post["k"]
-    assert r.final.epsilon < 20.0
+    assert post["k"]["q97_5"] - post["k"]["q2_5"] < 0.97 + 4 * 0.09, post["k"]
+    assert r.final.epsilon < 2.6 + 4 * 0.68

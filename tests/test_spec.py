@@ -11,14 +11,14 @@ import yaml
 
 from abcns import SpecError, StopRules, run
 from examples.paper import authors_demo
-from service.runner import write_interval
+from service.run.runner import write_interval
 from service.spec import build, load, parse
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def demo_data():
-    with np.load(ROOT.parent / "shared" / "data" / "abcns-reference-demo" / "demo_data.npz") as f:
+    with np.load(ROOT / "data" / "authors-demo" / "demo_data.npz") as f:
         return dict(f)
 SPEC = ROOT / "examples" / "authors_demo" / "spec.yaml"
 

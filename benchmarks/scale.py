@@ -1,0 +1,350 @@
+"""Scale-out: the runner (``service.run.runner.run_job``) on 1 to 32 Dask worker processes.
+
+    python -m benchmarks.scale [--workers 1,2,4,8,16,32] [--stock-workers 1,8] [--populations 10]
+                               [--batch-size B] [--d41-workers 1,2] [--d41-populations 6]
+                               [--skip-local] [--skip-stock] [--skip-d41] [--quick]
+
+Figures only (nothing is asserted about speed). Three parts:
+
+1. **Latency-bound, LocalCluster.** The authors' demo (examples/authors_demo/spec.yaml), the
+   cubic model only, its sampler settings (1000 particles, the default batch size 200), run
+   for ``--populations`` populations with the plugin simulator ``benchmarks.sleepy:factory``:
+   the built-in Duffing, then 2 ms of sleep per simulation, the stand-in for an expensive
+   model on many machines. Run on ``distributed.LocalCluster(n_workers=N,
+   threads_per_worker=1, processes=True)``: N worker processes on this machine's cores
+   (they mostly sleep). The ideal is N x 500 simulations/s.
+2. **The same against a stock cluster**: ``dask scheduler`` and ``dask worker --nworkers N
+   --nthreads 1`` started as subprocesses, reached with ``distributed.Client(address)``.
+3. **Paper §4.1 with the real kernels** (examples/duffing_41/spec.yaml, ``--d41-populations``
+   populations) on 1 and 2 LocalCluster workers, beside the kernel alone: the evaluator
+   called in this process on one batch of prior draws (epsilon = inf: every simulation runs
+   to the end), best of several calls; and, for reference, the evaluator's own time on the
+   run's batches in a serial in-process run (early rejection at each population's epsilon).
+
+Columns. *simulations*: what the algorithm used (the result's serial-equivalent count; the
+same for every N, the run being deterministic). *executed*: rows the workers actually
+simulated (the sleepy plugin counts them), with the surplus tasks the executor submitted
+ahead and cancelled too late. *wall*: ``run_job`` from call to return (store creation, data to
+the cluster, evaluator built on each worker; the workers are started and warmed before).
+*runner CPU*: ``time.process_time()`` of this process around ``run_job``: the client, the
+store writes and, for a LocalCluster, the scheduler (it runs in this process); for the stock
+cluster the scheduler's process is measured separately (psutil). *workers CPU*: the worker
+processes' CPU time (psutil, through ``client.run``; nannies not counted).
+
+``--quick``: 1 population, LocalCluster 1 and 2 workers, stock 1 worker, §4.1 1 and 2
+workers with 1 population (a smoke run, under a minute).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import psutil
+import yaml
+from distributed import Client, LocalCluster
+
+from abcns import run
+from abcns.filling import batches
+from abcns.rejection import prior_proposer
+from benchmarks import sleepy
+from service.run.runner import run_job
+from service.spec import JobSpec, build, load, parse
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = ROOT / "examples" / "authors_demo" / "spec.yaml"
+D41 = ROOT / "examples" / "duffing_41" / "spec.yaml"
+BIN = Path(sys.executable).parent
+IDEAL_PER_WORKER = 1.0 / sleepy.SECONDS  # simulations/s of one worker that only sleeps
+
+# the workers import the plugin by name: LocalCluster's spawned processes inherit this
+# process's sys.path, the stock cluster's processes get PYTHONPATH (set below for both)
+os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)
+
+
+def sleepy_spec(populations: int, batch_size: int | None) -> tuple[JobSpec, Path]:
+    """The authors' demo, cubic model only, simulated by the sleepy plugin."""
+    raw = yaml.safe_load(DEMO.read_text())
+    raw["name"] = "authors-demo-sleepy"
+    raw["models"] = [{**m, "simulator": sleepy.NAME} for m in raw["models"] if m["name"] == "cubic"]
+    if batch_size is not None:
+        raw["sampler"]["batch_size"] = batch_size
+    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": populations}
+    return parse(raw), DEMO.parent
+
+
+def d41_spec(populations: int) -> tuple[JobSpec, Path]:
+    spec, base = load(D41)
+    return spec.model_copy(update={"stop": spec.stop.model_copy(update={
+        "min_epsilon_decrease": None, "max_populations": populations})}), base
+
+
+# -- on the workers (imported by reference: benchmarks.scale is importable there) --------
+
+def _warm_worker() -> int:
+    """Import the plugin and load the Duffing kernel (numba's cache) on a worker."""
+    from benchmarks import sleepy as plugin
+    from worker.simulators import Duffing
+
+    duffing = Duffing(force=np.zeros(16), dt=0.01, substeps=1)
+    duffing.simulate(np.array([[1.0, 0.1, 50.0, 0.0, 1000.0, 0.0]]))
+    duffing.distance_nmse(np.array([[1.0, 0.1, 50.0, 0.0, 1000.0, 0.0]]), np.arange(16.0), 0, 16)
+    return plugin.simulated()
+
+
+def _cpu_seconds() -> float:
+    t = psutil.Process().cpu_times()
+    return t.user + t.system
+
+
+def _simulated() -> int:
+    return sleepy.simulated()
+
+
+def workers_cpu(client: Client) -> float:
+    return sum(client.run(_cpu_seconds).values())
+
+
+def workers_simulated(client: Client) -> int:
+    return sum(client.run(_simulated).values())
+
+
+# -- clusters ------------------------------------------------------------------------------
+
+@contextmanager
+def local_cluster(n: int) -> Iterator[tuple[Client, list[int], float]]:
+    """(client, extra pids to measure, start-up seconds): LocalCluster, scheduler in this process."""
+    start = time.perf_counter()
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        client.wait_for_workers(n, timeout=300)
+        client.run(_warm_worker)
+        yield client, [], time.perf_counter() - start
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    for p in procs:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGTERM)
+    for p in procs:
+        try:
+            p.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+@contextmanager
+def stock_cluster(n: int, tmp: Path) -> Iterator[tuple[Client, list[int], float]]:
+    """`dask scheduler` + `dask worker --nworkers n --nthreads 1`; the scheduler's pid to measure."""
+    start = time.perf_counter()
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "cwd": ROOT}
+    procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--dashboard-address", ":0"], **quiet)]
+    try:
+        procs.append(subprocess.Popen([BIN / "dask", "worker", address, "--nworkers", str(n), "--nthreads", "1",
+                                       "--no-dashboard", "--local-directory", str(tmp)], **quiet))
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(n, timeout=300)
+            client.run(_warm_worker)
+            yield client, [procs[0].pid], time.perf_counter() - start
+    finally:
+        _stop(procs)
+
+
+# -- measuring -----------------------------------------------------------------------------
+
+def _proc_cpu(pids: list[int]) -> float:
+    total = 0.0
+    for pid in pids:
+        t = psutil.Process(pid).cpu_times()
+        total += t.user + t.system
+    return total
+
+
+def warm_up(client: Client, spec: JobSpec, base: Path, tmp: Path) -> None:
+    """A small job first (100 particles, batches of 20, 1 population), so the timed run finds
+    the client, scheduler and workers past their first-job costs (imports, connections)."""
+    small = spec.model_copy(update={
+        "sampler": spec.sampler.model_copy(update={"particles": 100, "batch_size": 20}),
+        "stop": spec.stop.model_copy(update={"max_populations": 1})})
+    store = Path(tempfile.mkdtemp(dir=tmp)) / "warm.zarr"
+    run_job(small, base, store, client, allow_import=True)
+    shutil.rmtree(store.parent, ignore_errors=True)
+
+
+def measure(client: Client, pids: list[int], spec: JobSpec, base: Path, tmp: Path, count: bool = True) -> dict:
+    """One ``run_job`` into a fresh store (after :func:`warm_up`); wall, CPU of this process,
+    of the pids and of the workers."""
+    warm_up(client, spec, base, tmp)
+    store = Path(tempfile.mkdtemp(dir=tmp)) / "job.zarr"
+    w_cpu0 = workers_cpu(client)
+    sims0 = workers_simulated(client) if count else 0
+    other0 = _proc_cpu(pids)
+    cpu0, t0 = time.process_time(), time.perf_counter()
+    res = run_job(spec, base, store, client, allow_import=True)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+    other = _proc_cpu(pids) - other0
+    w_cpu = workers_cpu(client) - w_cpu0
+    executed = workers_simulated(client) - sims0 if count else None
+    shutil.rmtree(store.parent, ignore_errors=True)
+    n = res.n_simulations
+    return {"populations": len(res.populations), "simulations": n, "executed": executed, "wall": wall,
+            "rate": n / wall, "runner_us": 1e6 * cpu / n, "other_us": 1e6 * other / n if pids else None,
+            "workers_us": 1e6 * w_cpu / n, "stop": res.stop_reason.value, "load": os.getloadavg()[0]}
+
+
+def engine_alone(spec: JobSpec, base: Path) -> tuple[float, float]:
+    """CPU µs per simulation of the same job in this process with the built-in Duffing (no
+    sleep, no Dask, no store), best of 3; and the kernel's share of it."""
+    raw = spec.model_dump(mode="json")
+    raw["models"] = [{**m, "simulator": "duffing"} for m in raw["models"]]
+    job = build(parse(raw), base)
+    best, kernel, spent = np.inf, 0.0, [0.0]
+
+    def timed(b):
+        t = time.process_time()
+        out = job.evaluate(b)
+        spent[0] += time.process_time() - t
+        return out
+
+    for _ in range(3):
+        spent[0] = 0.0
+        t = time.process_time()
+        r = run(job.models, timed, job.settings, job.stop, job.seed)
+        cpu = time.process_time() - t
+        if cpu < best:
+            best, kernel = cpu, spent[0]
+    return 1e6 * best / r.n_simulations, 1e6 * kernel / r.n_simulations
+
+
+def sleepy_table(title: str, cluster: Callable, counts: list[int], spec: JobSpec, base: Path, tmp: Path,
+                 stock: bool) -> None:
+    print(f"\n## {title}")
+    engine, kernel = engine_alone(spec, base)
+    print(f"the same job in this process with the plain Duffing (engine + kernel, no sleep, no Dask, no store): "
+          f"{engine:.0f} µs CPU per simulation, of which the evaluator {kernel:.0f}")
+    sched = " scheduler CPU µs/sim |" if stock else ""
+    print(f"| workers | simulations | executed | wall s | sims/s | ideal sims/s | efficiency | runner CPU µs/sim |{sched}"
+          " workers CPU µs/sim | start-up s | load |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if stock else "") + "---:|---:|---:|", flush=True)
+    for n in counts:
+        with cluster(n) as (client, pids, startup):
+            r = measure(client, pids, spec, base, tmp)
+        ideal = n * IDEAL_PER_WORKER
+        extra = f" {r['other_us']:.0f} |" if stock else ""
+        print(f"| {n} | {r['simulations']} | {r['executed']} | {r['wall']:.2f} | {r['rate']:.0f} | {ideal:.0f} | "
+              f"{r['rate'] / ideal:.2f} | {r['runner_us']:.0f} |{extra} {r['workers_us']:.0f} | {startup:.1f} | "
+              f"{r['load']:.1f} |",
+              flush=True)
+
+
+def kernel_alone(spec: JobSpec, base: Path, repeats: int) -> dict:
+    """This process, no Dask: the evaluator on one batch of prior draws at epsilon = inf (best
+    of ``repeats`` calls); a serial in-process run (best of 3): its wall and the evaluator's
+    time on its own batches."""
+    job = build(spec, base)
+    batch = next(batches(prior_proposer(job.models), seed=0, t=1, epsilon=np.inf, batch_size=job.settings.batch_size))
+    job.evaluate(batch)  # compile / load numba's cache
+    best = np.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        job.evaluate(batch)
+        best = min(best, time.perf_counter() - t)
+    walls, spent = [], []
+    for _ in range(3):
+        spent.append(0.0)
+
+        def timed(b):
+            t = time.perf_counter()
+            out = job.evaluate(b)
+            spent[-1] += time.perf_counter() - t
+            return out
+
+        t = time.perf_counter()
+        r = run(job.models, timed, job.settings, job.stop, job.seed)
+        walls.append(time.perf_counter() - t)
+    n = r.n_simulations
+    return {"one_batch": len(batch.theta) / best, "own_batches": n / min(spent), "serial": n / min(walls),
+            "simulations": n}
+
+
+def d41_table(counts: list[int], populations: int, tmp: Path) -> None:
+    spec, base = d41_spec(populations)
+    k = kernel_alone(spec, base, repeats=20)
+    print(f"\n## paper §4.1 (examples/duffing_41, real kernels), {populations} populations, "
+          f"batch size {spec.sampler.batch_size}, LocalCluster")
+    print(f"kernel alone, this process: {k['one_batch']:.0f} sims/s on one batch of prior draws (epsilon = inf, best of "
+          f"20 calls); {k['own_batches']:.0f} sims/s on a serial in-process run's own batches (early rejection; "
+          f"{k['simulations']} simulations; best of 3 runs); that serial run end to end (engine, no Dask, no store): "
+          f"{k['serial']:.0f} sims/s")
+    print("| workers | simulations | wall s | sims/s end to end | runner CPU µs/sim | workers CPU µs/sim | "
+          "end to end / (N x kernel alone) | same, vs the run's own batches | load |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|", flush=True)
+    for n in counts:
+        with local_cluster(n) as (client, pids, _):
+            r = measure(client, pids, spec, base, tmp, count=False)
+        print(f"| {n} | {r['simulations']} | {r['wall']:.2f} | {r['rate']:.0f} | {r['runner_us']:.0f} | "
+              f"{r['workers_us']:.0f} | {r['rate'] / (n * k['one_batch']):.3f} | {r['rate'] / (n * k['own_batches']):.3f} | "
+              f"{r['load']:.1f} |",
+              flush=True)
+
+
+def _counts(text: str) -> list[int]:
+    return [int(x) for x in text.split(",") if x.strip()]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--workers", type=_counts, default=[1, 2, 4, 8, 16, 32], help="LocalCluster sizes (1,2,4)")
+    parser.add_argument("--stock-workers", type=_counts, default=[1, 8], help="stock cluster sizes")
+    parser.add_argument("--populations", type=int, default=10, help="populations of the sleepy job")
+    parser.add_argument("--batch-size", type=int, default=None, help="override the sleepy job's sampler.batch_size")
+    parser.add_argument("--d41-workers", type=_counts, default=[1, 2])
+    parser.add_argument("--d41-populations", type=int, default=6)
+    parser.add_argument("--skip-local", action="store_true")
+    parser.add_argument("--skip-stock", action="store_true")
+    parser.add_argument("--skip-d41", action="store_true")
+    parser.add_argument("--quick", action="store_true", help="a smoke run: 1 population, 1-2 workers")
+    args = parser.parse_args()
+    if args.quick:
+        args.workers, args.stock_workers, args.populations = [1, 2], [1], 1
+        args.d41_workers, args.d41_populations = [1, 2], 1
+
+    spec, base = sleepy_spec(args.populations, args.batch_size)
+    print(f"# scale-out: {spec.name}, cubic model, {spec.sampler.particles} particles, batch size "
+          f"{spec.sampler.batch_size}, {args.populations} populations, {1e3 * sleepy.SECONDS:g} ms sleep per simulation; "
+          f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
+    with tempfile.TemporaryDirectory(prefix="abcns-scale-") as tmpdir:
+        tmp = Path(tmpdir)
+        if not args.skip_local:
+            sleepy_table("latency-bound, LocalCluster (scheduler in the runner's process)", local_cluster,
+                         args.workers, spec, base, tmp, stock=False)
+        if not args.skip_stock:
+            sleepy_table("latency-bound, stock `dask scheduler` + `dask worker --nworkers N --nthreads 1`",
+                         lambda n: stock_cluster(n, tmp), args.stock_workers, spec, base, tmp, stock=True)
+        if not args.skip_d41:
+            d41_table(args.d41_workers, args.d41_populations, tmp)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,41 @@
+"""The scale-out benchmark runs (its speed is reported, never tested): ``--quick`` starts
+LocalClusters of 1 and 2 workers and a stock ``dask scheduler``/``dask worker``, runs the
+sleepy plugin job and the §4.1 job for one population each, and prints its tables."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks import sleepy
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_sleepy_plugin_is_duffing_plus_sleep():
+    from worker import registry
+    from worker.simulators import Duffing
+
+    factory = registry.get(sleepy.NAME, allow_import=True)
+    kwargs = dict(force=np.sin(np.arange(50) / 5), dt=0.01, n_samples=50, substeps=1, output="displacement",
+                  state_bound=1e3)
+    sim = factory(**kwargs)
+    ref = Duffing(**{k: v for k, v in kwargs.items() if k != "n_samples"})  # an oscillator's length is its force's
+    params = np.array([[1.0, 0.1, 50.0, 0.0, 1000.0, 0.0]] * 5)
+    before = sleepy.simulated()
+    out = sim.simulate(params, np.random.default_rng(0))
+    np.testing.assert_array_equal(out.values, ref.simulate(params).values)
+    assert sleepy.simulated() - before == 5
+    assert (sim.parameter_names, sim.n_samples, sim.config()["simulator"]) == (ref.parameter_names, 50, sleepy.NAME)
+
+
+@pytest.mark.slow
+@pytest.mark.distributed
+def test_scale_benchmark_runs():
+    done = subprocess.run([sys.executable, "-m", "benchmarks.scale", "--quick"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert "| workers | simulations | executed | wall s | sims/s | ideal sims/s | efficiency |" in done.stdout
+    assert "end to end / (N x kernel alone)" in done.stdout
