@@ -1,25 +1,35 @@
 # Two commands do all the set-up on a fresh machine (Python 3.11): `make demo`, `make test`.
+# `make demo` installs the runtime dependencies only; `make test` adds the dev extra
+# (pytest, ruff, mypy, the HTTP, browser and container test tools) to the same .venv.
 PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed
+RUNTIME := $(VENV)/.installed-runtime
+DEV := $(VENV)/.installed-dev
+# setuptools' note that an editable install's folders shadow same-named ones is about this
+# very checkout; nothing to act on
+PIP := PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip
 
 .PHONY: demo test browser bench bench-peers clean
 
-$(STAMP): pyproject.toml
+$(RUNTIME): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or: make PYTHON=python3)"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev]'
-	touch $(STAMP)
+	$(PIP) install --quiet --upgrade pip
+	$(PIP) install --quiet -e .
+	touch $(RUNTIME)
 
-demo: $(STAMP)
+$(DEV): $(RUNTIME)
+	$(PIP) install --quiet -e '.[dev]'
+	touch $(DEV)
+
+demo: $(RUNTIME)
 	rm -rf out/authors-demo.zarr
-	$(BIN)/abcns run examples/authors_demo/spec.yaml --out out/authors-demo.zarr --quiet
-	$(BIN)/abcns summary out/authors-demo.zarr
+	$(BIN)/abcns run examples/authors_demo/spec.yaml --out out/authors-demo.zarr
 
-test: $(STAMP) browser
+test: $(DEV) browser
 	$(BIN)/ruff check abcns worker service tests benchmarks examples
+	$(BIN)/mypy abcns worker
 	$(BIN)/python -m pytest
 
 # Debian's chromium for the live-page test (as root, e.g. in CI); nothing downloaded from elsewhere
@@ -28,14 +38,14 @@ browser:
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
 	  else echo "chromium is missing and this is not root: the browser test will be skipped"; fi; }
 
-bench: $(STAMP)
+bench: $(RUNTIME)
 	$(BIN)/python -m benchmarks.engine
 	$(BIN)/python -m benchmarks.simulators
 	$(BIN)/python -m benchmarks.runner
 
 # abcns side by side with pyABC (the optional extra .[bench]): writes benchmarks/peers/RESULTS.md (~30-45 min on 2 cores)
-bench-peers: $(STAMP)
-	$(BIN)/pip install --quiet -e '.[dev,bench]'
+bench-peers: $(DEV)
+	$(PIP) install --quiet -e '.[dev,bench]'
 	$(BIN)/python -m benchmarks.peers --seeds 3
 
 clean:
