@@ -1,24 +1,38 @@
-"""Batches of proposals, their evaluation, and the executor protocol.
+"""Batches: how they are drawn, how they are evaluated, and the executor protocol.
 
-An executor takes an iterable of :class:`Batch` and yields one :class:`Evaluated` per
-batch **in submission order** (never in completion order: simulation cost depends on
-the parameters, so taking whatever finishes first biases the posterior). The caller
-pulls lazily and closes the iterator when it has enough; an executor that runs batches
-ahead cancels the surplus on close. :class:`SerialExecutor` is the in-process reference;
-the Dask executor lives in ``service/`` behind the same protocol.
+A :class:`Draw` describes one batch: how many proposals, from which proposer, with which
+seed (keyed by job seed, population and batch index, never by the cluster). Wherever it runs,
+:func:`run_draw` draws the proposals (a :class:`Batch`), simulates them with the job's
+evaluator and returns a :class:`Simulated`: the distances and statuses of every row, and the
+parameters only of the rows that can be accepted. So proposals are made where the
+simulations run (the runner ships a description of a few kilobytes, not the proposals), and
+the result of a draw is the same in this process or on any worker.
+
+An executor takes an iterable of :class:`Draw` and yields one :class:`Simulated` per draw
+**in submission order** (never in completion order: simulation cost depends on the
+parameters, so taking whatever finishes first biases the posterior). The caller pulls lazily
+and closes the iterator when it has enough; an executor that runs draws ahead cancels the
+surplus on close. :class:`SerialExecutor` is the in-process reference; the Dask executor
+lives in ``service/`` behind the same protocol.
 """
 
 from __future__ import annotations
 
+import pickle
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Literal, Protocol, cast, overload
 
 import numpy as np
 
+from abcns.settings import Stopped, StopReason
+
 #: simulation status codes
 OK, DIVERGED, FAILED = 0, 1, 2
 STATUS_NAMES = {OK: "ok", DIVERGED: "diverged", FAILED: "failed"}
+
+# propose(n, rng) -> (models (n,), theta (n, d_max), redraws (n,)); picklable (a worker calls it)
+Propose = Callable[[int, np.random.Generator], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,9 +70,98 @@ class Evaluated:
 Evaluate = Callable[[Batch], Evaluated]
 
 
+@dataclass(frozen=True, eq=False)
+class Draw:
+    """One batch, described: ``size`` proposals from ``propose``, seeded by
+    ``SeedSequence(seed, spawn_key=(population, index))``, whose two children seed the
+    proposals and the simulations. ``keep_all``: every simulated row is kept with its
+    parameters (the pilot), not only those with distance < ``epsilon``."""
+
+    population: int
+    index: int
+    size: int
+    epsilon: float
+    seed: int
+    propose: Propose
+    keep_all: bool = False
+
+    def seeds(self) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
+        """(proposal seed, simulation seed): the children ``SeedSequence(seed, spawn_key=
+        (t, b)).spawn(2)`` would give, built directly so a draw can be run twice."""
+        key = (self.population, self.index)
+        return (np.random.SeedSequence(self.seed, spawn_key=key + (0,)),
+                np.random.SeedSequence(self.seed, spawn_key=key + (1,)))
+
+    def __reduce__(self) -> tuple:
+        return (unpack_draws_one, (pack_draws([self]),))
+
+    def batch(self) -> Batch:
+        """The proposals (raises Stopped(PROPOSAL_EXHAUSTED) when a bound lies outside the prior)."""
+        proposal_seed, simulation_seed = self.seeds()
+        models, theta, redraws = self.propose(self.size, np.random.default_rng(proposal_seed))
+        return Batch(self.population, self.index, models, theta, float(self.epsilon), simulation_seed, redraws)
+
+
+def pack_draws(draws: Sequence[Draw]) -> bytes:
+    """Draws as bytes, pickled in-band in one go (a proposer they share is written once).
+
+    In-band, so the arrays of the proposer (ellipsoids, kernels) unpickle into fresh, aligned
+    memory wherever the draws run: out-of-band buffers (pickle 5, as Dask sends them) land at
+    any byte offset, and some numpy loops round differently on unaligned data."""
+    fields = [(d.population, d.index, d.size, d.epsilon, d.seed, d.propose, d.keep_all) for d in draws]
+    return pickle.dumps(fields, protocol=4)
+
+
+def unpack_draws(data: bytes) -> list[Draw]:
+    return [Draw(*fields) for fields in pickle.loads(data)]
+
+
+def unpack_draws_one(data: bytes) -> Draw:
+    return unpack_draws(data)[0]
+
+
+@dataclass(frozen=True, eq=False)
+class Simulated:
+    """What the runner needs of a draw: per row the model, distance (+inf when not OK),
+    status and prior-bound redraws; ``theta`` holds only the kept rows (OK with distance <
+    epsilon, or every row with ``keep_all``), in row order. ``stop`` is set (and the arrays
+    empty) when the proposals could not be drawn."""
+
+    models: np.ndarray  # (n,) int16
+    distances: np.ndarray  # (n,) float
+    status: np.ndarray  # (n,) int8
+    redraws: np.ndarray  # (n,) int64
+    theta: np.ndarray  # (kept, d_max) float
+    stop: StopReason | None = None
+
+    def __len__(self) -> int:
+        return int(self.models.shape[0])
+
+    def kept(self, epsilon: float, keep_all: bool) -> np.ndarray:
+        """(n,) bool: the rows whose parameters ``theta`` holds."""
+        if keep_all:
+            return np.ones(len(self), bool)
+        return (self.status == OK) & (self.distances < epsilon)
+
+
+def run_draw(evaluate: Evaluate, draw: Draw) -> Simulated:
+    """Draw a batch's proposals, evaluate them, keep what the runner needs (in any process)."""
+    try:
+        batch = draw.batch()
+    except Stopped as stopped:
+        empty = np.zeros(0)
+        return Simulated(empty.astype(np.int16), empty, empty.astype(np.int8), empty.astype(np.int64),
+                         np.zeros((0, 0)), stopped.reason)
+    evaluated = evaluate_batch(evaluate, batch)
+    simulated = Simulated(batch.models.astype(np.int16, copy=False), evaluated.distances, evaluated.status,
+                          batch.redraws, np.zeros((0, batch.theta.shape[1])))
+    kept = simulated.kept(draw.epsilon, draw.keep_all)
+    return Simulated(simulated.models, simulated.distances, simulated.status, simulated.redraws, batch.theta[kept])
+
+
 class Executor(Protocol):
-    def map(self, batches: Iterable[Batch]) -> Iterator[Evaluated]:
-        """Evaluate batches; yield results in submission order; cancel surplus on close()."""
+    def map(self, draws: Iterable[Draw]) -> Iterator[Simulated]:
+        """Run draws (:func:`run_draw`); yield results in submission order; cancel surplus on close()."""
         ...
 
 
@@ -77,14 +180,14 @@ def evaluate_batch(evaluate: Evaluate, batch: Batch) -> Evaluated:
 
 
 class SerialExecutor:
-    """Evaluate one batch at a time in this process."""
+    """Run one draw at a time in this process."""
 
     def __init__(self, evaluate: Evaluate):
         self.evaluate = evaluate
 
-    def map(self, batches: Iterable[Batch]) -> Iterator[Evaluated]:
-        for batch in batches:
-            yield evaluate_batch(self.evaluate, batch)
+    def map(self, draws: Iterable[Draw]) -> Iterator[Simulated]:
+        for draw in draws:
+            yield run_draw(self.evaluate, draw)
 
 
 SimulateDistance = Callable[[np.ndarray, np.random.Generator], tuple[np.ndarray, np.ndarray]]

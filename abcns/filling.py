@@ -1,28 +1,27 @@
-"""Filling a population: batches of proposals out, results consumed in submission order.
+"""Filling a population: draws out, results consumed in submission order.
 
-Shared by ABC-NS, ABC-SMC and rejection. Proposals for batch ``b`` of population ``t``
-come from a generator seeded by ``SeedSequence(seed, spawn_key=(t, b))`` (``b >= 1``;
+Shared by ABC-NS, ABC-SMC and rejection. Batch ``b`` of population ``t`` is a
+:class:`abcns.executor.Draw` seeded by ``SeedSequence(seed, spawn_key=(t, b))`` (``b >= 1``;
 ``b = 0`` is kept for population-level draws such as the survivor selection; the pilot
-is population 0). Particles are accepted in batch order and, within a batch, in row
-order, until the population is full, so the accepted set and every counter are exactly
-those of a serial one-at-a-time run over the same random stream, whatever the executor.
+is population 0); the executor draws its proposals and simulates them where it runs.
+Particles are accepted in batch order and, within a batch, in row order, until the
+population is full, so the accepted set and every counter are exactly those of a serial
+one-at-a-time run over the same random stream, whatever the executor.
 """
 
 from __future__ import annotations
 
 import itertools
 import time
-from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
-from abcns.executor import OK, Batch, Executor
-from abcns.settings import StopReason, StopRules
+from abcns.executor import OK, Draw, Executor, Propose
+from abcns.settings import Stopped, StopReason, StopRules
 
-# propose(n, rng) -> (models (n,), theta (n, d_max), redraws (n,))
-Propose = Callable[[int, np.random.Generator], tuple[np.ndarray, np.ndarray, np.ndarray]]
+__all__ = ["Budget", "Filled", "Propose", "Stopped", "draw_inside", "draws", "fill", "population_rng"]
 
 
 def population_rng(seed: int, t: int) -> np.random.Generator:
@@ -63,14 +62,6 @@ def draw_inside(
         if n_got < n and n_drawn > max_redraws * n + 10_000:
             raise Stopped(StopReason.PROPOSAL_EXHAUSTED)
     return np.concatenate(got), np.concatenate(gaps)
-
-
-class Stopped(Exception):
-    """A stop rule ended a population before it was full."""
-
-    def __init__(self, reason: StopReason):
-        super().__init__(reason.value)
-        self.reason = reason
 
 
 class Budget:
@@ -127,11 +118,11 @@ class Filled:
                 np.bincount(self.models, minlength=n_models))
 
 
-def batches(propose: Propose, *, seed: int, t: int, epsilon: float, batch_size: int) -> Iterator[Batch]:
+def draws(propose: Propose, *, seed: int, t: int, epsilon: float, batch_size: int,
+          keep_all: bool = False) -> Iterator[Draw]:
+    """The endless stream of population ``t``'s draws, batch indices 1, 2, ..."""
     for b in itertools.count(1):
-        proposal_seed, simulation_seed = np.random.SeedSequence(seed, spawn_key=(t, b)).spawn(2)
-        models, theta, redraws = propose(batch_size, np.random.default_rng(proposal_seed))
-        yield Batch(t, b, models, theta, float(epsilon), simulation_seed, redraws)
+        yield Draw(t, b, batch_size, float(epsilon), seed, propose, keep_all)
 
 
 def fill(
@@ -157,19 +148,14 @@ def fill(
     kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     simulated: list[np.ndarray] = []
     n_kept = n_sims = n_failed = n_redraws = 0
-    issued: deque[Batch] = deque()  # batches handed to the executor, oldest first
-
-    def tracked() -> Iterator[Batch]:
-        for batch in batches(propose, seed=seed, t=t, epsilon=epsilon, batch_size=batch_size):
-            issued.append(batch)
-            yield batch
-
-    results = executor.map(tracked())
+    results = executor.map(draws(propose, seed=seed, t=t, epsilon=epsilon, batch_size=batch_size,
+                                 keep_all=accept_all))
     try:
-        for evaluated in results:
-            batch = issued.popleft()  # results arrive in submission order
-            ok = evaluated.status == OK
-            accept = np.ones(len(batch), bool) if accept_all else ok & (evaluated.distances < epsilon)
+        for batch in results:  # in submission order
+            if batch.stop is not None:
+                raise Stopped(batch.stop)
+            ok = batch.status == OK
+            accept = batch.kept(epsilon, accept_all)
             # the row at which this batch completes the population, if it does
             cum = np.cumsum(accept)
             full = np.searchsorted(cum, n_needed - n_kept)  # first row where cum reaches the need
@@ -178,8 +164,8 @@ def fill(
             if cut := (left is not None and left < n_rows):
                 n_rows = left
             rows = slice(0, n_rows)
-            take = np.flatnonzero(accept[rows])
-            kept.append((batch.models[take], batch.theta[take], evaluated.distances[take]))
+            take = np.flatnonzero(accept[rows])  # a prefix of the kept rows, whose theta the batch holds
+            kept.append((batch.models[take], batch.theta[: take.size], batch.distances[take]))
             simulated.append(batch.models[rows])
             n_kept += take.size
             n_sims += n_rows

@@ -47,7 +47,7 @@ from abcns import bounds as bd
 from abcns import ellipsoid as ell
 from abcns import evidence as ev
 from abcns.executor import Executor
-from abcns.filling import Budget, Filled, Propose, Stopped, draw_inside, fill, population_rng
+from abcns.filling import Budget, Filled, Stopped, draw_inside, fill, population_rng
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
 from abcns.result import Population, RunEnd
@@ -265,36 +265,39 @@ def finish_population(
     return Step(eps_next, weights, survivors, tuple(bounds), evidence, probabilities, notes)
 
 
-def bound_proposer(
-    models: Sequence[Model], frames: Sequence[bd.Frame], bounds: Sequence[bd.Union],
-    allocation: np.ndarray | None, max_redraws: int,
-) -> Propose:
+@dataclass(frozen=True, eq=False)
+class BoundProposer:
     """Each proposal picks a model (with equal probability among those with a bound when
     ``allocation`` is None, the paper's rule; else by ``allocation``), then a point uniform
     in its bound, redrawn until inside the prior box. ``redraws[i]`` is the number of
     out-of-box draws before proposal i, exactly as a one-at-a-time loop would count them."""
-    alive = [m for m, b in enumerate(bounds) if b]
 
-    def propose(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if allocation is None:
+    models: tuple[Model, ...]
+    frames: tuple[bd.Frame, ...]
+    bounds: tuple[bd.Union, ...]
+    allocation: np.ndarray | None
+    max_redraws: int
+
+    def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        alive = [m for m, b in enumerate(self.bounds) if b]
+        if self.allocation is None:
             which = np.asarray(alive, dtype=np.int16)[rng.integers(len(alive), size=n)]
         else:
-            which = rng.choice(len(models), size=n, p=allocation).astype(np.int16)
-        theta = pad(models, n)
+            which = rng.choice(len(self.models), size=n, p=self.allocation).astype(np.int16)
+        theta = pad(self.models, n)
         redraws = np.zeros(n, dtype=np.int64)
         for m in alive:
             rows = np.flatnonzero(which == m)
             if rows.size == 0:
                 continue
-            model, frame, bound = models[m], frames[m], bounds[m]
+            model, frame, bound = self.models[m], self.frames[m], self.bounds[m]
 
             def draw(k: int, g: np.random.Generator, b: bd.Union = bound, f: bd.Frame = frame) -> np.ndarray:
                 return f.from_frame(bd.sample_union(b, k, g))
 
-            theta[rows, : model.n_dim], redraws[rows] = draw_inside(draw, model.in_prior, rows.size, rng, max_redraws)
+            theta[rows, : model.n_dim], redraws[rows] = draw_inside(draw, model.in_prior, rows.size, rng,
+                                                                    self.max_redraws)
         return which, theta, redraws
-
-    return propose
 
 
 def abc_ns(
@@ -350,8 +353,8 @@ def abc_ns(
             budget.check()
             t, eps = pop.t + 1, pop.epsilon_next
             assert pop.evidence is not None and pop.survivors is not None  # set on every ABC-NS population
-            propose = bound_proposer(models, frames, pop.ellipsoids,
-                                     pop.evidence.allocation if settings.evidence else None, settings.max_redraws)
+            propose = BoundProposer(tuple(models), tuple(frames), tuple(pop.ellipsoids),
+                                    pop.evidence.allocation if settings.evidence else None, settings.max_redraws)
             filled = fill(propose, settings.n_new, eps, executor, budget,
                           seed=seed, t=t, batch_size=settings.batch_size)
             keep = np.flatnonzero(pop.survivors)

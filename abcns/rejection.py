@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Generator, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -19,18 +20,23 @@ def pad(models: Sequence[Model], n: int) -> np.ndarray:
     return np.full((n, max(m.n_dim for m in models)), np.nan)
 
 
-def prior_proposer(models: Sequence[Model]) -> Propose:
+@dataclass(frozen=True, eq=False)
+class PriorProposer:
     """Each proposal picks a model with equal probability, then draws from its prior."""
 
-    def propose(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        which = rng.integers(len(models), size=n)
-        theta = pad(models, n)
-        for i, model in enumerate(models):
+    models: tuple[Model, ...]
+
+    def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        which = rng.integers(len(self.models), size=n)
+        theta = pad(self.models, n)
+        for i, model in enumerate(self.models):
             rows = np.flatnonzero(which == i)
             theta[rows, : model.n_dim] = model.sample_prior(rows.size, rng)
         return which.astype(np.int16), theta, np.zeros(n, dtype=np.int64)
 
-    return propose
+
+def prior_proposer(models: Sequence[Model]) -> Propose:
+    return PriorProposer(tuple(models))
 
 
 def initial_epsilon(

@@ -26,6 +26,17 @@ class StopReason(enum.StrEnum):
     PILOT_FAILED = "pilot_failed"  # every prior-predictive simulation of the pilot failed or diverged
 
 
+
+class Stopped(Exception):
+    """A stop rule ended a population before it was full (picklable: a worker may raise it)."""
+
+    def __init__(self, reason: StopReason):
+        super().__init__(reason.value)
+        self.reason = StopReason(reason)
+
+    def __reduce__(self):
+        return (Stopped, (self.reason,))
+
 # The documented valid ranges of the numeric settings (README, "Spec"): what one process
 # can hold and a run can count, not admission limits (a service sets lower ones).
 MAX_PARTICLES = 10**8  # a population of 10^8 particles of 8 parameters is ~7 GB in the runner

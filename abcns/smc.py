@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Generator, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.special import logsumexp
 
 from abcns.executor import Executor
-from abcns.filling import Budget, Propose, Stopped, draw_inside, fill
+from abcns.filling import Budget, Stopped, draw_inside, fill
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer, uniform_weights
 from abcns.result import Population, RunEnd
@@ -53,22 +53,29 @@ class Kernel:
         return logsumexp(log_k, b=self.weights[None, :], axis=1)
 
 
-def kernel_proposer(models: Sequence[Model], p_model: np.ndarray, kernels: Sequence[Kernel | None], max_redraws: int) -> Propose:
-    def propose(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        which = rng.choice(len(models), size=n, p=p_model).astype(np.int16)
-        theta = pad(models, n)
+@dataclass(frozen=True, eq=False)
+class KernelProposer:
+    """Each proposal picks a model by ``p_model``, then a point from its kernel (a weighted
+    particle perturbed by a Gaussian), redrawn until inside the prior box."""
+
+    models: tuple[Model, ...]
+    p_model: np.ndarray
+    kernels: tuple[Kernel | None, ...]
+    max_redraws: int
+
+    def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        which = rng.choice(len(self.models), size=n, p=self.p_model).astype(np.int16)
+        theta = pad(self.models, n)
         redraws = np.zeros(n, dtype=np.int64)
-        for m, model in enumerate(models):
+        for m, model in enumerate(self.models):
             rows = np.flatnonzero(which == m)
             if rows.size:
-                kernel = kernels[m]
+                kernel = self.kernels[m]
                 assert kernel is not None  # drawn, so p_model[m] > 0
                 theta[rows, : model.n_dim], redraws[rows] = draw_inside(
-                    kernel.sample, model.in_prior, rows.size, rng, max_redraws
+                    kernel.sample, model.in_prior, rows.size, rng, self.max_redraws
                 )
         return which, theta, redraws
-
-    return propose
 
 
 def abc_smc(
@@ -127,7 +134,7 @@ def abc_smc(
                 for m, model in enumerate(models)
             ]
             eps = pop.epsilon_next
-            filled = fill(kernel_proposer(models, p_model, kernels, settings.max_redraws),
+            filled = fill(KernelProposer(tuple(models), p_model, tuple(kernels), settings.max_redraws),
                           settings.particles, eps, executor, budget,
                           seed=seed, t=pop.t + 1, batch_size=settings.batch_size)
             log_w = np.empty(filled.models.shape[0])

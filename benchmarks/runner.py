@@ -26,7 +26,7 @@ import numpy as np
 from distributed import Client, LocalCluster
 
 from abcns import run
-from abcns.filling import batches
+from abcns.filling import draws
 from abcns.rejection import prior_proposer
 from service.run.runner import run_job
 from service.spec import build, load
@@ -53,7 +53,7 @@ def main() -> None:
     rows = []
 
     # the simulator alone: one batch of 1000 prior draws, in-kernel NMSE, best of 5
-    batch = next(batches(prior_proposer(job.models), seed=0, t=1, epsilon=np.inf, batch_size=1000))
+    batch = next(draws(prior_proposer(job.models), seed=0, t=1, epsilon=np.inf, batch_size=1000)).batch()
     job.evaluate(batch)  # compile / load the cache
     best = min(_timed(lambda: job.evaluate(batch)) for _ in range(5))
     rows.append(("simulator alone (1 core, batch 1000)", 1000 / best, None))

@@ -56,7 +56,7 @@ import yaml
 from distributed import Client, LocalCluster
 
 from abcns import run
-from abcns.filling import batches
+from abcns.filling import draws
 from abcns.rejection import prior_proposer
 from benchmarks import sleepy
 from service.run.runner import run_job
@@ -263,7 +263,7 @@ def kernel_alone(spec: JobSpec, base: Path, repeats: int) -> dict:
     of ``repeats`` calls); a serial in-process run (best of 3): its wall and the evaluator's
     time on its own batches."""
     job = build(spec, base)
-    batch = next(batches(prior_proposer(job.models), seed=0, t=1, epsilon=np.inf, batch_size=job.settings.batch_size))
+    batch = next(draws(prior_proposer(job.models), seed=0, t=1, epsilon=np.inf, batch_size=job.settings.batch_size)).batch()
     job.evaluate(batch)  # compile / load numba's cache
     best = np.inf
     for _ in range(repeats):

@@ -52,11 +52,11 @@ def test_pilot_sets_the_first_tolerance_and_is_reported():
     assert r.n_pilot_simulations == 200
     assert r.n_simulations == 200 + sum(p.n_simulations for p in r.populations)
     # the pilot is population 0 of the seed stream: redo it by hand
-    from abcns.filling import batches
+    from abcns.filling import draws
     from abcns.rejection import prior_proposer
 
-    gen = batches(prior_proposer(models), seed=4, t=0, epsilon=np.inf, batch_size=50)
-    d = np.concatenate([ev(next(gen)).distances for _ in range(4)])
+    gen = draws(prior_proposer(models), seed=4, t=0, epsilon=np.inf, batch_size=50)
+    d = np.concatenate([ev(next(gen).batch()).distances for _ in range(4)])
     assert r.populations[0].epsilon == pytest.approx(np.quantile(d, 0.3, method="higher"))
     given = run(models, ev, NSSettings(particles=200, batch_size=50, epsilon_initial=1.0), StopRules(max_populations=1),
                 seed=4)

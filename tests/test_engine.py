@@ -22,6 +22,7 @@ from abcns import (
     per_model,
     run,
 )
+from abcns.executor import run_draw
 from abcns.nested import apportion, survivor_quotas
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,9 +49,9 @@ def test_same_seed_same_result_other_seed_different():
 
 
 class ShuffledLookahead:
-    """An executor that runs up to ``ahead`` batches in advance and evaluates them in a
+    """An executor that runs up to ``ahead`` draws in advance and runs them in a
     scrambled order, yet yields in submission order, as a Dask executor would; records
-    how many batches it ran and how many were thrown away on close()."""
+    how many draws it ran and how many were thrown away on close()."""
 
     def __init__(self, evaluate, ahead=4, seed=0):
         self.evaluate, self.ahead = evaluate, ahead
@@ -71,7 +72,7 @@ class ShuffledLookahead:
                     return
                 for i in self.rng.permutation(len(pending)):  # completion order scrambled
                     if pending[i][1] is None:
-                        pending[i][1] = self.evaluate(pending[i][0])
+                        pending[i][1] = run_draw(self.evaluate, pending[i][0])
                 yield pending.pop(0)[1]
         finally:
             self.surplus += len(pending)
@@ -197,10 +198,10 @@ def test_raising_simulator_marks_rows_failed_but_bugs_propagate():
         raise FloatingPointError("overflow")
 
     ev = per_model([overflow])
-    from abcns.filling import batches
+    from abcns.filling import draws
     from abcns.rejection import prior_proposer
 
-    b = next(batches(prior_proposer([Model("m", {"x": (0, 1)})]), seed=0, t=1, epsilon=1.0, batch_size=4))
+    b = next(draws(prior_proposer([Model("m", {"x": (0, 1)})]), seed=0, t=1, epsilon=1.0, batch_size=4)).batch()
     out = ev(b)
     assert np.all(out.status == FAILED) and np.all(np.isinf(out.distances))
 
@@ -253,9 +254,9 @@ def test_abcns_stays_pure():
 
 def test_evaluated_type_is_what_executors_return():
     models, ev = gaussian_mean()
-    from abcns.filling import batches
+    from abcns.filling import draws
     from abcns.rejection import prior_proposer
 
-    b = next(batches(prior_proposer(models), seed=0, t=1, epsilon=1.0, batch_size=8))
+    b = next(draws(prior_proposer(models), seed=0, t=1, epsilon=1.0, batch_size=8)).batch()
     out = ev(b)
     assert isinstance(out, Evaluated) and out.distances.shape == (8,) and out.status.dtype == np.int8

@@ -26,7 +26,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from abcns.distances import NMSE, Distance, SummaryEuclidean
-from abcns.executor import OK, Batch, Evaluate, Evaluated, SimulateDistanceEpsilon, evaluate_batch, per_model
+from abcns.executor import OK, Evaluate, Simulated, SimulateDistanceEpsilon, per_model, run_draw, unpack_draws
 from abcns.priors import Model, SpecError
 from worker import registry
 from worker.simulators import NMSECapable, Simulator
@@ -197,9 +197,15 @@ def job_parts(description: dict, arrays: dict,
     ``integrator.substeps`` a simulator with ``omega_max`` gets substeps from
     ``worker.kernels.choose_substeps`` (RK4 error below 1e-4 per radian at the highest
     natural frequency the priors allow). Raises SpecError naming the field.
+
+    The arrays are copied into aligned memory when they are not (data that came over the
+    wire can sit at any byte offset): numpy's reductions take another loop on unaligned
+    data and round differently, which made a worker's distances differ from the runner's
+    in the last bit.
     """
-    observed = np.asarray(arrays["observed"], dtype=float)
+    observed = np.require(arrays["observed"], dtype=float, requirements=("C", "A"))
     force = arrays.get("force")
+    force = np.require(force, dtype=float, requirements=("C", "A")) if force is not None else None
     data = description.get("data", {})
     dist = description.get("distance", {"name": "nmse"})
     if dist["name"] == "nmse":
@@ -234,11 +240,11 @@ def job_payload(description: dict, arrays: dict, allow_import: bool = False) -> 
     return {"description": description, "arrays": arrays, "allow_import": allow_import}
 
 
-def evaluate_on_worker(job_key: str, payload: dict, batches: Sequence[Batch]) -> tuple[list[Evaluated], float]:
-    """The Dask task: evaluate consecutive batches of job ``job_key``; return their results
-    and the seconds it took. ``payload`` (the result of :func:`job_payload`, sent once per
-    job) is turned into an evaluator once per worker process and kept for the job's later
-    batches."""
+def evaluate_on_worker(job_key: str, payload: dict, draws: bytes) -> tuple[list[Simulated], float]:
+    """The Dask task: run consecutive draws of job ``job_key`` (``abcns.executor.pack_draws``;
+    proposals drawn here, then simulated); return their results and the seconds it took.
+    ``payload`` (the result of :func:`job_payload`, sent once per job) is turned into an
+    evaluator once per worker process and kept for the job's later batches."""
     start = time.perf_counter()
     evaluate = _CACHE.get(job_key)
     if evaluate is None:
@@ -248,5 +254,5 @@ def evaluate_on_worker(job_key: str, payload: dict, batches: Sequence[Batch]) ->
             _CACHE.popitem(last=False)
     else:
         _CACHE.move_to_end(job_key)
-    results = [evaluate_batch(evaluate, batch) for batch in batches]
+    results = [run_draw(evaluate, draw) for draw in unpack_draws(draws)]
     return results, time.perf_counter() - start

@@ -33,7 +33,7 @@ from collections.abc import Iterable, Iterator
 
 from distributed import Client, Future
 
-from abcns.executor import Batch, Evaluated
+from abcns.executor import Draw, Simulated, pack_draws
 from worker.evaluate import evaluate_on_worker, job_payload
 
 TASK_SECONDS = 0.1  # compute time a task aims at, at most (the round trip is a few ms)
@@ -70,7 +70,7 @@ class DaskExecutor:
             size = min(size, int(TASK_SECONDS / self.batch_seconds))
         return max(1, size)
 
-    def map(self, batches: Iterable[Batch]) -> Iterator[Evaluated]:
+    def map(self, batches: Iterable[Draw]) -> Iterator[Simulated]:
         pending: deque[tuple[Future, int]] = deque()  # (task, batches in it), oldest first
         it = iter(batches)
         exhausted = False
@@ -88,7 +88,7 @@ class DaskExecutor:
                         break
                     key = (f"abcns-{self.job_key[:12]}-t{group[0].population}"
                            f"-b{group[0].index}-{group[-1].index}-{self.nonce}")
-                    pending.append((self.client.submit(evaluate_on_worker, self.job_key, self.payload, group,
+                    pending.append((self.client.submit(evaluate_on_worker, self.job_key, self.payload, pack_draws(group),
                                                        key=key, pure=False), len(group)))
                     submitted += len(group)
                 if not pending:
