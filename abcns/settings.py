@@ -160,7 +160,7 @@ class NSSettings:
     epsilon_initial: float | None = None
     pilot_size: int | None = None
     pilot_quantile: float = 0.5
-    batch_size: int = 200
+    batch_size: int = 25
     max_redraws: int = 100_000
     variant: str = "evidence"
     max_ellipsoids: int | None = None
@@ -257,7 +257,7 @@ class SMCSettings:
     epsilon_initial: float | None = None
     pilot_size: int | None = None
     pilot_quantile: float = 0.5
-    batch_size: int = 200
+    batch_size: int = 25
     max_redraws: int = 100_000
 
     def __post_init__(self) -> None:
@@ -290,7 +290,7 @@ class RejectionSettings:
     epsilon_initial: float | None = None
     pilot_size: int | None = None
     pilot_quantile: float = 0.5
-    batch_size: int = 200
+    batch_size: int = 25
 
     def __post_init__(self) -> None:
         _check_common(self.particles, self.batch_size, self.epsilon_initial, self.pilot_size)

@@ -41,7 +41,8 @@ def main() -> None:
     lin = linear_31()
     ns = run(lin.models, lin.evaluate, lin.settings, quick or lin.stop, seed=args.seed)
     table("paper §3.1 linear", ns)
-    smc = run(lin.models, lin.evaluate, SMCSettings(particles=1000, schedule=tuple(p.epsilon for p in ns.populations)),
+    smc = run(lin.models, lin.evaluate, SMCSettings(particles=1000, batch_size=200,
+                                                    schedule=tuple(p.epsilon for p in ns.populations)),
               StopRules(max_simulations=2_000_000), seed=args.seed)
     table("paper §3.1 linear, ABC-SMC on the ABC-NS schedule", smc)
     start = time.perf_counter()

@@ -27,7 +27,7 @@ def main() -> None:
     parser.add_argument("--budget", type=int, default=40_000)
     args = parser.parse_args()
     problem = gandk_32()
-    settings = NSSettings(particles=1000, alpha=0.3, beta=0.6, enlargement=1.1, epsilon_initial=100,
+    settings = NSSettings(particles=1000, alpha=0.3, beta=0.6, enlargement=1.1, epsilon_initial=100, batch_size=200,
                           variant=args.variant)
     stop = StopRules(min_epsilon_decrease=1e-5, max_simulations=args.budget)
     print(f"## §3.2 g-and-k, variant {args.variant}, budget {args.budget:,} simulations\n")

@@ -23,11 +23,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-from distributed import Client, LocalCluster
+from distributed import Client
 
 from abcns import run
 from abcns.filling import draws
 from abcns.rejection import prior_proposer
+from service.run.dask_executor import local_cluster
 from service.run.runner import run_job
 from service.spec import build, load
 
@@ -65,7 +66,7 @@ def main() -> None:
     reference = r
 
     for n_workers in (1, 2):
-        with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+        with local_cluster(n_workers) as cluster, \
                 Client(cluster) as client:
             tmp = Path(tempfile.mkdtemp())
             try:

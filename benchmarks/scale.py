@@ -53,12 +53,13 @@ from pathlib import Path
 import numpy as np
 import psutil
 import yaml
-from distributed import Client, LocalCluster
+from distributed import Client
 
 from abcns import run
 from abcns.filling import draws
 from abcns.rejection import prior_proposer
 from benchmarks import sleepy
+from service.run.dask_executor import local_cluster as embedded_cluster
 from service.run.runner import run_job
 from service.spec import JobSpec, build, load, parse
 
@@ -126,8 +127,7 @@ def workers_simulated(client: Client) -> int:
 def local_cluster(n: int) -> Iterator[tuple[Client, list[int], float]]:
     """(client, extra pids to measure, start-up seconds): LocalCluster, scheduler in this process."""
     start = time.perf_counter()
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with embedded_cluster(n) as cluster, Client(cluster) as client:
         client.wait_for_workers(n, timeout=300)
         client.run(_warm_worker)
         yield client, [], time.perf_counter() - start

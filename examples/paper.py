@@ -46,7 +46,7 @@ def authors_demo(path: Path | None = None) -> Problem:
     sim = Duffing(force, dt, substeps=1, state_bound=1e3 * np.max(np.abs(observed)))
     return Problem(
         "authors-demo", models, evaluator(models, [sim, sim], NMSE(observed)),
-        NSSettings(particles=1000, alpha=0.3, beta=0.6, enlargement=1.1, weights="kernel", epsilon_initial=100,
+        NSSettings(particles=1000, alpha=0.3, beta=0.6, enlargement=1.1, weights="kernel", epsilon_initial=100, batch_size=200,
                    variant="paper"),
         StopRules(min_epsilon_decrease=0.01),
         truth={"cubic": {"c": 0.05, "k": 50.0, "k3": 1000.0}},
@@ -64,7 +64,7 @@ def linear_31(seed: int = 31) -> Problem:
     models = [Model("linear", {"c": (10, 50), "k": (5000, 15000)}, {"m": 1})]
     return Problem(
         "paper-3.1-linear", models, evaluator(models, [sim], NMSE(observed)),
-        NSSettings(particles=1000, alpha=0.3, beta=0.6, enlargement=1.1, epsilon_initial=100),
+        NSSettings(particles=1000, alpha=0.3, beta=0.6, enlargement=1.1, epsilon_initial=100, batch_size=200),
         StopRules(min_epsilon_decrease=1e-3),
         truth={"linear": {"c": 20.0, "k": 1e4}},
         data={"force": force, "observed": observed, "dt": np.array(dt)},
@@ -79,7 +79,7 @@ def gandk_32(seed: int = 32) -> Problem:
     models = [Model("gandk", {p: (0, 10) for p in ("A", "B", "g", "k")}, {"c": 0.8})]
     return Problem(
         "paper-3.2-gandk", models, evaluator(models, [gk], SummaryEuclidean(observed, "gk")),
-        NSSettings(particles=1000, alpha=0.3, beta=0.6, enlargement=1.1, epsilon_initial=100),
+        NSSettings(particles=1000, alpha=0.3, beta=0.6, enlargement=1.1, epsilon_initial=100, batch_size=200),
         StopRules(min_epsilon_decrease=1e-5),
         truth={"gandk": {"A": 3.0, "B": 1.0, "g": 2.0, "k": 0.5}},
         data={"observed": observed},

@@ -150,7 +150,9 @@ def run(
         else:
             typer.echo(line)
 
-    from distributed import Client, LocalCluster
+    from distributed import Client
+
+    from service.run.dask_executor import local_cluster
 
     if dashboard and importlib.util.find_spec("bokeh") is None:
         typer.echo("warning: the Dask dashboard needs bokeh (pip install 'abcns[dashboard]'); running without it", err=True)
@@ -160,8 +162,7 @@ def run(
             client = stack.enter_context(Client(scheduler))
         else:
             n = workers or os.cpu_count() or 1
-            cluster = stack.enter_context(LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                                       dashboard_address=":0" if dashboard else None))
+            cluster = stack.enter_context(local_cluster(n, dashboard))
             client = stack.enter_context(Client(cluster))
         if client.dashboard_link and (dashboard or scheduler):
             typer.echo(f"Dask dashboard: {client.dashboard_link}", err=True)

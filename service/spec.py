@@ -94,7 +94,7 @@ class SamplerSpec(_Strict):
     epsilon_initial: float | None = None
     pilot_size: int | None = None
     pilot_quantile: float = 0.5
-    batch_size: int = 200
+    batch_size: int = 25
     variant: Literal["evidence", "paper"] | None = None  # abc-ns ("evidence")
     max_ellipsoids: int | None = None  # abc-ns, evidence variant
     min_model_probability: float | None = None  # abc-ns, evidence variant

@@ -45,6 +45,7 @@ from service.http import page
 from service.http.jobs import JobManager, JobRecord, QueueFull, clean_text
 from service.http.schemas import NAME_MAX_CHARS, PAGE_MAX, Health, JobCreated, JobInfo, PopulationOut, Status, Summary
 from service.http.settings import Settings
+from service.run.dask_executor import local_cluster
 from service.run.store import Store, StoreError
 from service.spec import JobSpec, _field
 
@@ -486,8 +487,7 @@ def docs_asset(name: str) -> FileResponse:
 def _connect(settings: Settings) -> tuple[Client, LocalCluster | None]:
     if settings.scheduler:
         return Client(settings.scheduler, timeout=30), None
-    cluster = LocalCluster(n_workers=settings.workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                           dashboard_address=None)
+    cluster = local_cluster(settings.workers or os.cpu_count() or 1)
     return Client(cluster), cluster
 
 

@@ -31,12 +31,25 @@ import uuid
 from collections import deque
 from collections.abc import Iterable, Iterator
 
-from distributed import Client, Future
+import dask
+from distributed import Client, Future, LocalCluster
 
 from abcns.executor import Draw, Simulated, pack_draws
 from worker.evaluate import evaluate_on_worker, job_payload
 
 TASK_SECONDS = 0.1  # compute time a task aims at, at most (the round trip is a few ms)
+
+#: Dask settings for abcns's workers: no statistical profiler (it samples every worker's
+#: threads every 10 ms; with many workers per core it took a measurable share of the CPU).
+#: ``local_cluster`` applies them; for stock workers, see docs/deploy.md.
+WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
+
+
+def local_cluster(n_workers: int, dashboard: bool = False) -> LocalCluster:
+    """The embedded cluster: ``n_workers`` single-threaded worker processes on this machine."""
+    with dask.config.set(WORKER_CONFIG):
+        return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                            dashboard_address=":0" if dashboard else None)
 
 
 class DaskExecutor:
