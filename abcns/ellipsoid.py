@@ -76,9 +76,13 @@ def mahalanobis2(ell: Ellipsoid, x: np.ndarray) -> np.ndarray:
     return np.sum(y * y, axis=0)
 
 
+#: relative slack of :func:`contains` (a point on the boundary is inside)
+CONTAINS_SLACK = 1e-9
+
+
 def contains(ell: Ellipsoid, x: np.ndarray) -> np.ndarray:
     """Boolean mask: which rows of ``x`` lie inside (boundary included, 1e-9 slack)."""
-    return mahalanobis2(ell, x) <= 1.0 + 1e-9
+    return mahalanobis2(ell, x) <= 1.0 + CONTAINS_SLACK
 
 
 def enlarge(ell: Ellipsoid, f0: float) -> Ellipsoid:
