@@ -5,8 +5,8 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
-from typing import TypeGuard
+from dataclasses import asdict, dataclass, field
+from typing import Literal, TypeGuard
 
 from abcns.priors import Model, SpecError
 
@@ -44,6 +44,11 @@ MAX_BATCH_SIZE = 10**7
 MAX_COUNT = 2**62  # simulations, populations, pilot sizes, redraws: counters in int64
 MAX_SEED = 2**63 - 1  # numpy's SeedSequence takes any non-negative int; the store keeps int64
 MAX_ENLARGEMENT = 10.0  # f0 beyond 10 scales the ellipsoid past the prior box of any useful fit
+
+# The settings' fields are the job spec's sampler and stop sections (``service.spec`` builds
+# its schema from them: types, Literal choices, defaults); a field with this metadata is a
+# safety bound of the library, not a setting a job spec gives.
+NOT_IN_SPEC = {"spec": False}
 
 
 def _check(cond: bool, field: str, message: str) -> None:
@@ -156,13 +161,13 @@ class NSSettings:
     alpha: float = 0.3
     beta: float = 0.6
     enlargement: float = 1.1
-    weights: str = "paper"
+    weights: Literal["paper", "kernel"] = "paper"
     epsilon_initial: float | None = None
     pilot_size: int | None = None
     pilot_quantile: float = 0.5
     batch_size: int = 25
-    max_redraws: int = 100_000
-    variant: str = "evidence"
+    max_redraws: int = field(default=100_000, metadata=NOT_IN_SPEC)
+    variant: Literal["evidence", "paper"] = "evidence"
     max_ellipsoids: int | None = None
     min_model_probability: float | None = None
     min_proposal_share: float | None = None
@@ -258,7 +263,7 @@ class SMCSettings:
     pilot_size: int | None = None
     pilot_quantile: float = 0.5
     batch_size: int = 25
-    max_redraws: int = 100_000
+    max_redraws: int = field(default=100_000, metadata=NOT_IN_SPEC)
 
     def __post_init__(self) -> None:
         _check_common(self.particles, self.batch_size, self.epsilon_initial, self.pilot_size)

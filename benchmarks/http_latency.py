@@ -1,9 +1,9 @@
 """Status latency of the HTTP service while two jobs run.
 
 Starts a stock `dask scheduler` with two `dask worker` processes and `abcns serve
---max-running 2` on 127.0.0.1 (the test suite's process helpers), submits two §4.1 jobs,
-and times ``GET /jobs/{id}`` (alternating between the two) while they run; prints p50,
-p99 and max, then stops everything.
+--max-running 2` on 127.0.0.1 (``benchmarks.harness``, as the tests start them), submits
+two §4.1 jobs, and times ``GET /jobs/{id}`` (alternating between the two) while they run;
+prints p50, p99 and max, then stops everything.
 
     python -m benchmarks.http_latency [--requests 1000]
 """
@@ -11,7 +11,6 @@ p99 and max, then stops everything.
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -19,11 +18,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-
-from conftest import StockCluster  # noqa: E402
-from http_helpers import AUTH, Service, duffing_spec  # noqa: E402
+from benchmarks.harness import AUTH, Service, StockCluster, duffing_spec
 
 
 def main() -> None:

@@ -40,10 +40,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import signal
-import socket
 import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -59,14 +56,13 @@ from abcns import run
 from abcns.filling import draws
 from abcns.rejection import prior_proposer
 from benchmarks import sleepy
+from benchmarks.harness import BIN, ROOT, free_port, stop
 from service.run.dask_executor import local_cluster as embedded_cluster
 from service.run.runner import run_job
 from service.spec import JobSpec, build, load, parse
 
-ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "examples" / "authors_demo" / "spec.yaml"
 D41 = ROOT / "examples" / "duffing_41" / "spec.yaml"
-BIN = Path(sys.executable).parent
 IDEAL_PER_WORKER = 1.0 / sleepy.SECONDS  # simulations/s of one worker that only sleeps
 
 # the workers import the plugin by name: LocalCluster's spawned processes inherit this
@@ -133,29 +129,11 @@ def local_cluster(n: int) -> Iterator[tuple[Client, list[int], float]]:
         yield client, [], time.perf_counter() - start
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _stop(procs: list[subprocess.Popen]) -> None:
-    for p in procs:
-        if p.poll() is None:
-            os.killpg(p.pid, signal.SIGTERM)
-    for p in procs:
-        try:
-            p.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait()
-
-
 @contextmanager
 def stock_cluster(n: int, tmp: Path) -> Iterator[tuple[Client, list[int], float]]:
     """`dask scheduler` + `dask worker --nworkers n --nthreads 1`; the scheduler's pid to measure."""
     start = time.perf_counter()
-    port = _free_port()
+    port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "cwd": ROOT}
     procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
@@ -168,7 +146,7 @@ def stock_cluster(n: int, tmp: Path) -> Iterator[tuple[Client, list[int], float]
             client.run(_warm_worker)
             yield client, [procs[0].pid], time.perf_counter() - start
     finally:
-        _stop(procs)
+        stop(procs, timeout=30)
 
 
 # -- measuring -----------------------------------------------------------------------------

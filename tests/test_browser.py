@@ -8,8 +8,8 @@ import shutil
 
 import httpx
 import pytest
-from conftest import StockCluster, wait_until
-from http_helpers import AUTH, TOKEN, Service, duffing_spec
+
+from benchmarks.harness import AUTH, TOKEN, Service, StockCluster, duffing_spec, wait_until
 
 pytestmark = pytest.mark.browser
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"

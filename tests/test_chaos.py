@@ -22,10 +22,10 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from conftest import BIN, ROOT, free_port, stop, wait_until
 from distributed import Client
-from http_helpers import AUTH, Service, duffing_spec, same_populations
+from http_helpers import same_populations
 
+from benchmarks.harness import AUTH, BIN, ROOT, Service, duffing_spec, free_port, stop, wait_until
 from service.report.analysis import run_to_store
 from service.spec import parse
 

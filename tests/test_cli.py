@@ -15,7 +15,8 @@ from pathlib import Path
 
 import pytest
 import yaml
-from conftest import StockCluster
+
+from benchmarks.harness import StockCluster
 
 pytestmark = pytest.mark.distributed
 ROOT = Path(__file__).resolve().parents[1]

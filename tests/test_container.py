@@ -32,8 +32,9 @@ from pathlib import Path
 
 import httpx
 import pytest
-from conftest import BIN, ROOT, free_port, wait_until
-from test_http import AUTH, TOKEN, duffing_spec, follow, same_populations
+from http_helpers import follow, same_populations
+
+from benchmarks.harness import AUTH, BIN, ROOT, TOKEN, duffing_spec, free_port, wait_until
 
 DOCKER = "/usr/bin/docker"
 DOCKERD = "/usr/sbin/dockerd"

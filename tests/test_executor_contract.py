@@ -15,11 +15,11 @@ The batches are the authors' demo problem's (tests' seed 3)."""
 from __future__ import annotations
 
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
-from conftest import ROOT
 from distributed import Client, LocalCluster
 
 import abcns
@@ -34,6 +34,7 @@ from service.run.dask_executor import DaskExecutor
 from service.spec import build, description, parse
 
 pytestmark = pytest.mark.distributed
+ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "data" / "authors-demo" / "demo_data.npz"
 
 

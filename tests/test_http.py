@@ -20,9 +20,9 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from conftest import BIN, ROOT
-from http_helpers import AUTH, TOKEN, Service, demo_spec, duffing_spec, follow, same_populations
+from http_helpers import demo_spec, follow, same_populations
 
+from benchmarks.harness import AUTH, BIN, ROOT, TOKEN, Service, duffing_spec
 from service.run.store import Store
 
 pytestmark = pytest.mark.http

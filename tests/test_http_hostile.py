@@ -22,9 +22,9 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from conftest import ROOT, wait_until
-from http_helpers import AUTH, TOKEN, Service, duffing_spec, follow, parse_events, populations
+from http_helpers import follow, parse_events, populations
 
+from benchmarks.harness import AUTH, ROOT, TOKEN, Service, duffing_spec, wait_until
 from service.http.schemas import NAME_MAX_CHARS, PAGE_MAX
 from service.run.store import Store
 

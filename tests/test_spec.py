@@ -2,17 +2,20 @@
 are refused before anything runs, naming the field."""
 
 import copy
+import dataclasses
+import json
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from pydantic import ValidationError
 
-from abcns import SpecError, StopRules, run
+from abcns import NSSettings, RejectionSettings, SMCSettings, SpecError, StopRules, run
 from examples.paper import authors_demo
 from service.run.runner import write_interval
-from service.spec import build, load, parse
+from service.spec import JobSpec, build, load, parse
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -134,3 +137,136 @@ def test_the_store_interval_defaults_to_a_second(monkeypatch):
     assert write_interval() == 1.0
     monkeypatch.setenv("ABCNS_STORE_INTERVAL_S", "0")
     assert write_interval() == 0.0
+
+
+# ---------------------------------------------------------------------------- issue L: one definition of the settings
+SAMPLERS = {"abc-ns": NSSettings, "abc-smc": SMCSettings, "rejection": RejectionSettings}
+
+
+def with_sampler(raw, sampler):
+    return {**raw, "sampler": sampler}
+
+
+@pytest.mark.parametrize("algorithm, name, value, owners", [
+    ("abc-ns", "quantile", 0.3, "abc-smc"), ("abc-ns", "schedule", [2.0, 1.0], "abc-smc"),
+    ("abc-smc", "alpha", 0.2, "abc-ns"), ("abc-smc", "variant", "paper", "abc-ns"),
+    ("rejection", "beta", 0.5, "abc-ns"), ("rejection", "quantile", 0.3, "abc-smc"),
+])
+def test_a_field_the_algorithm_does_not_read_is_refused_naming_it(raw, algorithm, name, value, owners):
+    bad = with_sampler(raw, {"algorithm": algorithm, "epsilon_initial": 100, name: value})
+    with pytest.raises(SpecError, match=rf"does not apply to algorithm '{algorithm}' \(it is read by {owners}\)") as err:
+        parse(bad)
+    assert err.value.field == f"sampler.{name}"
+
+
+@pytest.mark.parametrize("algorithm", list(SAMPLERS))
+def test_a_field_no_algorithm_reads_is_an_unknown_field(raw, algorithm):
+    for name in ("colour", "max_redraws"):  # max_redraws: a safety bound of abcns, not a spec field
+        with pytest.raises(SpecError, match="Extra inputs are not permitted") as err:
+            parse(with_sampler(raw, {"algorithm": algorithm, name: 3}))
+        assert err.value.field == f"sampler.{name}"
+
+
+@pytest.mark.parametrize("change, field, match", [
+    ({"algorithm": "abc-nest"}, "sampler.algorithm", "'abc-ns', 'abc-smc' or 'rejection'"),
+    ({"algorithm": "abc-smc", "quantile": "half"}, "sampler.quantile", "valid number"),
+    ({"algorithm": "abc-smc", "schedule": [3.0, 5.0]}, "sampler.schedule", "must not increase"),
+    ({"algorithm": "rejection", "pilot_quantile": 1.5}, "sampler.pilot_quantile", r"\(0, 1\)"),
+    ({"weights": "magic"}, "sampler.weights", "'paper' or 'kernel'"),
+    ({"variant": "other"}, "sampler.variant", "'evidence' or 'paper'"),
+    ({"particles": 2.5}, "sampler.particles", "integer"),
+])
+def test_sampler_errors_name_the_field_without_the_algorithm(raw, change, field, match):
+    sampler = {"epsilon_initial": 100, **change} if "algorithm" in change else {**raw["sampler"], **change}
+    refuse(with_sampler(raw, sampler), SPEC.parent, field, match=match)
+
+
+def test_an_http_error_location_has_no_algorithm_in_it():
+    from service.http.api import validation_errors
+
+    try:
+        JobSpec.model_validate({"data": {"observed": [0.0]}, "models": [],
+                                "sampler": {"algorithm": "abc-smc", "quantile": "half"}})
+    except ValidationError as err:
+        items = validation_errors([{**e, "loc": ("body", *e["loc"])} for e in err.errors()])
+    assert [(i["loc"], i["field"]) for i in items] == [(["body", "models"], "models"),
+                                                       (["body", "sampler", "quantile"], "sampler.quantile")]
+
+
+@pytest.mark.parametrize("sampler", [
+    {}, {"algorithm": "abc-ns", "variant": "paper", "weights": "kernel", "alpha": 0.2, "epsilon_initial": 100},
+    {"max_ellipsoids": 3, "min_model_probability": 0.01, "min_proposal_share": 0.1, "pilot_size": 300},
+    {"algorithm": "abc-smc", "schedule": [100, 50, 20], "particles": 500},
+    {"algorithm": "abc-smc", "quantile": 0.4, "epsilon_initial": 100, "batch_size": 100},
+    {"algorithm": "rejection", "epsilon_initial": 100, "pilot_quantile": 0.2},
+])
+def test_a_spec_written_back_validates_to_the_same_spec_and_settings(raw, sampler):
+    """The service stores ``model_dump(mode="json")`` (spec.json, the store) and validates it
+    again on a restart; the settings are the dataclass built from the fields given."""
+    spec = parse(with_sampler(raw, sampler))
+    for dumped in (spec.model_dump(), spec.model_dump(mode="json"), json.loads(spec.model_dump_json())):
+        again = parse(dumped)
+        assert again == spec and again.model_dump(mode="json") == spec.model_dump(mode="json")
+    given = {k: tuple(v) if k == "schedule" else v for k, v in sampler.items() if k != "algorithm"}
+    settings = build(spec, SPEC.parent).settings
+    assert settings == SAMPLERS[sampler.get("algorithm", "abc-ns")](**given)
+    assert build(parse(spec.model_dump(mode="json")), SPEC.parent).settings == settings
+
+
+def old_dump(sampler: dict) -> dict:
+    """A sampler section as the flat SamplerSpec of earlier versions wrote it: every field of
+    every algorithm, null where not given."""
+    names = ("particles", "alpha", "beta", "enlargement", "weights", "epsilon_initial", "pilot_size",
+             "pilot_quantile", "batch_size", "variant", "max_ellipsoids", "min_model_probability",
+             "min_proposal_share", "quantile", "schedule")
+    return {"algorithm": "abc-ns", **{n: None for n in names}, "particles": 1000, "pilot_quantile": 0.5,
+            "batch_size": 200, **sampler}
+
+
+@pytest.mark.parametrize("sampler", [
+    {"epsilon_initial": 100.0}, {"variant": "paper", "alpha": 0.2},
+    {"algorithm": "abc-smc", "schedule": [100.0, 50.0]}, {"algorithm": "rejection", "epsilon_initial": 100.0},
+])
+def test_a_spec_stored_by_an_earlier_version_loads(raw, sampler):
+    """Its nulls (fields of other algorithms, or left to their default) are the defaults; a
+    value for a field of another algorithm is still refused."""
+    old = parse(with_sampler(raw, old_dump(sampler)))
+    assert old == parse(with_sampler(raw, sampler))
+    assert build(old, SPEC.parent).settings == build(parse(with_sampler(raw, sampler)), SPEC.parent).settings
+    other = "quantile" if sampler.get("algorithm", "abc-ns") == "abc-ns" else "alpha"
+    with pytest.raises(SpecError) as err:
+        parse(with_sampler(raw, {**old_dump(sampler), other: 0.3}))
+    assert err.value.field == f"sampler.{other}"
+
+
+def test_the_json_schema_has_one_sampler_per_algorithm_generated_from_the_settings():
+    schema = JobSpec.model_json_schema()
+    defs, sampler = schema["$defs"], schema["properties"]["sampler"]
+    assert sampler["discriminator"]["propertyName"] == "algorithm"
+    variants = {tag: defs[ref.rsplit("/", 1)[1]] for tag, ref in sampler["discriminator"]["mapping"].items()}
+    assert set(variants) == set(SAMPLERS) and len(sampler["oneOf"]) == 3
+    for tag, settings in SAMPLERS.items():
+        fields = [f.name for f in dataclasses.fields(settings) if f.name != "max_redraws"]
+        assert list(variants[tag]["properties"]) == ["algorithm", *fields], tag
+        assert variants[tag]["additionalProperties"] is False
+        assert variants[tag]["properties"]["algorithm"]["const"] == tag
+        assert variants[tag]["properties"]["particles"] == {"default": 1000, "title": "Particles", "type": "integer"}
+    ns = variants["abc-ns"]["properties"]
+    assert ns["weights"]["enum"] == ["paper", "kernel"] and ns["variant"]["enum"] == ["evidence", "paper"]
+    assert ns["alpha"] == {"default": 0.3, "title": "Alpha", "type": "number"}
+    assert "required" not in variants["abc-ns"]  # algorithm left out is abc-ns
+    smc = variants["abc-smc"]["properties"]
+    assert smc["schedule"]["anyOf"][0] == {"items": {"type": "number"}, "type": "array"}
+    stop = defs["StopSpec"]["properties"]
+    assert list(stop) == [f.name for f in dataclasses.fields(StopRules)]
+    assert stop["min_epsilon_decrease"]["default"] == 0.01 and defs["StopSpec"]["additionalProperties"] is False
+
+
+def test_stop_rules_come_from_the_dataclass(raw):
+    """null is a value of a stop rule (off), not its default."""
+    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": 3}
+    spec = parse(raw)
+    assert build(spec, SPEC.parent).stop == StopRules(min_epsilon_decrease=None, max_populations=3)
+    assert parse(spec.model_dump(mode="json")).stop == spec.stop
+    raw["stop"] = {"max_populations": 2.5}
+    refuse(raw, SPEC.parent, "stop.max_populations")

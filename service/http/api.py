@@ -47,7 +47,7 @@ from service.http.schemas import NAME_MAX_CHARS, PAGE_MAX, Health, JobCreated, J
 from service.http.settings import Settings
 from service.run.dask_executor import local_cluster
 from service.run.store import Store, StoreError
-from service.spec import JobSpec, _field
+from service.spec import JobSpec, _field, spec_loc
 
 JOB_ID = Annotated[str, Path(pattern="^[0-9a-f]{32}$", description="a job id (32 hex digits)")]
 _bearer = HTTPBearer(auto_error=False)
@@ -89,7 +89,9 @@ def validation_errors(errors: Any) -> list[dict]:
     out = []
     for e in errors:
         loc = [p if isinstance(p, int | str) else str(p) for p in e.get("loc", ())]
-        path = loc[1:] if loc and loc[0] in ("body", "query", "path", "header", "cookie") else loc
+        where = loc[:1] if loc and loc[0] in ("body", "query", "path", "header", "cookie") else []
+        path = list(spec_loc(tuple(loc[len(where):])))  # sampler.alpha, not sampler.abc-ns.alpha
+        loc = where + path
         item = {"loc": [clean_text(p) if isinstance(p, str) else p for p in loc],
                 "field": clean_text(_field(tuple(path)) or (str(loc[0]) if loc else "")),
                 "msg": clean_text(str(e.get("msg"))), "type": str(e.get("type"))}

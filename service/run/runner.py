@@ -51,6 +51,17 @@ def job_key(spec: JobSpec, seed: int, dhash: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+def stored_job_key(store: Store) -> str | None:
+    """The job key of a store's own spec, seed and data as this version dumps the spec (a
+    store that an earlier version, with another dump of the same spec, made for this job
+    resumes); None when the store does not record them or its spec no longer validates."""
+    a = store.attrs
+    try:
+        return job_key(JobSpec.model_validate(a["spec"]), int(a["seed"]), str(a["data_hash"]))
+    except (KeyError, TypeError, ValueError):  # pydantic's ValidationError is a ValueError
+        return None
+
+
 def models_of(spec: dict) -> tuple[Model, ...]:
     return tuple(model_of(m) for m in spec["models"])
 
@@ -181,7 +192,7 @@ def _existing_store(path: Path, key: str, owned: bool) -> Store | None:
     if owned and store.attrs.get("job_key") is None and store.n_populations == 0:
         shutil.rmtree(path)
         return None
-    if store.attrs.get("job_key") != key:
+    if store.attrs.get("job_key") != key and stored_job_key(store) != key:
         raise SpecError("--out", f"{path} holds another job (different spec, seed or data); choose another --out")
     return store
 

@@ -81,9 +81,9 @@ from abcns.result import Population
 FORMAT_VERSION = 3
 CHUNK_BYTES = 64 * 1024
 # zarr writes each metadata file through a temporary "zarr.<uuid>.partial" next to it; a
-# reader listing the group while the writer updates the attributes meets that file and warns.
+# reader listing the group (xarray.open_zarr in Store.dataset) while the writer updates the
+# attributes meets that file and warns. Ignored there only, not process-wide.
 PARTIAL_WARNING = r"Object at zarr\.[0-9a-f]+\.partial is not recognized as a component of a Zarr hierarchy"
-warnings.filterwarnings("ignore", message=PARTIAL_WARNING, category=zarr.errors.ZarrUserWarning)
 STATUSES = ("running", "finished", "failed", "cancelled")
 NOTE_CODES = {"": 0, "repaired": 1, "fallback": 2, "box": 3}  # -1: no ellipsoid (dead model)
 _NOTES = {code: note for note, code in NOTE_CODES.items()}
@@ -606,7 +606,11 @@ class Store:
         for attempt in range(retries + 1):
             n = self.n_populations  # before the data: rows below the counter are complete
             try:
-                ds = xr.open_zarr(str(self.path), consolidated=False)
+                # the filters are process-wide before Python 3.14 (zarr warns from its own I/O
+                # thread), so this scope covers the listing, not only this thread
+                with warnings.catch_warnings():
+                    warnings.filterwarnings("ignore", message=PARTIAL_WARNING, category=zarr.errors.ZarrUserWarning)
+                    ds = xr.open_zarr(str(self.path), consolidated=False)
                 return ds.isel(population=slice(0, n))
             except ValueError:  # conflicting sizes of "population" during a resize
                 if attempt == retries:

@@ -1,0 +1,138 @@
+"""Real processes as a user starts them, on 127.0.0.1 only: a stock `dask scheduler` with
+`dask worker` processes, and `abcns serve`; plus the shortened §4.1 job the HTTP
+measurements submit. Shared by the benchmarks (``http_latency``, ``scale``) and the tests
+(``tests/conftest.py``, ``tests/http_helpers.py``), which import it as ``benchmarks.harness``.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+from distributed import Client
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+TOKEN = "s3cret-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def stop(procs: list[subprocess.Popen], timeout: float = 20) -> None:
+    """SIGTERM to each process group, SIGKILL to those still there after ``timeout`` s."""
+    for p in procs:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGTERM)
+    for p in procs:
+        try:
+            p.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+def wait_until(predicate, timeout: float, what: str, interval: float = 0.05):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise TimeoutError(f"timed out after {timeout} s waiting for {what}")
+
+
+class StockCluster:
+    """A `dask scheduler` and `dask worker` processes."""
+
+    def __init__(self, tmp: Path, n_workers: int = 2):
+        self.port = free_port()
+        self.address = f"tcp://127.0.0.1:{self.port}"
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "env": env}
+        self.procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port", str(self.port),
+                                        "--dashboard-address", ":0"], **quiet)]
+        for _ in range(n_workers):
+            self.procs.append(subprocess.Popen([BIN / "dask", "worker", self.address, "--nthreads", "1", "--nworkers", "1",
+                                                "--no-dashboard", "--local-directory", str(tmp)], **quiet))
+        with Client(self.address, timeout=30) as client:
+            client.wait_for_workers(n_workers, timeout=60)
+
+    def worker_pids(self) -> list[int]:
+        with Client(self.address, timeout=30) as client:
+            return sorted(client.run(os.getpid).values())
+
+    def close(self) -> None:
+        stop(self.procs)
+
+
+class Service:
+    """`abcns serve` as a user starts it; its output (the address, the access log) goes to
+    ``log`` beside the store directory."""
+
+    def __init__(self, store_dir: Path, scheduler: str, max_running: int = 1, port: int | None = None,
+                 env: dict | None = None):
+        self.port = port or free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.store_dir = Path(store_dir)
+        self.log = self.store_dir.parent / f"serve-{self.port}.log"
+        self.args = [BIN / "abcns", "serve", "--port", str(self.port), "--scheduler", scheduler, "--store-dir",
+                     str(store_dir), "--token", TOKEN, "--max-running", str(max_running)]
+        self.env = env or {}
+        self.proc: subprocess.Popen | None = None
+        self.start()
+
+    def start(self) -> None:
+        # one append, and so one event, per population as it is done (not coalesced), so a
+        # test can act between populations of these short jobs
+        env = {**os.environ, "PYTHONPATH": str(ROOT), "ABCNS_STORE_INTERVAL_S": "0", **self.env}
+        with self.log.open("ab") as out:
+            self.proc = subprocess.Popen(self.args, stdout=out, stderr=out, start_new_session=True, env=env)
+        wait_until(self.healthy, 60, "the service to answer /health", 0.2)
+
+    def healthy(self) -> bool:
+        import httpx  # the dev extra: the cluster helpers above run on the runtime install (make bench)
+
+        try:
+            return httpx.get(f"{self.url}/health", timeout=2).status_code == 200
+        except httpx.HTTPError:
+            return False
+
+    def kill(self) -> None:
+        os.killpg(self.proc.pid, signal.SIGKILL)  # type: ignore[union-attr]
+        self.proc.wait()  # type: ignore[union-attr]
+
+    def close(self) -> None:
+        stop([self.proc])  # type: ignore[list-item]
+
+    def job_dir(self, job_id: str) -> Path:
+        return self.store_dir / job_id
+
+    def rss_mb(self) -> float:
+        """The resident memory of the `abcns serve` process."""
+        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():  # type: ignore[union-attr]
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        raise RuntimeError("no VmRSS")
+
+
+def duffing_spec(max_populations: int = 8, particles: int = 500) -> dict:
+    """Paper §4.1 (examples/duffing_41) with inline data, shortened."""
+    raw = yaml.safe_load((ROOT / "examples" / "duffing_41" / "spec.yaml").read_text())
+    folder = ROOT / "examples" / "duffing_41"
+    raw["data"]["input"] = np.load(folder / "force.npy").tolist()
+    raw["data"]["observed"] = np.load(folder / "displacement.npy").tolist()
+    raw["sampler"].update(particles=particles, batch_size=250)
+    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": max_populations}
+    return raw
