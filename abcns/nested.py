@@ -203,7 +203,8 @@ def finish_population(
         rule = ev.DEATH_RULES[int(death[m])]
         notes.append(f"population {t}: {models[m].name} dies ({rule}; p = {p_next[m]:.3g} at the next tolerance)")
     if quotas.sum() < settings.n_survivors:
-        notes.append(f"population {t}: only {quotas.sum()} particles below eps_next (ties); fewer survivors")
+        notes.append(f"population {t}: only {quotas.sum()} survivors (ties at eps_next, or few particles of the "
+                     "alive models below it); the next population draws more new particles")
 
     # ---- survivors (by weight) and bounds
     weights = np.zeros_like(raw)
@@ -355,9 +356,11 @@ def abc_ns(
             assert pop.evidence is not None and pop.survivors is not None  # set on every ABC-NS population
             propose = BoundProposer(tuple(models), tuple(frames), tuple(pop.ellipsoids),
                                     pop.evidence.allocation if settings.evidence else None, settings.max_redraws)
-            filled = fill(propose, settings.n_new, eps, executor, budget,
-                          seed=seed, t=t, batch_size=settings.batch_size)
             keep = np.flatnonzero(pop.survivors)
+            # N particles in every population: when fewer than beta N survive (ties at
+            # eps_next, or the alive models hold fewer particles below it), more are new
+            filled = fill(propose, settings.particles - keep.size, eps, executor, budget,
+                          seed=seed, t=t, batch_size=settings.batch_size)
             pop = complete(
                 t, eps,
                 np.concatenate([pop.models[keep], filled.models]),

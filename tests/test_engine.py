@@ -260,3 +260,18 @@ def test_evaluated_type_is_what_executors_return():
     b = next(draws(prior_proposer(models), seed=0, t=1, epsilon=1.0, batch_size=8)).batch()
     out = ev(b)
     assert isinstance(out, Evaluated) and out.distances.shape == (8,) and out.status.dtype == np.int8
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3, 4, 5])
+def test_every_population_holds_n_particles_when_few_survive(seed):
+    """Found by benchmarks/spec_fuzz.py: with 13 particles and a high death threshold, the
+    alive model held fewer particles below eps_next than beta N, the next population came out
+    smaller (9 of 13) and the store refused it. The shortfall is now drawn as new particles
+    (before the fix, seeds 1-5 of this problem gave populations of 9 to 12)."""
+    from closed_form import line_and_disc
+
+    models, evaluate = line_and_disc()
+    r = run(models, evaluate, NSSettings(particles=13, epsilon_initial=2.0, min_model_probability=0.5),
+            StopRules(max_populations=8, min_epsilon_decrease=None), seed=seed)
+    assert len(r.populations) == 8
+    assert [p.models.size for p in r.populations] == [13] * 8
