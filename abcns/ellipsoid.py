@@ -19,6 +19,7 @@ Degenerate inputs are handled explicitly and reported in ``Ellipsoid.note``:
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,10 +71,20 @@ def from_box(low: np.ndarray, high: np.ndarray) -> Ellipsoid:
     return from_matrix(0.5 * (low + high), np.diag(d * half**2), note="box")
 
 
+def mahalanobis2_each(ells: Sequence[Ellipsoid], x: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distances (k, n) of the rows of ``x`` (n, d) to each of ``k``
+    ellipsoids of the same dimension, in one stacked solve (LAPACK solves each matrix as it
+    would alone: the same bits as one call per ellipsoid)."""
+    axes = np.stack([e.axes for e in ells])
+    centres = np.stack([e.centre for e in ells])
+    diff = np.atleast_2d(x)[None, :, :] - centres[:, None, :]  # (k, n, d)
+    y = np.linalg.solve(axes, diff.transpose(0, 2, 1))  # (k, d, n)
+    return np.sum(y * y, axis=1)
+
+
 def mahalanobis2(ell: Ellipsoid, x: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distance of the rows of ``x`` (n, d) to the ellipsoid."""
-    y = np.linalg.solve(ell.axes, (np.atleast_2d(x) - ell.centre).T)
-    return np.sum(y * y, axis=0)
+    return mahalanobis2_each((ell,), x)[0]
 
 
 #: relative slack of :func:`contains` (a point on the boundary is inside)
@@ -83,6 +94,11 @@ CONTAINS_SLACK = 1e-9
 def contains(ell: Ellipsoid, x: np.ndarray) -> np.ndarray:
     """Boolean mask: which rows of ``x`` lie inside (boundary included, 1e-9 slack)."""
     return mahalanobis2(ell, x) <= 1.0 + CONTAINS_SLACK
+
+
+def n_containing(ells: Sequence[Ellipsoid], x: np.ndarray) -> np.ndarray:
+    """How many of ``ells`` hold each row of ``x`` (:func:`contains` of each, counted)."""
+    return np.sum(mahalanobis2_each(ells, x) <= 1.0 + CONTAINS_SLACK, axis=0)
 
 
 def enlarge(ell: Ellipsoid, f0: float) -> Ellipsoid:

@@ -92,9 +92,6 @@ class Draw:
         return (np.random.SeedSequence(self.seed, spawn_key=key + (0,)),
                 np.random.SeedSequence(self.seed, spawn_key=key + (1,)))
 
-    def __reduce__(self) -> tuple:
-        return (unpack_draws_one, (pack_draws([self]),))
-
     def batch(self) -> Batch:
         """The proposals (raises Stopped(PROPOSAL_EXHAUSTED) when a bound lies outside the prior)."""
         proposal_seed, simulation_seed = self.seeds()
@@ -116,10 +113,6 @@ def unpack_draws(data: bytes) -> list[Draw]:
     return [Draw(*fields) for fields in pickle.loads(data)]
 
 
-def unpack_draws_one(data: bytes) -> Draw:
-    return unpack_draws(data)[0]
-
-
 @dataclass(frozen=True, eq=False)
 class Simulated:
     """What the runner needs of a draw: per row the model, distance (+inf when not OK),
@@ -139,9 +132,14 @@ class Simulated:
 
     def kept(self, epsilon: float, keep_all: bool) -> np.ndarray:
         """(n,) bool: the rows whose parameters ``theta`` holds."""
-        if keep_all:
-            return np.ones(len(self), bool)
-        return (self.status == OK) & (self.distances < epsilon)
+        return kept_rows(self.status, self.distances, epsilon, keep_all)
+
+
+def kept_rows(status: np.ndarray, distances: np.ndarray, epsilon: float, keep_all: bool) -> np.ndarray:
+    """(n,) bool: OK rows with distance < epsilon, or every row with ``keep_all``."""
+    if keep_all:
+        return np.ones(status.shape[0], bool)
+    return (status == OK) & (distances < epsilon)
 
 
 def run_draw(evaluate: Evaluate, draw: Draw) -> Simulated:
@@ -153,10 +151,9 @@ def run_draw(evaluate: Evaluate, draw: Draw) -> Simulated:
         return Simulated(empty.astype(np.int16), empty, empty.astype(np.int8), empty.astype(np.int64),
                          np.zeros((0, 0)), stopped.reason)
     evaluated = evaluate_batch(evaluate, batch)
-    simulated = Simulated(batch.models.astype(np.int16, copy=False), evaluated.distances, evaluated.status,
-                          batch.redraws, np.zeros((0, batch.theta.shape[1])))
-    kept = simulated.kept(draw.epsilon, draw.keep_all)
-    return Simulated(simulated.models, simulated.distances, simulated.status, simulated.redraws, batch.theta[kept])
+    kept = kept_rows(evaluated.status, evaluated.distances, draw.epsilon, draw.keep_all)
+    return Simulated(batch.models.astype(np.int16, copy=False), evaluated.distances, evaluated.status,
+                     batch.redraws, batch.theta[kept])
 
 
 class Executor(Protocol):

@@ -28,14 +28,12 @@ class StopReason(enum.StrEnum):
 
 
 class Stopped(Exception):
-    """A stop rule ended a population before it was full (picklable: a worker may raise it)."""
+    """A stop rule ended a population before it was full (on a worker, ``run_draw`` turns it
+    into the draw's ``stop`` field; it does not cross processes)."""
 
     def __init__(self, reason: StopReason):
         super().__init__(reason.value)
-        self.reason = StopReason(reason)
-
-    def __reduce__(self):
-        return (Stopped, (self.reason,))
+        self.reason = reason
 
 # The documented valid ranges of the numeric settings (README, "Spec"): what one process
 # can hold and a run can count, not admission limits (a service sets lower ones).

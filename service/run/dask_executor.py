@@ -83,9 +83,9 @@ class DaskExecutor:
             size = min(size, int(TASK_SECONDS / self.batch_seconds))
         return max(1, size)
 
-    def map(self, batches: Iterable[Draw]) -> Iterator[Simulated]:
+    def map(self, draws: Iterable[Draw]) -> Iterator[Simulated]:
         pending: deque[tuple[Future, int]] = deque()  # (task, batches in it), oldest first
-        it = iter(batches)
+        it = iter(draws)
         exhausted = False
         n_workers = self._n_workers()
         need = self._need()
