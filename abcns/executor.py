@@ -12,7 +12,8 @@ An executor takes an iterable of :class:`Draw` and yields one :class:`Simulated`
 **in submission order** (never in completion order: simulation cost depends on the
 parameters, so taking whatever finishes first biases the posterior). The caller pulls lazily
 and closes the iterator when it has enough; an executor that runs draws ahead cancels the
-surplus on close. :class:`SerialExecutor` is the in-process reference; the Dask executor
+surplus on close, and may take hints of how many results the caller still needs
+(:meth:`Executor.map`). :class:`SerialExecutor` is the in-process reference; the Dask executor
 lives in ``service/`` behind the same protocol.
 """
 
@@ -113,6 +114,15 @@ def unpack_draws(data: bytes) -> list[Draw]:
     return [Draw(*fields) for fields in pickle.loads(data)]
 
 
+def pack_results(results: Sequence[Simulated]) -> bytes:
+    """Results as bytes, pickled in-band (as :func:`pack_draws`: arrays land aligned)."""
+    return pickle.dumps([(r.models, r.distances, r.status, r.redraws, r.theta, r.stop) for r in results], protocol=4)
+
+
+def unpack_results(data: bytes) -> list[Simulated]:
+    return [Simulated(*fields) for fields in pickle.loads(data)]
+
+
 @dataclass(frozen=True, eq=False)
 class Simulated:
     """What the runner needs of a draw: per row the model, distance (+inf when not OK),
@@ -158,7 +168,13 @@ def run_draw(evaluate: Evaluate, draw: Draw) -> Simulated:
 
 class Executor(Protocol):
     def map(self, draws: Iterable[Draw]) -> Iterator[Simulated]:
-        """Run draws (:func:`run_draw`); yield results in submission order; cancel surplus on close()."""
+        """Run draws (:func:`run_draw`); yield results in submission order; cancel surplus on
+        close(). An executor that runs draws ahead may start when ``map`` is called, and its
+        iterator may take hints: ``expect(batches, at_least=False)``, the number of results
+        the caller expects to consume from now on (``abcns.filling`` calls it when it opens
+        a population, with the bound that holds were every simulation kept, and after each
+        batch, with an estimate from the acceptance so far). Hints change how far ahead the
+        executor runs, never a result."""
         ...
 
 

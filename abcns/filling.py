@@ -21,7 +21,7 @@ import numpy as np
 from abcns.executor import OK, Draw, Executor, Propose
 from abcns.settings import Stopped, StopReason, StopRules
 
-__all__ = ["Budget", "Filled", "Propose", "Stopped", "draw_inside", "draws", "fill", "population_rng"]
+__all__ = ["Budget", "Filled", "Filling", "Propose", "Stopped", "draw_inside", "draws", "fill", "population_rng"]
 
 
 def population_rng(seed: int, t: int) -> np.random.Generator:
@@ -89,15 +89,21 @@ class Budget:
             return None
         return max(0, self.stop.max_simulations - self.n_simulations)
 
-    def check(self) -> None:
-        """Raise Stopped when a budget is spent or the run was cancelled."""
+    def reason(self) -> StopReason | None:
+        """Why the run must stop now (a budget spent, or cancelled), or None."""
         if self.cancel is not None and self.cancel():
-            raise Stopped(StopReason.CANCELLED)
+            return StopReason.CANCELLED
         left = self.simulations_left()
         if left is not None and left <= 0:
-            raise Stopped(StopReason.MAX_SIMULATIONS)
+            return StopReason.MAX_SIMULATIONS
         if self.stop.max_seconds is not None and self.elapsed() >= self.stop.max_seconds:
-            raise Stopped(StopReason.MAX_SECONDS)
+            return StopReason.MAX_SECONDS
+        return None
+
+    def check(self) -> None:
+        """Raise Stopped when a budget is spent or the run was cancelled."""
+        if (reason := self.reason()) is not None:
+            raise Stopped(reason)
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,6 +131,76 @@ def draws(propose: Propose, *, seed: int, t: int, epsilon: float, batch_size: in
         yield Draw(t, b, batch_size, float(epsilon), seed, propose, keep_all)
 
 
+class Filling:
+    """A population being filled: ``executor.map`` is called when this is made, so an executor
+    that runs draws ahead (Dask) starts simulating while the caller finishes other work;
+    :meth:`finish` consumes the results in submission order. Nothing is consumed, and no
+    budget checked, before :meth:`finish`; :meth:`close` drops the stream unconsumed."""
+
+    def __init__(self, propose: Propose, n_needed: int, epsilon: float, executor: Executor, *,
+                 seed: int, t: int, batch_size: int, accept_all: bool = False):
+        self.n_needed, self.epsilon, self.accept_all = n_needed, epsilon, accept_all
+        self.results = executor.map(draws(propose, seed=seed, t=t, epsilon=epsilon, batch_size=batch_size,
+                                          keep_all=accept_all))
+        expect = getattr(self.results, "expect", None)  # an executor that runs ahead takes a hint:
+        if expect is not None:  # this many batches were every simulation kept (exactly, with accept_all)
+            expect(n_needed / batch_size, at_least=not accept_all)
+
+    def close(self) -> None:
+        close = getattr(self.results, "close", None)
+        if close is not None:
+            close()
+
+    def finish(self, budget: Budget) -> Filled:
+        """Run batches until ``n_needed`` particles have distance < ``epsilon``.
+
+        With ``accept_all`` every simulation is kept, failed ones too (the pilot). Budgets are
+        checked before each batch is consumed and the simulation budget per simulation; on a
+        stop, :class:`Stopped` is raised after the simulations done are added to
+        ``budget.n_simulations``. The stream is closed on return (surplus cancelled).
+        """
+        n_needed, epsilon = self.n_needed, self.epsilon
+        kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        simulated: list[np.ndarray] = []
+        n_kept = n_sims = n_failed = n_redraws = n_batches = 0
+        expect = getattr(self.results, "expect", None)  # an executor that runs ahead takes a hint
+        try:
+            budget.check()
+            for batch in self.results:  # in submission order
+                if batch.stop is not None:
+                    raise Stopped(batch.stop)
+                ok = batch.status == OK
+                accept = batch.kept(epsilon, self.accept_all)
+                # the row at which this batch completes the population, if it does
+                cum = np.cumsum(accept)
+                full = np.searchsorted(cum, n_needed - n_kept)  # first row where cum reaches the need
+                n_rows = min(len(batch), int(full) + 1)
+                left = budget.simulations_left()
+                if cut := (left is not None and left < n_rows):
+                    n_rows = left
+                rows = slice(0, n_rows)
+                take = np.flatnonzero(accept[rows])  # a prefix of the kept rows, whose theta the batch holds
+                kept.append((batch.models[take], batch.theta[: take.size], batch.distances[take]))
+                simulated.append(batch.models[rows])
+                n_kept += take.size
+                n_sims += n_rows
+                n_failed += int(np.count_nonzero(~ok[rows]))
+                n_redraws += int(batch.redraws[rows].sum())
+                budget.n_simulations += n_rows
+                if n_kept >= n_needed:
+                    break
+                if cut:
+                    raise Stopped(StopReason.MAX_SIMULATIONS)
+                n_batches += 1
+                if expect is not None:  # batches still needed at this population's acceptance so far
+                    expect((n_needed - n_kept) * n_batches / max(n_kept, 0.5))
+                budget.check()
+        finally:
+            self.close()
+        models, theta, distances = (np.concatenate(parts) for parts in zip(*kept))
+        return Filled(models, theta, distances, n_sims, n_failed, n_redraws, np.concatenate(simulated))
+
+
 def fill(
     propose: Propose,
     n_needed: int,
@@ -137,49 +213,8 @@ def fill(
     batch_size: int,
     accept_all: bool = False,
 ) -> Filled:
-    """Run batches until ``n_needed`` particles have distance < ``epsilon``.
-
-    With ``accept_all`` every simulation is kept, failed ones too (the pilot). Budgets are
-    checked before each batch is consumed and the simulation budget per simulation; on a
-    stop, :class:`Stopped` is raised after the simulations done are added to
-    ``budget.n_simulations``.
-    """
+    """Fill a population now (:class:`Filling`, made and finished): run batches until
+    ``n_needed`` particles have distance < ``epsilon``."""
     budget.check()
-    kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    simulated: list[np.ndarray] = []
-    n_kept = n_sims = n_failed = n_redraws = 0
-    results = executor.map(draws(propose, seed=seed, t=t, epsilon=epsilon, batch_size=batch_size,
-                                 keep_all=accept_all))
-    try:
-        for batch in results:  # in submission order
-            if batch.stop is not None:
-                raise Stopped(batch.stop)
-            ok = batch.status == OK
-            accept = batch.kept(epsilon, accept_all)
-            # the row at which this batch completes the population, if it does
-            cum = np.cumsum(accept)
-            full = np.searchsorted(cum, n_needed - n_kept)  # first row where cum reaches the need
-            n_rows = min(len(batch), int(full) + 1)
-            left = budget.simulations_left()
-            if cut := (left is not None and left < n_rows):
-                n_rows = left
-            rows = slice(0, n_rows)
-            take = np.flatnonzero(accept[rows])  # a prefix of the kept rows, whose theta the batch holds
-            kept.append((batch.models[take], batch.theta[: take.size], batch.distances[take]))
-            simulated.append(batch.models[rows])
-            n_kept += take.size
-            n_sims += n_rows
-            n_failed += int(np.count_nonzero(~ok[rows]))
-            n_redraws += int(batch.redraws[rows].sum())
-            budget.n_simulations += n_rows
-            if n_kept >= n_needed:
-                break
-            if cut:
-                raise Stopped(StopReason.MAX_SIMULATIONS)
-            budget.check()
-    finally:
-        close = getattr(results, "close", None)
-        if close is not None:
-            close()
-    models, theta, distances = (np.concatenate(parts) for parts in zip(*kept))
-    return Filled(models, theta, distances, n_sims, n_failed, n_redraws, np.concatenate(simulated))
+    return Filling(propose, n_needed, epsilon, executor, seed=seed, t=t, batch_size=batch_size,
+                   accept_all=accept_all).finish(budget)

@@ -40,6 +40,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -47,7 +48,7 @@ from abcns import bounds as bd
 from abcns import ellipsoid as ell
 from abcns import evidence as ev
 from abcns.executor import Executor
-from abcns.filling import Budget, Filled, Stopped, draw_inside, fill, population_rng
+from abcns.filling import Budget, Filled, Filling, Stopped, draw_inside, fill, population_rng
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
 from abcns.result import Population, RunEnd
@@ -99,17 +100,41 @@ def geometry_rng(seed: int, t: int) -> np.random.Generator:
 VOLUME_DRAWS = 20_000
 
 
+#: a model's bound geometry (log prior mass, its standard error, coverage, points tested)
+GeometryResult = tuple[float, float, float, int]
+#: its measurement, given the population's geometry generator
+Geometry = Callable[[np.random.Generator], GeometryResult]
+
+
 @dataclass(frozen=True, eq=False)
 class Step:
-    """What finishing a population gives (see :func:`finish_population`)."""
+    """What finishing a population gives (see :func:`finish_population`): everything the next
+    population's proposals need. The geometry of the new bounds (their prior volume and the
+    share of the accepted region they hold), which only the evidence of the *next* population
+    uses, is measured by :meth:`evidence`, so a runner can overlap it with the next
+    population's simulations."""
 
     epsilon_next: float
     weights: np.ndarray
     survivors: np.ndarray
     bounds: tuple[bd.Union, ...]
-    evidence: ev.Evidence
     model_probabilities: np.ndarray
+    allocation: np.ndarray | None  # the next population's proposal probabilities (None: the paper's rule)
     notes: list[str]
+    evidence_parts: dict  # the Evidence fields but the geometry
+    geometry_jobs: tuple[Geometry | None, ...]
+
+    def evidence(self, geometry: np.random.Generator) -> ev.Evidence:
+        """The population's evidence bookkeeping, its bounds' geometry measured now with
+        ``geometry`` (used model by model, in model order)."""
+        n = len(self.geometry_jobs)
+        log_volume, log_volume_se = np.full(n, np.nan), np.full(n, np.nan)
+        cover, n_cover = np.ones(n), np.zeros(n, dtype=np.int64)
+        for m, job in enumerate(self.geometry_jobs):
+            if job is not None:
+                log_volume[m], log_volume_se[m], cover[m], n_cover[m] = job(geometry)
+        return ev.Evidence(log_volume=log_volume, log_volume_se=log_volume_se, coverage=cover, n_coverage=n_cover,
+                           **self.evidence_parts)
 
 
 def _floored_quotas(total: int, shares: np.ndarray, capacity: np.ndarray, floor: np.ndarray) -> np.ndarray:
@@ -139,9 +164,9 @@ def finish_population(
     previous: Population | None,
     settings: NSSettings,
     rng: np.random.Generator,
-    geometry: np.random.Generator,
 ) -> Step:
-    """eps_next, weights normalised per model, survivors, next bounds, evidence, notes."""
+    """eps_next, weights normalised per model, survivors, next bounds, allocation, notes; the
+    evidence once :meth:`Step.evidence` has measured the bounds' geometry."""
     n_models = len(models)
     eps_next = float(np.sort(distances)[::-1][settings.n_drop - 1])
     raw = ns_weights(distances, epsilon, eps_next, settings.weights)
@@ -210,16 +235,14 @@ def finish_population(
     weights = np.zeros_like(raw)
     survivors = np.zeros(which.shape[0], dtype=bool)
     bounds: list[bd.Union] = []
-    log_volume = np.full(n_models, np.nan)
-    log_volume_se = np.full(n_models, np.nan)
-    cover = np.ones(n_models)
-    n_cover = np.zeros(n_models, dtype=np.int64)
+    geometry_jobs: list[Geometry | None] = []
     for m, model in enumerate(models):
         rows = np.flatnonzero((which == m) & positive)
         if rows.size:
             weights[rows] = raw[rows] / raw[rows].sum()
         if not alive_next[m] or quotas[m] == 0:
             bounds.append(())
+            geometry_jobs.append(None)
             continue
         keep = rng.choice(rows, size=int(quotas[m]), replace=False, p=weights[rows])
         survivors[keep] = True
@@ -230,25 +253,20 @@ def finish_population(
             fallback = ell.from_matrix(largest.centre, largest.matrix / settings.enlargement)
         else:
             fallback = frame.box_ellipsoid()
+        points = frame.to_frame(theta[rows, : model.n_dim])
+        fit: Callable[[np.ndarray], bd.Union] | None = None
         if settings.evidence:
-            points = frame.to_frame(theta[rows, : model.n_dim])
-
-            def fit(p: np.ndarray, fallback: ell.Ellipsoid = fallback) -> bd.Union:
-                return bd.fit_union(p, settings.enlargement, settings.n_ellipsoids, fallback)
-
+            fit = partial(bd.fit_union, enlargement=settings.enlargement, max_ellipsoids=settings.n_ellipsoids,
+                          fallback=fallback)
             bound = fit(points)
-            cover[m], n_cover[m] = bd.coverage(points, fit, geometry)
         else:
             fitted = ell.fit(theta[np.sort(keep), : model.n_dim], fallback=fallback)
             bound = (ell.enlarge(fitted, settings.enlargement),)
-            held = frame.to_frame(theta[rows, : model.n_dim])
-            cover[m], n_cover[m] = float(np.mean(bd.n_inside(bound, held) > 0)), rows.size
         for e in bound:
             if e.note:
                 notes.append(f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)")
         bounds.append(bound)
-        log_v, log_volume_se[m] = bd.union_volume(bound, frame.inside, VOLUME_DRAWS, geometry)
-        log_volume[m] = log_v - frame.log_box_volume
+        geometry_jobs.append(_geometry_job(bound, frame, points, fit))
 
     # ---- proposals of t + 1
     acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
@@ -258,12 +276,28 @@ def finish_population(
     else:
         alloc = alive_next / max(1, int(np.count_nonzero(alive_next)))
         probabilities = counts / counts.sum()
-    evidence = ev.Evidence(
-        log_z=log_z, log_z_se=np.sqrt(var_z), log_z_next=log_z_next, log_z_next_se=np.sqrt(var_next),
-        log_volume=log_volume, log_volume_se=log_volume_se, coverage=cover, n_coverage=n_cover,
-        allocation=alloc, n_proposed=n_proposed, n_accepted=n_accepted, death=death,
-    )
-    return Step(eps_next, weights, survivors, tuple(bounds), evidence, probabilities, notes)
+    parts = dict(log_z=log_z, log_z_se=np.sqrt(var_z), log_z_next=log_z_next, log_z_next_se=np.sqrt(var_next),
+                 allocation=alloc, n_proposed=n_proposed, n_accepted=n_accepted, death=death)
+    return Step(eps_next, weights, survivors, tuple(bounds), probabilities, alloc if settings.evidence else None,
+                notes, parts, tuple(geometry_jobs))
+
+
+def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray,
+                  fit: Callable[[np.ndarray], bd.Union] | None) -> Geometry:
+    """The measurement of one model's new bound, for :meth:`Step.evidence`: (log prior mass
+    of the bound, its standard error, the share of the accepted region it holds, points
+    tested). The coverage is cross-validated when the bound is a fit of ``points`` (``fit``),
+    else the share of ``points`` the bound holds; then the volume by Monte Carlo."""
+
+    def measure(geometry: np.random.Generator) -> GeometryResult:
+        if fit is not None:
+            cover, n_cover = bd.coverage(points, fit, geometry)
+        else:
+            cover, n_cover = float(np.mean(bd.n_inside(bound, points) > 0)), points.shape[0]
+        log_v, log_v_se = bd.union_volume(bound, frame.inside, VOLUME_DRAWS, geometry)
+        return log_v - frame.log_box_volume, log_v_se, cover, n_cover
+
+    return measure
 
 
 @dataclass(frozen=True, eq=False)
@@ -328,18 +362,16 @@ def abc_ns(
 
     frames = [bd.Frame(m.low, m.high, unit=settings.evidence) for m in models]
 
-    def complete(t, eps, which, theta, distances, is_new, filled, previous) -> Population:
-        step = finish_population(models, frames, t, eps, which, theta, distances, is_new, filled, previous,
-                                 settings, population_rng(seed, t), geometry_rng(seed, t))
-        notes.extend(step.notes)
-        return population_from(
-            t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, budget.elapsed(),
-            step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds, evidence=step.evidence,
-        )
+    def start(t: int, eps: float, bounds: Sequence[bd.Union], allocation: np.ndarray | None,
+              n_survivors: int) -> Filling:
+        propose = BoundProposer(tuple(models), tuple(frames), tuple(bounds), allocation, settings.max_redraws)
+        # N particles in every population: when fewer than beta N survive (ties at eps_next,
+        # or the alive models hold fewer particles below it), more are new
+        return Filling(propose, settings.particles - n_survivors, eps, executor, seed=seed, t=t,
+                       batch_size=settings.batch_size)
 
-    def stop_after(pop: Population) -> StopReason | None:
-        return stop.reason_after(pop.epsilon, pop.epsilon_next, pop.t)
-
+    filled_up: tuple | None = None  # a population filled, not yet finished
+    pending: Filling | None = None  # the next population, started
     try:
         if history:
             pop = history[-1]
@@ -347,29 +379,48 @@ def abc_ns(
             eps, source, n_pilot = initial_epsilon(models, settings, executor, budget, seed)
             filled = fill(prior_proposer(models), settings.particles, eps, executor, budget,
                           seed=seed, t=1, batch_size=settings.batch_size)
-            pop = complete(1, eps, filled.models, filled.theta, filled.distances,
-                           np.ones(filled.models.shape[0], bool), filled, None)
-            yield pop
-        while (reason := stop_after(pop)) is None:
+            filled_up = (1, eps, filled.models, filled.theta, filled.distances,
+                         np.ones(filled.models.shape[0], bool), filled, None)
+        while True:
+            if filled_up is not None:
+                t, eps, which, theta, distances, is_new, filled, previous = filled_up
+                step = finish_population(models, frames, t, eps, which, theta, distances, is_new, filled, previous,
+                                         settings, population_rng(seed, t))
+                notes.extend(step.notes)
+                reason = stop.reason_after(eps, step.epsilon_next, t)
+                if reason is None and budget.reason() is None:
+                    # the next population's simulations start now (on an executor that runs
+                    # ahead), while this one's bound geometry is measured and it is handed out
+                    pending = start(t + 1, step.epsilon_next, step.bounds, step.allocation,
+                                    int(np.count_nonzero(step.survivors)))
+                pop = population_from(
+                    t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, budget.elapsed(),
+                    step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
+                    evidence=step.evidence(geometry_rng(seed, t)),
+                )
+                yield pop
+            else:
+                reason = stop.reason_after(pop.epsilon, pop.epsilon_next, pop.t)
+            if reason is not None:
+                return end(reason)
             budget.check()
-            t, eps = pop.t + 1, pop.epsilon_next
             assert pop.evidence is not None and pop.survivors is not None  # set on every ABC-NS population
-            propose = BoundProposer(tuple(models), tuple(frames), tuple(pop.ellipsoids),
-                                    pop.evidence.allocation if settings.evidence else None, settings.max_redraws)
             keep = np.flatnonzero(pop.survivors)
-            # N particles in every population: when fewer than beta N survive (ties at
-            # eps_next, or the alive models hold fewer particles below it), more are new
-            filled = fill(propose, settings.particles - keep.size, eps, executor, budget,
-                          seed=seed, t=t, batch_size=settings.batch_size)
-            pop = complete(
-                t, eps,
+            if pending is None:
+                pending = start(pop.t + 1, pop.epsilon_next, pop.ellipsoids,
+                                pop.evidence.allocation if settings.evidence else None, keep.size)
+            filling, pending = pending, None
+            filled = filling.finish(budget)
+            filled_up = (
+                pop.t + 1, pop.epsilon_next,
                 np.concatenate([pop.models[keep], filled.models]),
                 np.concatenate([pop.theta[keep], filled.theta]),
                 np.concatenate([pop.distances[keep], filled.distances]),
                 np.concatenate([np.zeros(keep.size, bool), np.ones(filled.models.shape[0], bool)]),
                 filled, pop,
             )
-            yield pop
     except Stopped as stopped:
         return end(stopped.reason)
-    return end(reason)
+    finally:
+        if pending is not None:
+            pending.close()

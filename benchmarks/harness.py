@@ -54,12 +54,14 @@ def wait_until(predicate, timeout: float, what: str, interval: float = 0.05):
 
 
 class StockCluster:
-    """A `dask scheduler` and `dask worker` processes."""
+    """A `dask scheduler` and `dask worker` processes, with the Dask settings of docs/deploy.md."""
 
     def __init__(self, tmp: Path, n_workers: int = 2):
+        from service.run.dask_executor import cluster_env
+
         self.port = free_port()
         self.address = f"tcp://127.0.0.1:{self.port}"
-        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        env = {**os.environ, **cluster_env(), "PYTHONPATH": str(ROOT)}
         quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "env": env}
         self.procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port", str(self.port),
                                         "--dashboard-address", ":0"], **quiet)]

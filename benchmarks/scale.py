@@ -50,13 +50,14 @@ from pathlib import Path
 import numpy as np
 import psutil
 import yaml
-from distributed import Client
+from distributed import Client, as_completed
 
 from abcns import run
 from abcns.filling import draws
 from abcns.rejection import prior_proposer
 from benchmarks import sleepy
 from benchmarks.harness import BIN, ROOT, free_port, stop
+from service.run.dask_executor import cluster_env
 from service.run.dask_executor import local_cluster as embedded_cluster
 from service.run.runner import run_job
 from service.spec import JobSpec, build, load, parse
@@ -70,9 +71,12 @@ IDEAL_PER_WORKER = 1.0 / sleepy.SECONDS  # simulations/s of one worker that only
 os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)
 
 
-def sleepy_spec(populations: int, batch_size: int | None) -> tuple[JobSpec, Path]:
-    """The authors' demo, cubic model only, simulated by the sleepy plugin."""
+def sleepy_spec(populations: int, batch_size: int | None, variant: str | None = None) -> tuple[JobSpec, Path]:
+    """The authors' demo, cubic model only, simulated by the sleepy plugin (``variant``: the
+    sampler's, else the demo's: paper)."""
     raw = yaml.safe_load(DEMO.read_text())
+    if variant is not None:
+        raw["sampler"]["variant"] = variant
     raw["name"] = "authors-demo-sleepy"
     raw["models"] = [{**m, "simulator": sleepy.NAME} for m in raw["models"] if m["name"] == "cubic"]
     # the default unit (the demo's spec says 200, the size its figures were measured with)
@@ -92,7 +96,10 @@ def d41_spec(populations: int) -> tuple[JobSpec, Path]:
 # -- on the workers (imported by reference: benchmarks.scale is importable there) --------
 
 def _warm_worker() -> int:
-    """Import the plugin and load the Duffing kernel (numba's cache) on a worker."""
+    """Import the plugin and what a task imports, and load the Duffing kernel (numba's
+    cache) on a worker: once per worker process, as on a long-lived cluster."""
+    import abcns.nested  # noqa: F401 - what unpickling a task's proposer imports
+    import worker.evaluate  # noqa: F401
     from benchmarks import sleepy as plugin
     from worker.simulators import Duffing
 
@@ -109,6 +116,29 @@ def _cpu_seconds() -> float:
 
 def _simulated() -> int:
     return sleepy.simulated()
+
+
+def _sleep(seconds: float) -> float:
+    time.sleep(seconds)
+    return seconds
+
+
+def dask_floor(client: Client, units: int, rounds: int, seconds: float) -> float:
+    """Efficiency of Dask alone on this run's pattern of work: ``rounds`` populations of
+    ``units`` tasks that only sleep ``seconds`` (a batch of the sleepy simulator, without the
+    simulator, the algorithm or the store), each population submitted at once and gathered
+    as its tasks complete, the next one after the last. The best a population loop on Dask
+    tasks can do on this cluster."""
+    n = max(1, sum(client.nthreads().values()))
+    for warm in (True, False):
+        start = time.perf_counter()
+        for r in range(1 if warm else rounds):
+            futures = client.map(_sleep, [seconds] * units, key=[("abcns-floor", int(warm), r, i) for i in range(units)],
+                                 pure=False)
+            for _ in as_completed(futures, with_results=True):
+                pass
+        wall = time.perf_counter() - start
+    return rounds * units * seconds / (n * wall)
 
 
 def workers_cpu(client: Client) -> float:
@@ -137,7 +167,8 @@ def stock_cluster(n: int, tmp: Path) -> Iterator[tuple[Client, list[int], float]
     start = time.perf_counter()
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
-    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "cwd": ROOT}
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "cwd": ROOT,
+             "env": {**os.environ, **cluster_env()}}  # the Dask settings of docs/deploy.md
     procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
                                "--dashboard-address", ":0"], **quiet)]
     try:
@@ -188,8 +219,11 @@ def measure(client: Client, pids: list[int], spec: JobSpec, base: Path, tmp: Pat
     executed = workers_simulated(client) - sims0 if count else None
     shutil.rmtree(store.parent, ignore_errors=True)
     n = res.n_simulations
+    pops = res.populations
+    # populations 2 on: the rate once the job is under way (no store creation, no first population)
+    steady = sum(p.n_simulations for p in pops[1:]) / (pops[-1].elapsed_s - pops[0].elapsed_s) if len(pops) > 1 else np.nan
     return {"populations": len(res.populations), "simulations": n, "executed": executed, "wall": wall,
-            "rate": n / wall, "runner_us": 1e6 * cpu / n, "other_us": 1e6 * other / n if pids else None,
+            "rate": n / wall, "steady": steady, "runner_us": 1e6 * cpu / n, "other_us": 1e6 * other / n if pids else None,
             "workers_us": 1e6 * w_cpu / n, "stop": res.stop_reason.value, "load": os.getloadavg()[0]}
 
 
@@ -224,17 +258,19 @@ def sleepy_table(title: str, cluster: Callable, counts: list[int], spec: JobSpec
     print(f"the same job in this process with the plain Duffing (engine + kernel, no sleep, no Dask, no store): "
           f"{engine:.0f} µs CPU per simulation, of which the evaluator {kernel:.0f}")
     sched = " scheduler CPU µs/sim |" if stock else ""
-    print(f"| workers | simulations | executed | wall s | sims/s | ideal sims/s | efficiency | runner CPU µs/sim |{sched}"
-          " workers CPU µs/sim | start-up s | load |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if stock else "") + "---:|---:|---:|", flush=True)
+    print(f"| workers | simulations | executed | wall s | sims/s | ideal sims/s | efficiency | steady | Dask floor | "
+          f"runner CPU µs/sim |{sched} workers CPU µs/sim | start-up s | load |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if stock else "") + "---:|---:|---:|", flush=True)
     for n in counts:
         with cluster(n) as (client, pids, startup):
             r = measure(client, pids, spec, base, tmp)
+            units = round(r["simulations"] / (r["populations"] * spec.sampler.batch_size))
+            floor = dask_floor(client, units, r["populations"], spec.sampler.batch_size * sleepy.SECONDS)
         ideal = n * IDEAL_PER_WORKER
         extra = f" {r['other_us']:.0f} |" if stock else ""
         print(f"| {n} | {r['simulations']} | {r['executed']} | {r['wall']:.2f} | {r['rate']:.0f} | {ideal:.0f} | "
-              f"{r['rate'] / ideal:.2f} | {r['runner_us']:.0f} |{extra} {r['workers_us']:.0f} | {startup:.1f} | "
-              f"{r['load']:.1f} |",
+              f"{r['rate'] / ideal:.2f} | {r['steady'] / ideal:.2f} | {floor:.2f} | {r['runner_us']:.0f} |{extra} "
+              f"{r['workers_us']:.0f} | {startup:.1f} | {r['load']:.1f} |",
               flush=True)
 
 
@@ -299,6 +335,8 @@ def main() -> None:
     parser.add_argument("--stock-workers", type=_counts, default=[1, 8], help="stock cluster sizes")
     parser.add_argument("--populations", type=int, default=10, help="populations of the sleepy job")
     parser.add_argument("--batch-size", type=int, default=None, help="override the sleepy job's sampler.batch_size")
+    parser.add_argument("--variant", choices=["paper", "evidence"], default=None,
+                        help="the sleepy job's ABC-NS variant (default: the demo's, paper)")
     parser.add_argument("--d41-workers", type=_counts, default=[1, 2])
     parser.add_argument("--d41-populations", type=int, default=6)
     parser.add_argument("--skip-local", action="store_true")
@@ -310,10 +348,10 @@ def main() -> None:
         args.workers, args.stock_workers, args.populations = [1, 2], [1], 1
         args.d41_workers, args.d41_populations = [1, 2], 1
 
-    spec, base = sleepy_spec(args.populations, args.batch_size)
-    print(f"# scale-out: {spec.name}, cubic model, {spec.sampler.particles} particles, batch size "
-          f"{spec.sampler.batch_size}, {args.populations} populations, {1e3 * sleepy.SECONDS:g} ms sleep per simulation; "
-          f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
+    spec, base = sleepy_spec(args.populations, args.batch_size, args.variant)
+    print(f"# scale-out: {spec.name}, cubic model, {spec.sampler.variant} variant, {spec.sampler.particles} particles, "
+          f"batch size {spec.sampler.batch_size}, {args.populations} populations, "
+          f"{1e3 * sleepy.SECONDS:g} ms sleep per simulation; {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory(prefix="abcns-scale-") as tmpdir:
         tmp = Path(tmpdir)
         if not args.skip_local:

@@ -71,6 +71,14 @@ def test_compose_config_is_valid():
         assert "ports" not in s  # host networking: every service listens on ABCNS_BIND (127.0.0.1) only
     assert services["scheduler"]["command"][:2] == ["dask", "scheduler"]
     assert services["worker"]["command"][:2] == ["dask", "worker"]
+    # the stock scheduler and workers run with the embedded cluster's Dask settings, as docs/deploy.md says
+    from service.run.dask_executor import cluster_env
+
+    deploy = (ROOT / "docs" / "deploy.md").read_text()
+    for name, value in cluster_env().items():
+        for role in ("scheduler", "worker"):
+            assert services[role]["environment"][name] == value, (role, name)
+        assert f"export {name}={value}" in deploy, name
     api = services["api"]
     assert api["command"][:2] == ["abcns", "serve"] and "127.0.0.1" in api["command"] and "8123" in api["command"]
     assert "8123" in " ".join(api["healthcheck"]["test"]) and api["environment"]["ABCNS_TOKEN"] == "t"

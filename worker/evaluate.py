@@ -26,7 +26,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from abcns.distances import NMSE, Distance, SummaryEuclidean
-from abcns.executor import OK, Evaluate, Simulated, SimulateDistanceEpsilon, per_model, run_draw, unpack_draws
+from abcns.executor import OK, Evaluate, SimulateDistanceEpsilon, pack_results, per_model, run_draw, unpack_draws
 from abcns.priors import Model, SpecError
 from worker import registry
 from worker.simulators import NMSECapable, Simulator
@@ -240,9 +240,10 @@ def job_payload(description: dict, arrays: dict, allow_import: bool = False) -> 
     return {"description": description, "arrays": arrays, "allow_import": allow_import}
 
 
-def evaluate_on_worker(job_key: str, payload: dict, draws: bytes) -> tuple[list[Simulated], float]:
+def evaluate_on_worker(job_key: str, payload: dict, draws: bytes) -> tuple[bytes, float]:
     """The Dask task: run consecutive draws of job ``job_key`` (``abcns.executor.pack_draws``;
-    proposals drawn here, then simulated); return their results and the seconds it took.
+    proposals drawn here, then simulated); return their results (``pack_results``: one bytes
+    object, which Dask sends as it is) and the seconds it took.
     ``payload`` (the result of :func:`job_payload`, sent once per job) is turned into an
     evaluator once per worker process and kept for the job's later batches."""
     start = time.perf_counter()
@@ -255,4 +256,4 @@ def evaluate_on_worker(job_key: str, payload: dict, draws: bytes) -> tuple[list[
     else:
         _CACHE.move_to_end(job_key)
     results = [run_draw(evaluate, draw) for draw in unpack_draws(draws)]
-    return results, time.perf_counter() - start
+    return pack_results(results), time.perf_counter() - start

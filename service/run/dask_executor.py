@@ -2,21 +2,28 @@
 
 A batch (the unit the random stream is keyed by) is small and fixed by the spec, so the
 result does not depend on how it runs; a Dask *task* evaluates a group of consecutive
-batches, sized so a task is worth its round trip. The group size adapts to what the executor
-has seen, which changes only how the work is cut, never a result:
+batches. How the work is cut and how far ahead it runs adapt to what the executor has
+seen, which changes only the cut, never a result:
 
-- the compute time per batch, measured on the workers, caps a task at ``TASK_SECONDS``;
-- the number of batches the previous population consumed estimates this one's need, so
-  the tasks in flight at a population's start (two per worker) hold that many batches and
-  a 20 % margin between them; past the estimate (or with none yet) the size grows with the
-  batches consumed.
+- how many batches are submitted ahead follows the best estimate of the batches the
+  caller still needs: ``abcns.filling``'s hints (``Stream.expect``: a lower bound when it
+  opens a population, then an estimate from the acceptance so far after each batch), else
+  the previous population's consumption, 10 % more;
+- a task's group is one batch until a batch's compute time has been measured, then about
+  ``need / (2 x workers)`` batches, kept between ``MIN_TASK_SECONDS`` and
+  ``MAX_TASK_SECONDS`` of compute time, so a cheap batch does not pay a round trip each
+  and a dear one does not hold a worker long past the population's end.
 
-Tasks are submitted ahead (two per worker up to the expected need) so every worker stays
-busy; the caller consumes results strictly in submission order (the oldest first, never
-whichever finishes first: that would bias the posterior toward cheap parameters). When the
-caller has enough and closes the iterator, the surplus tasks are cancelled. Each batch
-carries its own seed, so a task Dask reruns after a worker died gives the same answer, and
-the result does not depend on the number of workers.
+Tasks go to the scheduler in bulk (one ``client.map``, one scheduler message, for all the
+tasks a hint asks for) and are queued there: a run's tasks form one task group that the
+scheduler treats as "root-ish" (see :func:`_anchor`), so it hands them to workers oldest
+first as threads free up (each ``client.map`` a new priority generation:
+``fifo_timeout=0``). The oldest batch thus runs first, on whichever worker is free, and a
+surplus task released before its turn never runs. Results are gathered as they complete
+(``as_completed``, on the client's event loop) and handed to the caller strictly in
+submission order (never whichever finishes first: that would bias the posterior toward
+cheap parameters). Each batch carries its own seed, so a task Dask reruns after a worker
+died gives the same answer, and the result does not depend on the number of workers.
 
 The job's description and data go to the cluster once, as the task :func:`job_payload` that
 every batch depends on. The scheduler keeps its inputs, so if every worker holding it dies
@@ -32,24 +39,57 @@ from collections import deque
 from collections.abc import Iterable, Iterator
 
 import dask
-from distributed import Client, Future, LocalCluster
+from distributed import Client, Future, LocalCluster, as_completed
 
-from abcns.executor import Draw, Simulated, pack_draws
+from abcns.executor import Draw, Simulated, pack_draws, unpack_results
 from worker.evaluate import evaluate_on_worker, job_payload
 
-TASK_SECONDS = 0.1  # compute time a task aims at, at most (the round trip is a few ms)
+#: compute time of a task, at least (a task costs ~1-2 ms of CPU in the client, scheduler and
+#: worker together) and at most (a worker busy with a surplus task starts the next population late)
+MIN_TASK_SECONDS = 0.02
+MAX_TASK_SECONDS = 0.1
+#: the expected need of a population, over the previous population's
+NEED_MARGIN = 1.1
 
-#: Dask settings for abcns's workers: no statistical profiler (it samples every worker's
-#: threads every 10 ms; with many workers per core it took a measurable share of the CPU).
-#: ``local_cluster`` applies them; for stock workers, see docs/deploy.md.
-WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
+#: Dask settings for abcns's clusters. ``local_cluster`` applies them; stock workers take them
+#: from the environment (docs/deploy.md). Measured idle on this project's 2-core machine with
+#: 32 worker processes: 66 % of a core with Dask's defaults, 11 % with these.
+#: - no statistical profiler (it samples every worker's threads every 10 ms);
+#: - the event-loop health tick every 500 ms, not 20 ms (it only warns of a blocked loop);
+#: - the nanny's memory check every second, not 100 ms; the system monitor (dashboard
+#:   figures) every 2 s, not 500 ms.
+CLUSTER_CONFIG = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "500ms",
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+}
+
+
+def cluster_env() -> dict[str, str]:
+    """:data:`CLUSTER_CONFIG` as the environment variables a stock ``dask scheduler`` / ``dask
+    worker`` reads (docs/deploy.md, docker/compose.yaml)."""
+    return {"DASK_" + key.upper().replace(".", "__").replace("-", "_"): str(value)
+            for key, value in CLUSTER_CONFIG.items()}
 
 
 def local_cluster(n_workers: int, dashboard: bool = False) -> LocalCluster:
     """The embedded cluster: ``n_workers`` single-threaded worker processes on this machine."""
-    with dask.config.set(WORKER_CONFIG):
+    with dask.config.set(CLUSTER_CONFIG):
         return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
                             dashboard_address=":0" if dashboard else None)
+
+
+def _anchor(_: int) -> None:
+    """The first tasks of a run's task group, held until the executor closes, so the group
+    (and its count of tasks) outlives each population. Dask's scheduler queues the tasks of a
+    large group with few dependencies ("root-ish": more tasks than twice the worker threads)
+    and hands them out in priority order as threads free up: the oldest batch runs first, on
+    whichever worker is free, and a surplus task cancelled before its turn never runs. Without
+    the anchors the first population's tasks would be too few to count as root-ish, and the
+    scheduler would place them eagerly, most on the worker holding the job's data, one after
+    another; and a group the scheduler forgets when its last task is released would start
+    each population from zero."""
 
 
 class DaskExecutor:
@@ -57,63 +97,153 @@ class DaskExecutor:
         self.client = client
         self.job_key = job_key
         self.nonce = uuid.uuid4().hex[:8]  # keys unique to this run of the job
+        # the batches' tasks form one task group per run, ``(name, population, first, last)``;
+        # the anchor keeps the group alive between populations (see ``ANCHOR``)
+        self.group = f"abcns-{job_key[:12]}-{self.nonce}"
         self.payload: Future = client.submit(job_payload, description, arrays, allow_import,
-                                             key=f"abcns-{job_key[:12]}-data-{self.nonce}", pure=False)
+                                             key=(f"abcns-data-{job_key[:12]}-{self.nonce}",), pure=False)
+        anchors = 2 * self.n_workers() + 1
+        self.anchors: list[Future] = client.map(_anchor, range(anchors), key=[(self.group, 0, 0, i) for i in range(anchors)],
+                                                pure=False)
         self.expected: int | None = None  # batches the previous map call consumed
         self.batch_seconds: float | None = None  # compute time per batch on a worker (smoothed)
 
     def close(self) -> None:
         """Release the job's data on the cluster."""
         self.payload.release()
+        for anchor in self.anchors:
+            anchor.release()
 
-    def _n_workers(self) -> int:
-        """One scheduler round trip per population."""
-        return max(1, len(self.client.scheduler_info(n_workers=-1).get("workers", {})))
+    def n_workers(self) -> int:
+        """Worker threads in the cluster now (one scheduler round trip per call of map)."""
+        return max(1, sum(self.client.nthreads().values()))
 
-    def _need(self) -> int:
-        """Batches this call is expected to consume: the previous call's count, 20 % more."""
-        return math.ceil(1.2 * self.expected) if self.expected is not None else 1
-
-    def _group_size(self, need: int, consumed: int, n_workers: int) -> int:
-        """Batches in the next task, given the batches consumed so far in this call: the
-        tasks in flight at the start cover the expected need between them; past that (or
-        with no estimate yet) the size grows with what has been consumed."""
+    def group_size(self, need: int, consumed: int, n_workers: int) -> int:
+        """Batches in the next task, given the batches expected and those consumed so far;
+        one until a batch's compute time has been measured (a job's first tasks measure it)."""
+        if self.batch_seconds is None:
+            return 1
         size = math.ceil(max(need, consumed) / (2 * n_workers))
-        if self.batch_seconds is not None and self.batch_seconds > 0:
-            size = min(size, int(TASK_SECONDS / self.batch_seconds))
+        if self.batch_seconds > 0:
+            most = max(1, int(MAX_TASK_SECONDS / self.batch_seconds))
+            least = min(most, math.ceil(MIN_TASK_SECONDS / self.batch_seconds))
+            size = min(max(size, least), most)
         return max(1, size)
 
-    def map(self, draws: Iterable[Draw]) -> Iterator[Simulated]:
-        pending: deque[tuple[Future, int]] = deque()  # (task, batches in it), oldest first
-        it = iter(draws)
-        exhausted = False
-        n_workers = self._n_workers()
-        need = self._need()
-        consumed = submitted = 0
+    def map(self, draws: Iterable[Draw]) -> Stream:
+        return Stream(self, iter(draws))
+
+    def _measured(self, seconds: float, size: int) -> None:
+        per = seconds / size
+        self.batch_seconds = per if self.batch_seconds is None else 0.7 * self.batch_seconds + 0.3 * per
+
+
+class Stream:
+    """One call of :meth:`DaskExecutor.map`: an iterator of :class:`Simulated` in submission
+    order; ``close()`` cancels the rest.
+
+    How many batches are submitted ahead (tasks queue on the scheduler, oldest first) follows
+    the best estimate of the batches still needed: the caller's (``expect``: ``abcns.filling``
+    gives a lower bound when it opens a population and an estimate from the acceptance so far
+    after each batch), else the previous call's consumption, 10 % more. Before any result, a
+    lower bound caps the previous call's need at twice itself or one task per worker, so a
+    population whose acceptance jumped up (the first one after the prior's) does not queue a
+    wave of surplus work."""
+
+    def __init__(self, executor: DaskExecutor, draws: Iterator[Draw]):
+        self.ex = executor
+        self.draws = draws
+        self.exhausted = False
+        self.n_workers = executor.n_workers()
+        # the previous call's consumption, 10 % more: the first estimate of the need
+        self.need = math.ceil(NEED_MARGIN * executor.expected) if executor.expected is not None else None
+        self.left = self.need  # batches still needed beyond those consumed (None: unknown)
+        self.consumed = self.submitted = 0
+        self.pending: deque[tuple[Future, int]] = deque()  # (task, batches in it), oldest first
+        self.done: dict[str, object] = {}  # results gathered, by task key, until their turn
+        self.completed = as_completed(with_results=True, raise_errors=False)
+        self.ready: deque[Simulated] = deque()  # the oldest task's results, not yet handed out
+        self.closed = False
+
+    def __iter__(self) -> Stream:
+        return self
+
+    def expect(self, batches: float, at_least: bool = False) -> None:
+        """The caller expects to consume about ``batches`` more (``at_least``: no fewer); tasks
+        for that many, 10 % more, are submitted now."""
+        if at_least and self.consumed == 0:
+            bound = max(2 * math.ceil(batches), self.n_workers)
+            self.left = min(self.need, bound) if self.need is not None else bound
+        else:
+            self.left = math.ceil(NEED_MARGIN * batches)
+        if not self.closed:
+            self._top_up()
+
+    def _top_up(self) -> None:
+        """Submit tasks in one scheduler message until the estimate of the batches still
+        needed is covered, and at least one task is in flight."""
+        groups: list[list[Draw]] = []
+        want = max(self.left or 1, 1)
+        while not self.exhausted and (self.submitted - self.consumed < want or len(self.pending) + len(groups) == 0):
+            group = list(itertools.islice(self.draws, self.ex.group_size(want, self.consumed, self.n_workers)))
+            if not group:
+                self.exhausted = True
+                break
+            groups.append(group)
+            self.submitted += len(group)
+        if not groups:
+            return
+        keys = [(self.ex.group, g[0].population, g[0].index, g[-1].index) for g in groups]
+        n = len(groups)
+        # fifo_timeout=0: each call is a new "generation" of the scheduler's priorities, so its
+        # tasks come after every earlier call's (by default calls within 100 ms share one, and
+        # each call's first task would jump ahead of the previous call's later ones)
+        tasks = self.ex.client.map(evaluate_on_worker, [self.ex.job_key] * n, [self.ex.payload] * n,
+                                   [pack_draws(g) for g in groups], key=keys, pure=False, fifo_timeout=0)
+        self.pending.extend(zip(tasks, map(len, groups)))
+        self.completed.update(tasks)
+
+    def _oldest(self) -> tuple[bytes, float]:
+        """The oldest task's result, waiting for it (later ones are gathered meanwhile)."""
+        task, _ = self.pending[0]
+        while task.key not in self.done:
+            future, result = next(self.completed)
+            self.done[future.key] = result
+        result = self.done.pop(task.key)
+        if task.status == "finished":
+            return result  # type: ignore[return-value]
+        return task.result()  # an error or a cancellation: raises what ``result()`` raises
+
+    def __next__(self) -> Simulated:
+        if self.closed:
+            raise StopIteration
+        while not self.ready:
+            self._top_up()
+            if not self.pending:
+                raise StopIteration
+            packed, seconds = self._oldest()
+            _, size = self.pending.popleft()
+            self.ex._measured(seconds, size)
+            self.ready.extend(unpack_results(packed))
+        self.consumed += 1
+        return self.ready.popleft()
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self.ex.expected = max(self.consumed, 1)
+        # releasing a task the caller no longer needs cancels it (the scheduler forgets a
+        # queued task nobody wants; one already running finishes and is dropped); unlike
+        # ``client.cancel`` it does not wait for the scheduler's answer
+        for task, _ in self.pending:
+            task.release()
+        self.pending.clear()
+        self.done.clear()
+        self.completed.clear()
+
+    def __del__(self) -> None:  # a stream dropped without close() still frees the cluster
         try:
-            while True:
-                # up to the expected need, two tasks per worker in flight; past it, one, so
-                # surplus work does not hold the workers when the population is full
-                while not exhausted and len(pending) < (2 if submitted < need else 1) * n_workers:
-                    group = list(itertools.islice(it, self._group_size(need, consumed, n_workers)))
-                    if not group:
-                        exhausted = True
-                        break
-                    key = (f"abcns-{self.job_key[:12]}-t{group[0].population}"
-                           f"-b{group[0].index}-{group[-1].index}-{self.nonce}")
-                    pending.append((self.client.submit(evaluate_on_worker, self.job_key, self.payload, pack_draws(group),
-                                                       key=key, pure=False), len(group)))
-                    submitted += len(group)
-                if not pending:
-                    return
-                task, size = pending.popleft()
-                evaluated, seconds = task.result()
-                self.batch_seconds = seconds / size if self.batch_seconds is None else \
-                    0.7 * self.batch_seconds + 0.3 * seconds / size
-                for result in evaluated:
-                    consumed += 1
-                    yield result
-        finally:
-            self.expected = max(consumed, 1)
-            if pending:
-                self.client.cancel([task for task, _ in pending])
+            self.close()
+        except Exception:  # noqa: BLE001 - the client may be gone at interpreter exit
+            pass

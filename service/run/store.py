@@ -294,6 +294,17 @@ class Store:
             raise StoreError(f"max_ellipsoids must be >= 1, got {max_ellipsoids}")
 
         group = zarr.open_group(str(path), mode="w-", zarr_format=3)
+        units = _distance_units(spec)
+
+        def meta(name: str) -> dict[str, Any]:
+            """A variable's attributes, written with the array (one metadata write each)."""
+            long_name, description, unit = _VARIABLES[name]
+            out = {"long_name": long_name, "description": description or long_name}
+            if unit is not None:
+                out["units"] = unit.format(distance_units=units)
+            if name == "model_index":
+                out["flag_meanings"] = " ".join(model_names)  # CF: index i is model_names[i]
+            return out
 
         def grow(name, tail, dtype, fill, dims):
             # rows per chunk along population: a chunk of ~64 KiB at most (one population of
@@ -301,7 +312,7 @@ class Store:
             row_bytes = np.dtype(dtype).itemsize * math.prod(tail)
             rows = int(np.clip(CHUNK_BYTES // row_bytes, 1, 256))
             group.create_array(name, shape=(0, *tail), chunks=(rows, *tail), dtype=dtype,
-                               fill_value=fill, dimension_names=[_P, *dims])
+                               fill_value=fill, dimension_names=[_P, *dims], attributes=meta(name))
 
         grow("population", (), "int32", 0, [])
         grow("model_index", (n,), "int16", -1, [_N])
@@ -331,15 +342,9 @@ class Store:
         }
         for name, (values, dims) in static.items():
             arr = group.create_array(name, shape=values.shape, dtype=values.dtype if values.dtype.kind != "U" else str,
-                                     dimension_names=dims)
+                                     dimension_names=dims, attributes=meta(name))
             arr[...] = values
-        units = _distance_units(spec)
-        for name, (long_name, description, unit) in _VARIABLES.items():
-            meta = {"long_name": long_name, "description": description or long_name}
-            if unit is not None:
-                meta["units"] = unit.format(distance_units=units)
-            group[name].attrs.update(meta)
-        group["model_index"].attrs["flag_meanings"] = " ".join(model_names)  # CF: index i is model_names[i]
+        assert set(group.array_keys()) == set(_VARIABLES), "every variable is described"
 
         attrs = {
             "spec": spec,
