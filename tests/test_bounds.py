@@ -110,3 +110,16 @@ def test_coverage_sees_a_bound_that_misses_part_of_the_region():
     c, _ = bd.coverage(disc, left_only, np.random.default_rng(11))
     # held share ~ 0.5 (the left half, slightly more from the ellipsoid's reach) -> 1 - 0.5 / 2
     assert 0.7 < c < 0.85
+
+
+def test_the_chi2_quantile_is_scipy_stats_own_to_the_bit():
+    """bounds computes the outlier cut without importing scipy.stats (a third of a second at
+    every process start, every Dask worker included); the bits must be scipy.stats' own, or
+    bounds, and so the results of a run, would change."""
+    from scipy.stats import chi2
+
+    for d in range(1, 13):
+        assert bd._chi2_quantile(0.5, d) == chi2.median(d)
+        for n in (2, 5, 13, 100, 999, 20_000, 10**6):
+            q = 1.0 - bd.OUTLIER_TAIL / n
+            assert bd._chi2_quantile(q, d) == chi2.ppf(q, d), (d, n)

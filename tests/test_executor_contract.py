@@ -30,6 +30,7 @@ from abcns.filling import draws
 from abcns.nested import BoundProposer
 from abcns.rejection import prior_proposer
 from abcns.settings import StopReason
+from benchmarks.harness import wait_until
 from service.run.dask_executor import DaskExecutor
 from service.spec import build, description, parse
 
@@ -154,6 +155,56 @@ def test_a_run_through_either_executor_gives_the_same_populations(make_executor,
     for p, q in zip(result.populations, reference.populations):
         for name in ("models", "theta", "distances", "weights"):
             np.testing.assert_array_equal(getattr(p, name), getattr(q, name), err_msg=f"{p.t} {name}")
+
+
+def test_dask_queues_a_run_s_batches_on_the_scheduler_oldest_first(job, client):
+    """How the Dask executor keeps the oldest batch first: a run's tasks form one task group
+    that the scheduler treats as root-ish from the first task on (the anchors: without them a
+    group of two tasks on two threads is not), so it queues them and hands them out in
+    priority order; and each ``client.map`` of a top-up is a later priority generation than
+    the ones before (``fifo_timeout=0``), so a task submitted later never jumps ahead."""
+    spec, built = job
+    executor = DaskExecutor(client, "contract-queue", description(spec), {"force": built.force, "observed": built.observed})
+    results = executor.map(stream(built.models))
+
+    def on_scheduler(dask_scheduler, keys):
+        tasks = [dask_scheduler.tasks.get(tuple(k)) for k in keys]  # (tuple keys arrive as lists)
+        return None if None in tasks else [(t.priority, dask_scheduler.is_rootish(t)) for t in tasks]
+
+    def scheduler_view(keys):  # once the scheduler has the tasks (they travel on another channel)
+        return wait_until(lambda: client.run_on_scheduler(on_scheduler, keys=keys), 30, "the scheduler to see the tasks")
+
+    try:
+        results.expect(1)  # two batches (10 % more, rounded up), one task each
+        first = [task.key for task, _ in results.pending]
+        assert len(first) == 2
+        assert all(rootish for _, rootish in scheduler_view(first))
+        results.expect(11)  # a second call: 13 batches in flight
+        keys = [task.key for task, _ in results.pending]
+        assert len(keys) == 13 and keys[:2] == first
+        priorities = [p for p, _ in scheduler_view(keys)]
+        assert all(a < b for a, b in zip(priorities, priorities[1:])), priorities
+        got = [next(results) for _ in range(13)]
+        for draw, result in zip(itertools.islice(stream(built.models), 13), got):
+            np.testing.assert_array_equal(result.distances, run_draw(built.evaluate, draw).distances)
+    finally:
+        results.close()
+        executor.close()
+
+
+def test_cluster_settings_reach_a_stock_process_through_the_environment():
+    """docs/deploy.md and docker/compose.yaml give stock Dask processes the embedded cluster's
+    settings as environment variables (``cluster_env``): Dask reads them back as they are."""
+    import json
+    import subprocess
+    import sys
+
+    from service.run.dask_executor import CLUSTER_CONFIG, cluster_env
+
+    code = "import dask, json, sys; print(json.dumps({k: dask.config.get(k) for k in json.loads(sys.argv[1])}))"
+    done = subprocess.run([sys.executable, "-c", code, json.dumps(list(CLUSTER_CONFIG))], env=cluster_env(),
+                          capture_output=True, text=True, check=True, timeout=120)
+    assert json.loads(done.stdout) == CLUSTER_CONFIG
 
 
 def test_summary_distances_on_workers_equal_the_runner_s(client):

@@ -269,6 +269,11 @@ class JobManager:
                 log.warning("skipping the job folder %s: %s", folder, err)
         for job in sorted(found, key=lambda j: j.created_at):
             self.jobs[job.id] = job
+            if job.status not in TERMINAL and job.events is not None and job.events.ended():
+                # the service died between a job's terminal event and its status (``_end``)
+                job.status = job.events.last_event
+                job.save()
+                continue
             if job.status == "running":  # the service died while it ran
                 job.crashes += 1
                 if job.crashes > self.max_resumes:
@@ -461,8 +466,8 @@ class JobManager:
                 self.wake.notify_all()
 
     def _end(self, job: JobRecord, status: str, error: str | None) -> None:
-        job.status, job.error = status, error
-        job.save()
+        """The job's terminal event, then its status: whoever sees the job ended finds the
+        event in its log (a poller that reads the status, then the events, misses nothing)."""
         data: dict[str, Any] = {"status": status}
         if error:
             data["error"] = error
@@ -473,6 +478,8 @@ class JobManager:
                         n_simulations=result.get("n_simulations"),
                         model_probabilities=[probs.get(m) for m in job.models])
         job.events.append(status, data)  # type: ignore[union-attr]
+        job.status, job.error = status, error
+        job.save()
 
     def begin_shutdown(self) -> None:
         """Stop taking jobs, stop the running ones between batches, end every event stream.
