@@ -143,12 +143,10 @@ class Stream:
     order; ``close()`` cancels the rest.
 
     How many batches are submitted ahead (tasks queue on the scheduler, oldest first) follows
-    the best estimate of the batches still needed: the caller's (``expect``: ``abcns.filling``
-    gives a lower bound when it opens a population and an estimate from the acceptance so far
-    after each batch), else the previous call's consumption, 10 % more. Before any result, a
-    lower bound caps the previous call's need at twice itself or one task per worker, so a
-    population whose acceptance jumped up (the first one after the prior's) does not queue a
-    wave of surplus work."""
+    the best estimate of the batches still needed: at first the previous call's consumption,
+    10 % more (with none, twice the caller's lower bound, or a task per worker), then the
+    caller's estimate from the acceptance so far (``expect``: ``abcns.filling`` gives a lower
+    bound when it opens a population and an estimate after each batch)."""
 
     def __init__(self, executor: DaskExecutor, draws: Iterator[Draw]):
         self.ex = executor
@@ -172,8 +170,9 @@ class Stream:
         """The caller expects to consume about ``batches`` more (``at_least``: no fewer); tasks
         for that many, 10 % more, are submitted now."""
         if at_least and self.consumed == 0:
-            bound = max(2 * math.ceil(batches), self.n_workers)
-            self.left = min(self.need, bound) if self.need is not None else bound
+            # the previous call's need, if known (never below the bound); else twice the bound
+            least = math.ceil(batches)
+            self.left = max(least, self.need) if self.need is not None else max(2 * least, self.n_workers)
         else:
             self.left = math.ceil(NEED_MARGIN * batches)
         if not self.closed:
