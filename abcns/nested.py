@@ -351,6 +351,11 @@ def abc_ns(
 
     ``history`` resumes a run: the populations already done (at least the last one);
     ``budget`` then carries the simulations and seconds already spent.
+
+    Once a population is full and finished (:func:`finish_population`), the next one is
+    opened (``executor.map``: an executor that runs ahead starts simulating) before this one's
+    bound geometry is measured (:meth:`Step.evidence`) and the population is yielded; its
+    own random streams make the order irrelevant to the result.
     """
     settings.check_particles(models)
     budget = budget or Budget(stop, clock, cancel)

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import time
 import uuid
 from collections import deque
 from collections.abc import Iterable, Iterator
@@ -97,8 +98,9 @@ class DaskExecutor:
         self.client = client
         self.job_key = job_key
         self.nonce = uuid.uuid4().hex[:8]  # keys unique to this run of the job
+        self._threads: tuple[float, int] | None = None  # (when asked, worker threads)
         # the batches' tasks form one task group per run, ``(name, population, first, last)``;
-        # the anchor keeps the group alive between populations (see ``ANCHOR``)
+        # the anchors keep it root-ish and alive between populations (see :func:`_anchor`)
         self.group = f"abcns-{job_key[:12]}-{self.nonce}"
         self.payload: Future = client.submit(job_payload, description, arrays, allow_import,
                                              key=(f"abcns-data-{job_key[:12]}-{self.nonce}",), pure=False)
@@ -115,8 +117,12 @@ class DaskExecutor:
             anchor.release()
 
     def n_workers(self) -> int:
-        """Worker threads in the cluster now (one scheduler round trip per call of map)."""
-        return max(1, sum(self.client.nthreads().values()))
+        """Worker threads in the cluster: asked of the scheduler at most once a second (a
+        round trip took 30-60 ms on a loaded machine, once per population)."""
+        now = time.monotonic()
+        if self._threads is None or now - self._threads[0] > 1.0:
+            self._threads = (now, max(1, sum(self.client.nthreads().values())))
+        return self._threads[1]
 
     def group_size(self, need: int, consumed: int, n_workers: int) -> int:
         """Batches in the next task, given the batches expected and those consumed so far;
