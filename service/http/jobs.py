@@ -390,7 +390,7 @@ class JobManager:
         seen = job.progress["population"] if job.progress else 0
         if store.n_populations <= seen:
             return
-        totals = store.dataset()["n_simulations_total"].values
+        totals = store.totals()
         for t in range(seen + 1, store.n_populations + 1):
             pop = store.population(t)
             job.progress = self._progress(pop, totals[t - 1], pop.elapsed_s, None)

@@ -623,6 +623,11 @@ class Store:
                 time.sleep(0.05)
         raise AssertionError("unreachable")
 
+    def totals(self) -> np.ndarray:
+        """``n_simulations_total`` of the complete populations (zarr only: no xarray, whose
+        first use imports dask.array, which two threads importing at once can find half made)."""
+        return np.asarray(self._group("r")["n_simulations_total"][: self.n_populations])
+
     def run_state(self) -> dict[str, Any]:
         """What a resume needs: the counters after the last complete population."""
         n = self.n_populations
