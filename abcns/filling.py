@@ -142,9 +142,9 @@ class Filling:
         self.n_needed, self.epsilon, self.accept_all = n_needed, epsilon, accept_all
         self.results = executor.map(draws(propose, seed=seed, t=t, epsilon=epsilon, batch_size=batch_size,
                                           keep_all=accept_all))
-        expect = getattr(self.results, "expect", None)  # an executor that runs ahead takes a hint:
-        if expect is not None:  # this many batches were every simulation kept (exactly, with accept_all)
-            expect(n_needed / batch_size, at_least=not accept_all)
+        self.expect = getattr(self.results, "expect", None)  # an executor that runs ahead takes hints:
+        if self.expect is not None:  # this many batches were every simulation kept (exactly, with accept_all)
+            self.expect(n_needed / batch_size, at_least=not accept_all)
 
     def close(self) -> None:
         close = getattr(self.results, "close", None)
@@ -163,7 +163,6 @@ class Filling:
         kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         simulated: list[np.ndarray] = []
         n_kept = n_sims = n_failed = n_redraws = n_batches = 0
-        expect = getattr(self.results, "expect", None)  # an executor that runs ahead takes a hint
         try:
             budget.check()
             for batch in self.results:  # in submission order
@@ -192,8 +191,8 @@ class Filling:
                 if cut:
                     raise Stopped(StopReason.MAX_SIMULATIONS)
                 n_batches += 1
-                if expect is not None:  # batches still needed at this population's acceptance so far
-                    expect((n_needed - n_kept) * n_batches / max(n_kept, 0.5))
+                if self.expect is not None:  # batches still needed at this population's acceptance so far
+                    self.expect((n_needed - n_kept) * n_batches / max(n_kept, 0.5))
                 budget.check()
         finally:
             self.close()

@@ -375,48 +375,45 @@ def abc_ns(
         return Filling(propose, settings.particles - n_survivors, eps, executor, seed=seed, t=t,
                        batch_size=settings.batch_size)
 
-    filled_up: tuple | None = None  # a population filled, not yet finished
     pending: Filling | None = None  # the next population, started
+
+    def complete(t, eps, which, theta, distances, is_new, filled, previous) -> tuple[Population, StopReason | None]:
+        """Finish population t; when the run goes on, open population t + 1 (an executor that
+        runs ahead starts simulating) before this one's bound geometry is measured."""
+        nonlocal pending
+        step = finish_population(models, frames, t, eps, which, theta, distances, is_new, filled, previous,
+                                 settings, population_rng(seed, t))
+        notes.extend(step.notes)
+        reason = stop.reason_after(eps, step.epsilon_next, t)
+        if reason is None and budget.reason() is None:
+            pending = start(t + 1, step.epsilon_next, step.bounds, step.allocation, int(np.count_nonzero(step.survivors)))
+        pop = population_from(
+            t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, budget.elapsed(),
+            step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
+            evidence=step.evidence(geometry_rng(seed, t)),
+        )
+        return pop, reason
+
     try:
         if history:
             pop = history[-1]
+            reason = stop.reason_after(pop.epsilon, pop.epsilon_next, pop.t)
         else:
             eps, source, n_pilot = initial_epsilon(models, settings, executor, budget, seed)
             filled = fill(prior_proposer(models), settings.particles, eps, executor, budget,
                           seed=seed, t=1, batch_size=settings.batch_size)
-            filled_up = (1, eps, filled.models, filled.theta, filled.distances,
-                         np.ones(filled.models.shape[0], bool), filled, None)
-        while True:
-            if filled_up is not None:
-                t, eps, which, theta, distances, is_new, filled, previous = filled_up
-                step = finish_population(models, frames, t, eps, which, theta, distances, is_new, filled, previous,
-                                         settings, population_rng(seed, t))
-                notes.extend(step.notes)
-                reason = stop.reason_after(eps, step.epsilon_next, t)
-                if reason is None and budget.reason() is None:
-                    # the next population's simulations start now (on an executor that runs
-                    # ahead), while this one's bound geometry is measured and it is handed out
-                    pending = start(t + 1, step.epsilon_next, step.bounds, step.allocation,
-                                    int(np.count_nonzero(step.survivors)))
-                pop = population_from(
-                    t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, budget.elapsed(),
-                    step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
-                    evidence=step.evidence(geometry_rng(seed, t)),
-                )
-                yield pop
-            else:
-                reason = stop.reason_after(pop.epsilon, pop.epsilon_next, pop.t)
-            if reason is not None:
-                return end(reason)
+            pop, reason = complete(1, eps, filled.models, filled.theta, filled.distances,
+                                   np.ones(filled.models.shape[0], bool), filled, None)
+            yield pop
+        while reason is None:
             budget.check()
             assert pop.evidence is not None and pop.survivors is not None  # set on every ABC-NS population
             keep = np.flatnonzero(pop.survivors)
-            if pending is None:
-                pending = start(pop.t + 1, pop.epsilon_next, pop.ellipsoids,
-                                pop.evidence.allocation if settings.evidence else None, keep.size)
-            filling, pending = pending, None
+            filling = pending or start(pop.t + 1, pop.epsilon_next, pop.ellipsoids,  # a resumed run opens it here
+                                       pop.evidence.allocation if settings.evidence else None, keep.size)
+            pending = None
             filled = filling.finish(budget)
-            filled_up = (
+            pop, reason = complete(
                 pop.t + 1, pop.epsilon_next,
                 np.concatenate([pop.models[keep], filled.models]),
                 np.concatenate([pop.theta[keep], filled.theta]),
@@ -424,8 +421,10 @@ def abc_ns(
                 np.concatenate([np.zeros(keep.size, bool), np.ones(filled.models.shape[0], bool)]),
                 filled, pop,
             )
+            yield pop
     except Stopped as stopped:
         return end(stopped.reason)
     finally:
         if pending is not None:
             pending.close()
+    return end(reason)

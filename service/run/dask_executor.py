@@ -16,8 +16,8 @@ seen, which changes only the cut, never a result:
 
 Tasks go to the scheduler in bulk (one ``client.map``, one scheduler message, for all the
 tasks a hint asks for) and are queued there: a run's tasks form one task group that the
-scheduler treats as "root-ish" (see :func:`_anchor`), so it hands them to workers oldest
-first as threads free up (each ``client.map`` a new priority generation:
+scheduler treats as "root-ish" (see the anchors in :class:`DaskExecutor`), so it hands them
+to workers oldest first as threads free up (each ``client.map`` a new priority generation:
 ``fifo_timeout=0``). The oldest batch thus runs first, on whichever worker is free, and a
 surplus task released before its turn never runs. Results are gathered as they complete
 (``as_completed``, on the client's event loop) and handed to the caller strictly in
@@ -43,7 +43,7 @@ import dask
 from distributed import Client, Future, LocalCluster, as_completed
 
 from abcns.executor import Draw, Simulated, pack_draws, unpack_results
-from worker.evaluate import evaluate_on_worker, job_payload
+from worker.evaluate import anchor, evaluate_on_worker, job_payload
 
 #: compute time of a task, at least (a task costs ~1-2 ms of CPU in the client, scheduler and
 #: worker together) and at most (a worker busy with a surplus task starts the next population late)
@@ -81,31 +81,26 @@ def local_cluster(n_workers: int, dashboard: bool = False) -> LocalCluster:
                             dashboard_address=":0" if dashboard else None)
 
 
-def _anchor(_: int) -> None:
-    """The first tasks of a run's task group, held until the executor closes, so the group
-    (and its count of tasks) outlives each population. Dask's scheduler queues the tasks of a
-    large group with few dependencies ("root-ish": more tasks than twice the worker threads)
-    and hands them out in priority order as threads free up: the oldest batch runs first, on
-    whichever worker is free, and a surplus task cancelled before its turn never runs. Without
-    the anchors the first population's tasks would be too few to count as root-ish, and the
-    scheduler would place them eagerly, most on the worker holding the job's data, one after
-    another; and a group the scheduler forgets when its last task is released would start
-    each population from zero."""
-
-
 class DaskExecutor:
     def __init__(self, client: Client, job_key: str, description: dict, arrays: dict, allow_import: bool = False):
         self.client = client
         self.job_key = job_key
         self.nonce = uuid.uuid4().hex[:8]  # keys unique to this run of the job
         self._threads: tuple[float, int] | None = None  # (when asked, worker threads)
-        # the batches' tasks form one task group per run, ``(name, population, first, last)``;
-        # the anchors keep it root-ish and alive between populations (see :func:`_anchor`)
+        # the batches' tasks form one task group per run, ``(name, population, first, last)``.
+        # Its first tasks are anchors (no-ops), held until the executor closes, so the group (and
+        # its count of tasks) outlives each population. Dask's scheduler queues the tasks of a
+        # large group with few dependencies ("root-ish": more tasks than twice the worker
+        # threads) and hands them out in priority order as threads free up. Without the anchors
+        # the first population's tasks would be too few to count as root-ish, and the scheduler
+        # would place them eagerly, most on the worker holding the job's data, one after
+        # another; and a group the scheduler forgets when its last task is released would
+        # start each population from zero.
         self.group = f"abcns-{job_key[:12]}-{self.nonce}"
         self.payload: Future = client.submit(job_payload, description, arrays, allow_import,
                                              key=(f"abcns-data-{job_key[:12]}-{self.nonce}",), pure=False)
         anchors = 2 * self.n_workers() + 1
-        self.anchors: list[Future] = client.map(_anchor, range(anchors), key=[(self.group, 0, 0, i) for i in range(anchors)],
+        self.anchors: list[Future] = client.map(anchor, range(anchors), key=[(self.group, 0, 0, i) for i in range(anchors)],
                                                 pure=False)
         self.expected: int | None = None  # batches the previous map call consumed
         self.batch_seconds: float | None = None  # compute time per batch on a worker (smoothed)
@@ -113,8 +108,8 @@ class DaskExecutor:
     def close(self) -> None:
         """Release the job's data on the cluster."""
         self.payload.release()
-        for anchor in self.anchors:
-            anchor.release()
+        for future in self.anchors:
+            future.release()
 
     def n_workers(self) -> int:
         """Worker threads in the cluster: asked of the scheduler at most once a second (a
@@ -164,7 +159,7 @@ class Stream:
         self.left = self.need  # batches still needed beyond those consumed (None: unknown)
         self.consumed = self.submitted = 0
         self.pending: deque[tuple[Future, int]] = deque()  # (task, batches in it), oldest first
-        self.done: dict[str, object] = {}  # results gathered, by task key, until their turn
+        self.done: dict = {}  # results gathered, by task key, until their turn
         self.completed = as_completed(with_results=True, raise_errors=False)
         self.ready: deque[Simulated] = deque()  # the oldest task's results, not yet handed out
         self.closed = False
