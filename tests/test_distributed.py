@@ -1,5 +1,6 @@
-"""The runner on real Dask processes: determinism across worker counts, a worker killed
-mid-population, the CLI killed with SIGKILL and resumed, xarray reading a running store."""
+"""The runner on real Dask processes: determinism across worker counts (1, 2 and 8), workers
+killed mid-population (on 2 and on 8), a job stopped and resumed on 8 workers, the CLI killed
+with SIGKILL and resumed, xarray reading a running store."""
 
 import json
 import os
@@ -41,8 +42,12 @@ def small_spec(tmp_path: Path, **stop) -> Path:
 def run_local(spec_path: Path, out: Path, n_workers: int, on_population=None):
     with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
             Client(cluster) as client:
-        spec = parse(yaml.safe_load(spec_path.read_text()))
-        return run_job(spec, spec_path.parent, out, client, on_population=on_population)
+        return run_on(client, spec_path, out, on_population)
+
+
+def run_on(client: Client, spec_path: Path, out: Path, on_population=None, cancel=None):
+    spec = parse(yaml.safe_load(spec_path.read_text()))
+    return run_job(spec, spec_path.parent, out, client, on_population=on_population, cancel=cancel)
 
 
 def assert_same_store(a: Path, b: Path):
@@ -91,13 +96,46 @@ def test_two_workers_give_the_one_worker_result(reference, tmp_path):
     assert_same_store(ref_store, tmp_path / "two.zarr")
 
 
-def run_killing_workers(spec, out, n_victims: int) -> list[int]:
-    """Run the job on two worker processes and SIGKILL ``n_victims`` of them inside
+def test_eight_workers_give_the_one_worker_result_also_when_stopped_and_resumed(reference, tmp_path):
+    """On 8 worker processes: an undisturbed run; then a run cancelled halfway (the budget's
+    cancel check, asked between batches in the run's own order, says yes at half the checks
+    of the undisturbed run: the store keeps the populations done, status "cancelled") and run
+    again on the same store: it resumes and ends as the one-worker run."""
+    spec, ref_store, _ = reference
+    checks = [0]
+
+    def count() -> bool:
+        checks[0] += 1
+        return False
+
+    with LocalCluster(n_workers=8, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        client.wait_for_workers(8, timeout=120)
+        run_on(client, spec, tmp_path / "eight.zarr", cancel=count)
+        assert_same_store(ref_store, tmp_path / "eight.zarr")
+
+        out, half, asked = tmp_path / "resumed8.zarr", checks[0] // 2, [0]
+
+        def halfway() -> bool:
+            asked[0] += 1
+            return asked[0] >= half
+
+        run_on(client, spec, out, cancel=halfway)
+        stopped = Store.open(out)
+        assert stopped.attrs["status"] == "cancelled"
+        assert 1 <= stopped.n_populations < 6, "the job was not stopped mid-run"
+        run_on(client, spec, out)
+        assert_same_store(ref_store, out)
+
+
+def run_killing_workers(spec, out, n_victims: int, n_workers: int = 2) -> list[int]:
+    """Run the job on ``n_workers`` worker processes and SIGKILL ``n_victims`` of them inside
     population 3; the nannies start new ones. Returns the killed pids."""
     killed = []
     with pytest.MonkeyPatch.context() as mp, \
-            LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
             Client(cluster) as client:
+        client.wait_for_workers(n_workers, timeout=120)
         pids = client.run(os.getpid)
         mp.setenv("ABCNS_STORE_INTERVAL_S", "0")  # population 2's callback comes as soon as it is done
 
@@ -124,6 +162,12 @@ def test_a_worker_killed_mid_population_changes_nothing(reference, tmp_path):
     spec, ref_store, _ = reference
     run_killing_workers(spec, tmp_path / "killed.zarr", n_victims=1)
     assert_same_store(ref_store, tmp_path / "killed.zarr")
+
+
+def test_three_of_eight_workers_killed_mid_population_change_nothing(reference, tmp_path):
+    spec, ref_store, _ = reference
+    run_killing_workers(spec, tmp_path / "killed8.zarr", n_victims=3, n_workers=8)
+    assert_same_store(ref_store, tmp_path / "killed8.zarr")
 
 
 def test_every_worker_killed_at_once_changes_nothing(reference, tmp_path):
