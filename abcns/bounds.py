@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from scipy.linalg import solve_triangular
+from scipy.linalg.lapack import dtrtrs
 from scipy.special import gammaincinv, logsumexp
 
 from abcns import ellipsoid as ell
@@ -47,53 +47,57 @@ def min_points(d: int) -> int:
 
 def _node(points: np.ndarray) -> tuple[float, np.ndarray, np.ndarray] | None:
     """(log volume of the points' covariance ellipsoid scaled to hold them all, the points
-    whitened by that covariance, its leading eigenvector), or None when the covariance is
-    singular. The cheap part of ``ellipsoid.fit`` that the split search needs."""
+    whitened by that covariance, the covariance), or None when the covariance is singular.
+    The cheap part of ``ellipsoid.fit`` that the split search needs."""
     n, d = points.shape
-    centred = points - points.mean(axis=0)
+    centred = points - points.sum(axis=0) / n  # the mean, as ``mean(axis=0)`` computes it
     cov = centred.T @ centred / (n - 1)
     try:
         chol = np.linalg.cholesky(cov)
     except np.linalg.LinAlgError:
         return None
-    y = solve_triangular(chol, centred.T, lower=True).T
-    r2 = float(np.max(np.sum(y * y, axis=1)))
+    # solve_triangular(chol, centred.T, lower=True) without its argument checks (the factor
+    # of a finite covariance is finite): the LAPACK call it makes for a C-ordered factor
+    y = dtrtrs(chol.T, centred.T, lower=0, trans=1)[0].T
+    r2 = float((y * y).sum(axis=1).max())
     if not r2 > 0:
         return None
-    log_volume = ell._log_unit_ball(d) + float(np.sum(np.log(np.diag(chol)))) + 0.5 * d * np.log(r2)
-    return log_volume, y, np.linalg.eigh(cov)[1][:, -1]
+    log_volume = ell._log_unit_ball(d) + float(np.log(chol.diagonal()).sum()) + 0.5 * d * np.log(r2)
+    return log_volume, y, cov
 
 
 def two_means(points: np.ndarray, y: np.ndarray, axis: np.ndarray) -> np.ndarray:
     """Labels (0/1) of a 2-means clustering of ``points`` in whitened coordinates ``y``,
     started at the two points farthest apart along ``axis`` (deterministic)."""
     proj = points @ axis
-    centres = np.stack([y[np.argmin(proj)], y[np.argmax(proj)]])
-    labels = np.zeros(points.shape[0], dtype=np.int64)
+    centres = y[[np.argmin(proj), np.argmax(proj)]]
+    second = np.zeros(points.shape[0], dtype=bool)  # the labels, as "in cluster 1"
     for i in range(KMEANS_ITERATIONS):
         # nearer to centre 1 than to centre 0: a half-space test
-        new = (y @ (centres[1] - centres[0]) > 0.5 * (centres[1] @ centres[1] - centres[0] @ centres[0])).astype(np.int64)
-        if i > 0 and np.array_equal(new, labels):
+        new = y @ (centres[1] - centres[0]) > 0.5 * (centres[1] @ centres[1] - centres[0] @ centres[0])
+        if i > 0 and (new == second).all():
             break
-        labels = new
-        for k in (0, 1):
-            if np.any(labels == k):
-                centres[k] = y[labels == k].mean(axis=0)
-    return labels
+        second = new
+        for k, members in enumerate((~second, second)):
+            count = np.count_nonzero(members)
+            if count:  # the members' mean, as ``mean(axis=0)`` computes it
+                centres[k] = y[members].sum(axis=0) / count
+    return second.astype(np.int64)
 
 
-def _tree(points: np.ndarray, rows: np.ndarray, log_volume: float, y: np.ndarray, axis: np.ndarray,
+def _tree(points: np.ndarray, rows: np.ndarray, log_volume: float, y: np.ndarray, cov: np.ndarray,
           max_ellipsoids: int, leaf: int, log_root: float) -> list[tuple[float, list[np.ndarray]]]:
     """``best[k - 1]``: (total volume relative to the root's, the row sets) of the at most k
     ellipsoids of least total volume that hold ``points[rows]``: the node's own ellipsoid, or
-    the best choices of its two 2-means halves together (found the same way, recursively)."""
+    the best choices of its two 2-means halves together (found the same way, recursively;
+    the halves are started along the leading eigenvector of the node's covariance ``cov``)."""
     own = float(np.exp(log_volume - log_root))
     best = [(own, [rows])] * max_ellipsoids
     d = points.shape[1]
     if max_ellipsoids < 2 or rows.size < 2 * leaf:
         return best
-    labels = two_means(points[rows], y, axis)
-    parts = [rows[labels == k] for k in (0, 1)]
+    labels = two_means(points[rows], y, np.linalg.eigh(cov)[1][:, -1]).astype(bool)
+    parts = [rows[~labels], rows[labels]]
     if min(p.size for p in parts) < max(leaf, d + 1):
         return best
     halves = []
@@ -102,13 +106,13 @@ def _tree(points: np.ndarray, rows: np.ndarray, log_volume: float, y: np.ndarray
         if node is None:
             return best
         halves.append(_tree(points, part, node[0], node[1], node[2], max_ellipsoids - 1, leaf, log_root))
-    vol = [np.array([v for v, _ in h]) for h in halves]
+    first, second = halves
     for k in range(2, max_ellipsoids + 1):
-        k1 = np.arange(1, k)  # k1 ellipsoids for the first half, k - k1 for the second
-        total = vol[0][k1 - 1] + vol[1][k - k1 - 1]
-        j = int(np.argmin(total))
-        if total[j] < SPLIT_GAIN * best[k - 2][0]:
-            best[k - 1] = (float(total[j]), halves[0][k1[j] - 1][1] + halves[1][k - k1[j] - 1][1])
+        # k1 ellipsoids for the first half, k - k1 for the second (the first k1 of least total)
+        k1 = min(range(1, k), key=lambda k1: first[k1 - 1][0] + second[k - k1 - 1][0])
+        total = first[k1 - 1][0] + second[k - k1 - 1][0]
+        if total < SPLIT_GAIN * best[k - 2][0]:
+            best[k - 1] = (total, first[k1 - 1][1] + second[k - k1 - 1][1])
         else:
             best[k - 1] = best[k - 2]
     return best

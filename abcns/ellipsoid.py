@@ -79,7 +79,8 @@ def mahalanobis2_each(ells: Sequence[Ellipsoid], x: np.ndarray) -> np.ndarray:
     centres = np.stack([e.centre for e in ells])
     diff = np.atleast_2d(x)[None, :, :] - centres[:, None, :]  # (k, n, d)
     y = np.linalg.solve(axes, diff.transpose(0, 2, 1))  # (k, d, n)
-    return np.sum(y * y, axis=1)
+    y *= y
+    return y.sum(axis=1)
 
 
 def mahalanobis2(ell: Ellipsoid, x: np.ndarray) -> np.ndarray:
@@ -115,7 +116,7 @@ def sample(ell: Ellipsoid, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` points uniform inside the ellipsoid, shape (n, d)."""
     d = ell.n_dim
     z = rng.standard_normal((n, d))
-    norms = np.linalg.norm(z, axis=1, keepdims=True)
+    norms = np.sqrt((z * z).sum(axis=1, keepdims=True))  # np.linalg.norm(z, axis=1), same sum
     norms[norms == 0.0] = 1.0
     radius = rng.random((n, 1)) ** (1.0 / d)
     return ell.centre + (radius * z / norms) @ ell.axes.T
