@@ -31,6 +31,7 @@ from abcns.nested import BoundProposer
 from abcns.rejection import prior_proposer
 from abcns.settings import StopReason
 from benchmarks.harness import wait_until
+from service.run import dask_executor
 from service.run.dask_executor import DaskExecutor
 from service.spec import build, description, parse
 
@@ -157,13 +158,14 @@ def test_a_run_through_either_executor_gives_the_same_populations(make_executor,
             np.testing.assert_array_equal(getattr(p, name), getattr(q, name), err_msg=f"{p.t} {name}")
 
 
-def test_dask_queues_a_run_s_batches_on_the_scheduler_oldest_first(job, client):
+def test_dask_queues_a_run_s_batches_on_the_scheduler_oldest_first(job, client, monkeypatch):
     """How the Dask executor keeps the oldest batch first: a run's tasks form one task group
     that the scheduler treats as root-ish from the first task on (the anchors: without them a
     group of two tasks on two threads is not), so it queues them and hands them out in
     priority order; and each ``client.map`` of a top-up is a later priority generation than
     the ones before (``fifo_timeout=0``), so a task submitted later never jumps ahead."""
     spec, built = job
+    monkeypatch.setattr(dask_executor, "IN_FLIGHT_PER_THREAD", 10)  # room for 13 tasks on 2 threads
     executor = DaskExecutor(client, "contract-queue", description(spec), {"force": built.force, "observed": built.observed})
     results = executor.map(stream(built.models))
 
@@ -186,6 +188,29 @@ def test_dask_queues_a_run_s_batches_on_the_scheduler_oldest_first(job, client):
         assert all(a < b for a, b in zip(priorities, priorities[1:])), priorities
         got = [next(results) for _ in range(13)]
         for draw, result in zip(itertools.islice(stream(built.models), 13), got):
+            np.testing.assert_array_equal(result.distances, run_draw(built.evaluate, draw).distances)
+    finally:
+        results.close()
+        executor.close()
+
+
+def test_dask_keeps_at_most_two_tasks_per_worker_thread_in_flight(job, client):
+    """However many batches the caller expects, the executor submits no more tasks than two
+    per worker thread (one running, one next; more would only wait in the scheduler's queue
+    and be released unrun when the population ends); as results come, it submits the rest,
+    and the results are the batches in order."""
+    spec, built = job
+    executor = DaskExecutor(client, "contract-cap", description(spec), {"force": built.force, "observed": built.observed})
+    results = executor.map(stream(built.models))
+    try:
+        results.expect(40)  # 44 batches wanted, one batch per task (no batch cost measured yet)
+        assert len(results.pending) == 2 * 2  # two worker threads
+        got = []
+        for _ in range(12):
+            got.append(next(results))
+            assert results._in_flight() <= 4
+        assert results.submitted > 4  # topped up as results came
+        for draw, result in zip(itertools.islice(stream(built.models), 12), got):
             np.testing.assert_array_equal(result.distances, run_draw(built.evaluate, draw).distances)
     finally:
         results.close()

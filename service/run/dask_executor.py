@@ -8,7 +8,8 @@ seen, which changes only the cut, never a result:
 - how many batches are submitted ahead follows the best estimate of the batches the
   caller still needs: ``abcns.filling``'s hints (``Stream.expect``: a lower bound when it
   opens a population, then an estimate from the acceptance so far after each batch), else
-  the previous population's consumption, 10 % more;
+  the previous population's consumption, 10 % more; never more than two tasks per worker
+  thread not yet completed (what the scheduler hands a worker: one to run, one next);
 - a task's group is one batch until a batch's compute time has been measured, then about
   ``need / (2 x workers)`` batches, kept between ``MIN_TASK_SECONDS`` and
   ``MAX_TASK_SECONDS`` of compute time, so a cheap batch does not pay a round trip each
@@ -51,6 +52,10 @@ MIN_TASK_SECONDS = 0.02
 MAX_TASK_SECONDS = 0.1
 #: the expected need of a population, over the previous population's
 NEED_MARGIN = 1.1
+#: tasks not yet completed, at most, per worker thread: the scheduler gives a worker one to
+#: run and one to start next; more would only wait in its queue, each costing the client and
+#: the scheduler ~1-2 ms of CPU to submit and to release when the population ends first
+IN_FLIGHT_PER_THREAD = 2
 
 #: Dask settings for abcns's clusters. ``local_cluster`` applies them; stock workers take them
 #: from the environment (docs/deploy.md). Measured idle on this project's 2-core machine with
@@ -147,7 +152,8 @@ class Stream:
     the best estimate of the batches still needed: at first the previous call's consumption,
     10 % more (with none, twice the caller's lower bound, or a task per worker), then the
     caller's estimate from the acceptance so far (``expect``: ``abcns.filling`` gives a lower
-    bound when it opens a population and an estimate after each batch)."""
+    bound when it opens a population and an estimate after each batch); at most
+    ``IN_FLIGHT_PER_THREAD`` tasks per worker thread are in flight (not yet completed)."""
 
     def __init__(self, executor: DaskExecutor, draws: Iterator[Draw]):
         self.ex = executor
@@ -179,12 +185,19 @@ class Stream:
         if not self.closed:
             self._top_up()
 
+    def _in_flight(self) -> int:
+        """Tasks submitted and not yet completed."""
+        return len(self.pending) - len(self.done)
+
     def _top_up(self) -> None:
         """Submit tasks in one scheduler message until the estimate of the batches still
-        needed is covered, and at least one task is in flight."""
+        needed is covered, or ``IN_FLIGHT_PER_THREAD`` tasks per worker thread are in
+        flight; at least one task is."""
         groups: list[list[Draw]] = []
         want = max(self.left or 1, 1)
-        while not self.exhausted and (self.submitted - self.consumed < want or len(self.pending) + len(groups) == 0):
+        room = IN_FLIGHT_PER_THREAD * self.n_workers - self._in_flight()
+        while not self.exhausted and ((self.submitted - self.consumed < want and len(groups) < room)
+                                      or len(self.pending) + len(groups) == 0):
             group = list(itertools.islice(self.draws, self.ex.group_size(want, self.consumed, self.n_workers)))
             if not group:
                 self.exhausted = True
@@ -204,11 +217,14 @@ class Stream:
         self.completed.update(tasks)
 
     def _oldest(self) -> tuple[bytes, float]:
-        """The oldest task's result, waiting for it (later ones are gathered meanwhile)."""
+        """The oldest task's result, waiting for it (later ones are gathered meanwhile; when
+        fewer tasks than worker threads are left in flight, more are submitted)."""
         task, _ = self.pending[0]
         while task.key not in self.done:
             future, result = next(self.completed)
             self.done[future.key] = result
+            if self._in_flight() < self.n_workers:
+                self._top_up()
         result = self.done.pop(task.key)
         if task.status == "finished":
             return result  # type: ignore[return-value]
