@@ -85,3 +85,28 @@ def test_stored_centre_and_matrix_rebuild_the_same_ellipsoid():
     again = ell.from_matrix(e.centre.copy(), e.matrix.copy(), e.note)
     np.testing.assert_array_equal(again.axes, e.axes)
     np.testing.assert_array_equal(ell.sample(again, 5, np.random.default_rng(1)), ell.sample(e, 5, np.random.default_rng(1)))
+
+
+def test_n_containing_is_the_solve_count_exactly():
+    """The fast count (inverse of the axes, used only outside its error window around the
+    threshold) equals the solve-based count bit for bit: random and ill-conditioned
+    ellipsoids, points on, just inside and just outside the boundaries."""
+    rng = np.random.default_rng(SEED)
+    paths = set()
+    for trial in range(300):
+        d, k = int(rng.integers(1, 7)), int(rng.integers(1, 6))
+        ells = []
+        for _ in range(k):
+            q, _ = np.linalg.qr(rng.standard_normal((d, d)))
+            lam = 10.0 ** rng.uniform(-12 if trial % 4 == 0 else -2, 2, d)
+            ells.append(ell.from_matrix(rng.standard_normal(d), (q * lam) @ q.T))
+        z = rng.standard_normal((40 * k, d))
+        z /= np.linalg.norm(z, axis=1, keepdims=True)
+        r = 1.0 + rng.choice([0.0, 1e-15, -1e-15, 1e-12, -1e-12, 1e-9, 2e-9, -1e-9, 1e-6, -1e-6], z.shape[0])
+        if trial % 2:
+            r = 1.0 + rng.choice([1e-6, -1e-6, 1e-3, -1e-3], z.shape[0])  # clear of the window: fast path
+        x = np.concatenate([e.centre + (r[i::k, None] * z[i::k]) @ e.axes.T for i, e in enumerate(ells)])
+        expected = np.sum(ell.mahalanobis2_each(ells, x) <= 1.0 + ell.CONTAINS_SLACK, axis=0)
+        np.testing.assert_array_equal(ell.n_containing(ells, x), expected)
+        paths.add(ell._n_containing_fast(ells, x) is None)
+    assert paths == {True, False}  # both the fast path and the fallback were exercised
