@@ -29,7 +29,10 @@ the cluster, evaluator built on each worker; the workers are started and warmed 
 *runner CPU*: ``time.process_time()`` of this process around ``run_job``: the client, the
 store writes and, for a LocalCluster, the scheduler (it runs in this process); for the stock
 cluster the scheduler's process is measured separately (psutil). *workers CPU*: the worker
-processes' CPU time (psutil, through ``client.run``; nannies not counted).
+processes' CPU time (psutil, through ``client.run``; nannies not counted). *Dask floor*:
+the same cluster running only the job's pattern of tasks that sleep (:func:`dask_floor`),
+its efficiency and Dask's own CPU per task there (this process, with a stock scheduler's;
+the workers).
 
 ``--quick``: 1 population, LocalCluster 1 and 2 workers, stock 1 worker, §4.1 1 and 2
 workers with 1 population (a smoke run, under a minute).
@@ -123,14 +126,17 @@ def _sleep(seconds: float) -> float:
     return seconds
 
 
-def dask_floor(client: Client, units: int, rounds: int, seconds: float) -> float:
+def dask_floor(client: Client, pids: list[int], units: int, rounds: int, seconds: float) -> tuple[float, float, float]:
     """Efficiency of Dask alone on this run's pattern of work: ``rounds`` populations of
     ``units`` tasks that only sleep ``seconds`` (a batch of the sleepy simulator, without the
     simulator, the algorithm or the store), each population submitted at once and gathered
     as its tasks complete, the next one after the last. The best a population loop on Dask
-    tasks can do on this cluster."""
+    tasks can do on this cluster. Also Dask's own CPU per task there, in ms: this process
+    (client, and a LocalCluster's scheduler) with ``pids`` (a stock scheduler), and the
+    workers (sleeping costs nothing: the rest is Dask's)."""
     n = max(1, sum(client.nthreads().values()))
     for warm in (True, False):
+        cpu0, other0, workers0 = time.process_time(), _proc_cpu(pids), workers_cpu(client)
         start = time.perf_counter()
         for r in range(1 if warm else rounds):
             futures = client.map(_sleep, [seconds] * units, key=[("abcns-floor", int(warm), r, i) for i in range(units)],
@@ -138,7 +144,10 @@ def dask_floor(client: Client, units: int, rounds: int, seconds: float) -> float
             for _ in as_completed(futures, with_results=True):
                 pass
         wall = time.perf_counter() - start
-    return rounds * units * seconds / (n * wall)
+        runner = time.process_time() - cpu0 + _proc_cpu(pids) - other0
+        workers = workers_cpu(client) - workers0
+    tasks = rounds * units
+    return rounds * units * seconds / (n * wall), 1e3 * runner / tasks, 1e3 * workers / tasks
 
 
 def workers_cpu(client: Client) -> float:
@@ -259,18 +268,21 @@ def sleepy_table(title: str, cluster: Callable, counts: list[int], spec: JobSpec
           f"{engine:.0f} µs CPU per simulation, of which the evaluator {kernel:.0f}")
     sched = " scheduler CPU µs/sim |" if stock else ""
     print(f"| workers | simulations | executed | wall s | sims/s | ideal sims/s | efficiency | steady | Dask floor | "
-          f"runner CPU µs/sim |{sched} workers CPU µs/sim | start-up s | load |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if stock else "") + "---:|---:|---:|", flush=True)
+          f"runner CPU µs/sim |{sched} workers CPU µs/sim | Dask floor CPU ms/task: runner{' + scheduler' if stock else ''}, "
+          f"workers | start-up s | load |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if stock else "") + "---:|---:|---:|---:|",
+          flush=True)
     for n in counts:
         with cluster(n) as (client, pids, startup):
             r = measure(client, pids, spec, base, tmp)
             units = round(r["simulations"] / (r["populations"] * spec.sampler.batch_size))
-            floor = dask_floor(client, units, r["populations"], spec.sampler.batch_size * sleepy.SECONDS)
+            floor, floor_runner, floor_workers = dask_floor(client, pids, units, r["populations"],
+                                                            spec.sampler.batch_size * sleepy.SECONDS)
         ideal = n * IDEAL_PER_WORKER
         extra = f" {r['other_us']:.0f} |" if stock else ""
         print(f"| {n} | {r['simulations']} | {r['executed']} | {r['wall']:.2f} | {r['rate']:.0f} | {ideal:.0f} | "
               f"{r['rate'] / ideal:.2f} | {r['steady'] / ideal:.2f} | {floor:.2f} | {r['runner_us']:.0f} |{extra} "
-              f"{r['workers_us']:.0f} | {startup:.1f} | {r['load']:.1f} |",
+              f"{r['workers_us']:.0f} | {floor_runner:.1f}, {floor_workers:.1f} | {startup:.1f} | {r['load']:.1f} |",
               flush=True)
 
 
