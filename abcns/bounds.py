@@ -67,11 +67,12 @@ def _node(points: np.ndarray) -> tuple[float, np.ndarray, np.ndarray] | None:
 
 
 def two_means(points: np.ndarray, y: np.ndarray, axis: np.ndarray) -> np.ndarray:
-    """Labels (0/1) of a 2-means clustering of ``points`` in whitened coordinates ``y``,
-    started at the two points farthest apart along ``axis`` (deterministic)."""
+    """A 2-means clustering of ``points`` in whitened coordinates ``y``, started at the two
+    points farthest apart along ``axis`` (deterministic): which points are in the second
+    cluster (a boolean mask)."""
     proj = points @ axis
     centres = y[[np.argmin(proj), np.argmax(proj)]]
-    second = np.zeros(points.shape[0], dtype=bool)  # the labels, as "in cluster 1"
+    second = np.zeros(points.shape[0], dtype=bool)
     for i in range(KMEANS_ITERATIONS):
         # nearer to centre 1 than to centre 0: a half-space test
         new = y @ (centres[1] - centres[0]) > 0.5 * (centres[1] @ centres[1] - centres[0] @ centres[0])
@@ -82,7 +83,7 @@ def two_means(points: np.ndarray, y: np.ndarray, axis: np.ndarray) -> np.ndarray
             count = np.count_nonzero(members)
             if count:  # the members' mean, as ``mean(axis=0)`` computes it
                 centres[k] = y[members].sum(axis=0) / count
-    return second.astype(np.int64)
+    return second
 
 
 def _tree(points: np.ndarray, rows: np.ndarray, log_volume: float, y: np.ndarray, cov: np.ndarray,
@@ -96,8 +97,8 @@ def _tree(points: np.ndarray, rows: np.ndarray, log_volume: float, y: np.ndarray
     d = points.shape[1]
     if max_ellipsoids < 2 or rows.size < 2 * leaf:
         return best
-    labels = two_means(points[rows], y, np.linalg.eigh(cov)[1][:, -1]).astype(bool)
-    parts = [rows[~labels], rows[labels]]
+    in_second = two_means(points[rows], y, np.linalg.eigh(cov)[1][:, -1])
+    parts = [rows[~in_second], rows[in_second]]
     if min(p.size for p in parts) < max(leaf, d + 1):
         return best
     halves = []

@@ -119,7 +119,6 @@ class Step:
     survivors: np.ndarray
     bounds: tuple[bd.Union, ...]
     model_probabilities: np.ndarray
-    allocation: np.ndarray | None  # the next population's proposal probabilities (None: the paper's rule)
     notes: list[str]
     evidence_parts: dict  # the Evidence fields but the geometry
     geometry_jobs: tuple[Geometry | None, ...]
@@ -278,8 +277,7 @@ def finish_population(
         probabilities = counts / counts.sum()
     parts = dict(log_z=log_z, log_z_se=np.sqrt(var_z), log_z_next=log_z_next, log_z_next_se=np.sqrt(var_next),
                  allocation=alloc, n_proposed=n_proposed, n_accepted=n_accepted, death=death)
-    return Step(eps_next, weights, survivors, tuple(bounds), probabilities, alloc if settings.evidence else None,
-                notes, parts, tuple(geometry_jobs))
+    return Step(eps_next, weights, survivors, tuple(bounds), probabilities, notes, parts, tuple(geometry_jobs))
 
 
 def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray,
@@ -367,9 +365,11 @@ def abc_ns(
 
     frames = [bd.Frame(m.low, m.high, unit=settings.evidence) for m in models]
 
-    def start(t: int, eps: float, bounds: Sequence[bd.Union], allocation: np.ndarray | None,
-              n_survivors: int) -> Filling:
-        propose = BoundProposer(tuple(models), tuple(frames), tuple(bounds), allocation, settings.max_redraws)
+    def start(t: int, eps: float, bounds: Sequence[bd.Union], allocation: np.ndarray, n_survivors: int) -> Filling:
+        """Open population t: proposals from ``bounds`` by the evidence's ``allocation`` (the
+        evidence variant) or the paper's rule."""
+        propose = BoundProposer(tuple(models), tuple(frames), tuple(bounds),
+                                allocation if settings.evidence else None, settings.max_redraws)
         # N particles in every population: when fewer than beta N survive (ties at eps_next,
         # or the alive models hold fewer particles below it), more are new
         return Filling(propose, settings.particles - n_survivors, eps, executor, seed=seed, t=t,
@@ -386,7 +386,8 @@ def abc_ns(
         notes.extend(step.notes)
         reason = stop.reason_after(eps, step.epsilon_next, t)
         if reason is None and budget.reason() is None:
-            pending = start(t + 1, step.epsilon_next, step.bounds, step.allocation, int(np.count_nonzero(step.survivors)))
+            pending = start(t + 1, step.epsilon_next, step.bounds, step.evidence_parts["allocation"],
+                            int(np.count_nonzero(step.survivors)))
         pop = population_from(
             t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, budget.elapsed(),
             step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
@@ -410,7 +411,7 @@ def abc_ns(
             assert pop.evidence is not None and pop.survivors is not None  # set on every ABC-NS population
             keep = np.flatnonzero(pop.survivors)
             filling = pending or start(pop.t + 1, pop.epsilon_next, pop.ellipsoids,  # a resumed run opens it here
-                                       pop.evidence.allocation if settings.evidence else None, keep.size)
+                                       pop.evidence.allocation, keep.size)
             pending = None
             filled = filling.finish(budget)
             pop, reason = complete(
