@@ -8,11 +8,13 @@ never NaN.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from abcns.noise import Noise
 from abcns.priors import SpecError
 
 
@@ -80,6 +82,16 @@ class NMSE:
         with np.errstate(over="ignore", invalid="ignore"):
             diff = simulated[:, self.start : self.stop] - self.observed[self.start : self.stop]
             return _clean(self.scale * np.einsum("ij,ij->i", diff, diff))
+
+    def noise(self, noise_std: float | None = None) -> Noise:
+        """The noise model of this distance (``abcns.noise``): a sum of squares over the
+        window's samples; with ``noise_std`` (the measurement noise's standard deviation,
+        in the observed record's units) its variance per sample in % NMSE."""
+        if noise_std is None:
+            return Noise(self.stop - self.start)
+        if not (isinstance(noise_std, (int, float)) and math.isfinite(noise_std) and noise_std > 0):
+            raise SpecError("data.noise_std", f"must be a finite positive number, got {noise_std!r}")
+        return Noise(self.stop - self.start, self.scale * float(noise_std) ** 2)
 
     def config(self) -> dict:
         return {"name": "nmse", "window": [self.start, self.stop]}

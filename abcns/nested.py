@@ -49,6 +49,7 @@ from abcns import ellipsoid as ell
 from abcns import evidence as ev
 from abcns.executor import Executor
 from abcns.filling import Budget, Filled, Filling, Stopped, draw_inside, fill, population_rng
+from abcns.noise import Floor, Noise, best_by_model, estimate
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
 from abcns.result import Population, RunEnd
@@ -78,6 +79,22 @@ def survivor_quotas(total: int, counts: np.ndarray, capacity: np.ndarray) -> np.
         extra = apportion(total - int(quota.sum()), np.where(room > 0, counts + 1e-12, 0.0))
         quota = np.minimum(quota + extra, capacity)
     return quota
+
+
+def next_tolerance(distances: np.ndarray, n_drop: int, lower: float | None = None) -> float | None:
+    """eps_{t+1}: the (alpha N)-th largest distance (``n_drop``-th), raised to ``lower`` (the
+    decision tolerance, when the run stops at its noise floor) if it falls below it. When no
+    particle lies strictly below that value (more than (1 - alpha) N particles share the
+    smallest distance: a rounded or discrete distance), the smallest distance above the
+    minimum, so the tied particles are below it; None when every particle has the same
+    distance (no tolerance below it leaves a particle)."""
+    eps = float(np.sort(distances)[::-1][n_drop - 1])
+    if lower is not None and eps < lower:
+        eps = float(lower)
+    if np.any(distances < eps):
+        return eps
+    above = distances[distances > distances.min()]
+    return float(above.min()) if above.size else None
 
 
 def ns_weights(distances: np.ndarray, epsilon: float, epsilon_next: float, form: str) -> np.ndarray:
@@ -122,6 +139,7 @@ class Step:
     notes: list[str]
     evidence_parts: dict  # the Evidence fields but the geometry
     geometry_jobs: tuple[Geometry | None, ...]
+    tied: bool = False  # every particle has the same distance: no lower tolerance exists
 
     def evidence(self, geometry: np.random.Generator) -> ev.Evidence:
         """The population's evidence bookkeeping, its bounds' geometry measured now with
@@ -163,11 +181,15 @@ def finish_population(
     previous: Population | None,
     settings: NSSettings,
     rng: np.random.Generator,
+    lower: float | None = None,
 ) -> Step:
-    """eps_next, weights normalised per model, survivors, next bounds, allocation, notes; the
-    evidence once :meth:`Step.evidence` has measured the bounds' geometry."""
+    """eps_next (:func:`next_tolerance`, not below ``lower``), weights normalised per model,
+    survivors, next bounds, allocation, notes; the evidence once :meth:`Step.evidence` has
+    measured the bounds' geometry. When every particle has the same distance, eps_next is
+    eps_t (``Step.tied``) and the run must stop."""
     n_models = len(models)
-    eps_next = float(np.sort(distances)[::-1][settings.n_drop - 1])
+    found = next_tolerance(distances, settings.n_drop, lower)
+    eps_next = epsilon if found is None else found
     raw = ns_weights(distances, epsilon, eps_next, settings.weights)
     counts = np.bincount(which, minlength=n_models)
     positive = raw > 0
@@ -277,7 +299,11 @@ def finish_population(
         probabilities = counts / counts.sum()
     parts = dict(log_z=log_z, log_z_se=np.sqrt(var_z), log_z_next=log_z_next, log_z_next_se=np.sqrt(var_next),
                  allocation=alloc, n_proposed=n_proposed, n_accepted=n_accepted, death=death)
-    return Step(eps_next, weights, survivors, tuple(bounds), probabilities, notes, parts, tuple(geometry_jobs))
+    if found is None:
+        notes.append(f"population {t}: every particle has the distance {float(distances[0]):.6g}; no tolerance below "
+                     "it leaves a particle, so the run stops (ties)")
+    return Step(eps_next, weights, survivors, tuple(bounds), probabilities, notes, parts, tuple(geometry_jobs),
+                tied=found is None)
 
 
 def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray,
@@ -344,11 +370,16 @@ def abc_ns(
     budget: Budget | None = None,
     clock: Callable[[], float] = time.monotonic,
     cancel: Callable[[], bool] | None = None,
+    noise: Noise | None = None,
 ) -> Generator[Population, None, RunEnd]:
     """Yield ABC-NS populations until a stop rule holds; return a :class:`RunEnd`.
 
     ``history`` resumes a run: the populations already done (at least the last one);
-    ``budget`` then carries the simulations and seconds already spent.
+    ``budget`` then carries the simulations and seconds already spent. ``noise``: what is
+    known of the distance's noise (``abcns.noise``): each population then carries the noise
+    floor as estimated so far, and the evidence variant stops at the decision tolerance
+    (``stop.noise_floor``): when the (alpha N)-th largest distance falls below it, the next
+    population is accepted at the decision tolerance itself, and the run stops after it.
 
     Once a population is full and finished (:func:`finish_population`), the next one is
     opened (``executor.map``: an executor that runs ahead starts simulating) before this one's
@@ -376,29 +407,50 @@ def abc_ns(
                        batch_size=settings.batch_size)
 
     pending: Filling | None = None  # the next population, started
+    # each model's lowest distance so far (the noise floor's best fit)
+    best = best_by_model(np.concatenate([p.models for p in history]), np.concatenate([p.distances for p in history]),
+                         len(models)) if history else np.full(len(models), np.inf)
+    stop_at_floor = settings.evidence and stop.noise_floor and noise is not None
+
+    def stop_reason(t: int, eps: float, eps_next: float, tied: bool, floor: Floor | None) -> StopReason | None:
+        """The rule that ends the run after population t: ties, the noise floor (this
+        population was accepted at or below the decision tolerance), then ``stop``'s rules."""
+        if tied:
+            return StopReason.TIES
+        if stop_at_floor and floor is not None and eps <= floor.decision * (1 + 1e-12):
+            return StopReason.NOISE_FLOOR  # the lowest population tolerance above the floor
+        return stop.reason_after(eps, eps_next, t)
 
     def complete(t, eps, which, theta, distances, is_new, filled, previous) -> tuple[Population, StopReason | None]:
         """Finish population t; when the run goes on, open population t + 1 (an executor that
         runs ahead starts simulating) before this one's bound geometry is measured."""
-        nonlocal pending
+        nonlocal pending, best
+        best = best_by_model(which, distances, len(models), best)
+        floor = estimate(noise, models, best, np.bincount(which, minlength=len(models)) > 0) if noise is not None else None
+        lower = floor.decision if stop_at_floor and floor is not None else None
         step = finish_population(models, frames, t, eps, which, theta, distances, is_new, filled, previous,
-                                 settings, population_rng(seed, t))
+                                 settings, population_rng(seed, t), lower)
         notes.extend(step.notes)
-        reason = stop.reason_after(eps, step.epsilon_next, t)
+        reason = stop_reason(t, eps, step.epsilon_next, step.tied, floor)
+        if reason is StopReason.NOISE_FLOOR:
+            assert floor is not None
+            notes.append(f"population {t}: the decision tolerance {floor.decision:.6g} is reached (noise floor "
+                         f"{floor.floor:.6g} + its spread {floor.spread:.3g}); the run stops")
         if reason is None and budget.reason() is None:
             pending = start(t + 1, step.epsilon_next, step.bounds, step.evidence_parts["allocation"],
                             int(np.count_nonzero(step.survivors)))
         pop = population_from(
             t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, budget.elapsed(),
             step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
-            evidence=step.evidence(geometry_rng(seed, t)),
+            evidence=step.evidence(geometry_rng(seed, t)), floor=floor,
         )
         return pop, reason
 
     try:
         if history:
             pop = history[-1]
-            reason = stop.reason_after(pop.epsilon, pop.epsilon_next, pop.t)
+            tied = next_tolerance(pop.distances, settings.n_drop) is None
+            reason = stop_reason(pop.t, pop.epsilon, pop.epsilon_next, tied, pop.floor)
         else:
             eps, source, n_pilot = initial_epsilon(models, settings, executor, budget, seed)
             filled = fill(prior_proposer(models), settings.particles, eps, executor, budget,

@@ -9,6 +9,7 @@ import numpy as np
 
 from abcns.ellipsoid import Ellipsoid
 from abcns.evidence import DEAD_BEFORE, DEATH_RULES, Evidence, probabilities
+from abcns.noise import Floor
 from abcns.priors import Model
 from abcns.settings import StopReason
 
@@ -32,7 +33,9 @@ class Population:
     the paper's. ``evidence`` is ABC-NS's per-model evidence bookkeeping
     (:class:`abcns.evidence.Evidence`), None for the baselines. ``model_probabilities`` are
     the evidence's for ABC-NS's default variant, particle shares (Eq. 12) for the paper's,
-    importance-weight mass for ABC-SMC and shares for rejection.
+    importance-weight mass for ABC-SMC and shares for rejection. ``floor`` is the noise floor
+    as estimated after this population (:class:`abcns.noise.Floor`; ABC-NS runs that know
+    their distance's noise model, else None).
     """
 
     t: int
@@ -51,6 +54,7 @@ class Population:
     ellipsoids: tuple[tuple[Ellipsoid, ...], ...] = ()
     model_probabilities: np.ndarray = field(default_factory=lambda: np.zeros(0))
     evidence: Evidence | None = None
+    floor: Floor | None = None
 
     @property
     def acceptance_rate(self) -> float:
@@ -145,6 +149,22 @@ class Result:
         pop = self.final if t is None else self.populations[t - 1]
         return {m.name: float(p) for m, p in zip(self.models, pop.model_probabilities)}
 
+    @property
+    def floor(self) -> Floor | None:
+        """The noise floor as estimated at the end of the run (``abcns.noise``), or None."""
+        return self.final.floor if self.populations else None
+
+    def decision_population(self) -> Population:
+        """The population the run's answer is read from: the one with the lowest tolerance at
+        or above the decision tolerance (the noise floor plus its spread, as estimated at the
+        end of the run; ``abcns.noise``); the final population when the run knows no floor,
+        the first when the floor lies above every tolerance of the run."""
+        floor = self.floor
+        if floor is None:
+            return self.final
+        above = [p for p in self.populations if p.epsilon >= floor.decision * (1 - 1e-12)]
+        return min(above, key=lambda p: (p.epsilon, -p.t)) if above else self.populations[0]
+
     def alive(self, t: int | None = None) -> list[int]:
         pop = self.final if t is None else self.populations[t - 1]
         return [i for i, p in enumerate(pop.model_probabilities) if p > 0]
@@ -170,27 +190,46 @@ class Result:
                     out[self.models[i].name] = DEATH_RULES[int(code)]
         return out
 
-    def model_probability_se(self) -> dict[str, float]:
-        """Standard errors of the final model probabilities (evidence variant; else {})."""
-        pop = self.final
+    def model_probability_se(self, t: int | None = None) -> dict[str, float]:
+        """Standard errors of the model probabilities of population t (default: the final
+        one; evidence variant; else {})."""
+        pop = self.final if t is None else self.populations[t - 1]
         if pop.evidence is None or self.settings.get("sampler", {}).get("variant") != "evidence":
             return {}
         _, se = probabilities(pop.evidence.log_z, pop.evidence.log_z_se)
         return {m.name: float(v) for m, v in zip(self.models, se)}
 
     def warnings(self) -> list[str]:
-        """Why the answer may not be what it looks like. "undecided": the run stopped with two
-        or more models above 0.1 while the tolerance sits at one model's best fit (its best
-        distance is above half the tolerance), so a lower tolerance could still separate them
-        but that model holds it up."""
+        """Why the answer may not be what it looks like.
+
+        - "below the noise floor": the final population's model probabilities differ (by more
+          than 0.05) from those at the decision tolerance, which are the answer;
+        - "floor above the run": the noise floor lies above every tolerance of the run (a
+          stated noise larger than the data's misfit);
+        - "undecided": the answer holds two or more models above 0.1 while the tolerance sits
+          at one model's best fit (its best distance is above half the tolerance), so a lower
+          tolerance could still separate them but that model holds it up."""
         if not self.populations:
             return []
-        pop = self.final
+        out = []
+        pop = self.decision_population()
+        floor = self.floor
+        if floor is not None and pop.epsilon < floor.decision * (1 - 1e-12):
+            out.append(f"floor above the run: the noise floor's decision tolerance {floor.decision:.4g} lies above every "
+                       f"tolerance of the run (the highest {pop.epsilon:.4g}); the stated noise is larger than the "
+                       "data's misfit")
+        if pop is not self.final:
+            named = lambda q: ", ".join(f"{m.name} {v:.2f}" for m, v in zip(self.models, q))  # noqa: E731
+            if np.max(np.abs(self.final.model_probabilities - pop.model_probabilities)) > 0.05:
+                out.append(f"below the noise floor: at the final tolerance {self.final.epsilon:.4g} (population "
+                           f"{self.final.t}) the model probabilities are {named(self.final.model_probabilities)}, but "
+                           f"at the decision tolerance {pop.epsilon:.4g} (population {pop.t}, above the noise floor "
+                           f"{floor.floor if floor else float('nan'):.4g}) they are {named(pop.model_probabilities)}: "
+                           "below the floor the model that fits the noise best wins; the answer is the latter")
         p = pop.model_probabilities
         contenders = [i for i in range(len(self.models)) if p[i] > 0.1]
         if len(contenders) < 2:
-            return []
-        out = []
+            return out
         for i in contenders:
             d = pop.distances[pop.models == i]
             if d.size and np.min(d) > 0.5 * pop.epsilon:
@@ -208,10 +247,11 @@ class Result:
         rows = pop.models == i
         return pop.theta[rows, : self.models[i].n_dim], pop.distances[rows], pop.weights[rows]
 
-    def posterior(self) -> dict[str, dict]:
+    def posterior(self, t: int | None = None) -> dict[str, dict]:
+        """{model: {parameter: summary}} of population t (default: the final one)."""
         out = {}
-        for i in self.alive():
-            theta, _, w = self.particles(i)
+        for i in self.alive(t):
+            theta, _, w = self.particles(i, t)
             out[self.models[i].name] = posterior_summary(
                 theta, w if self.weighted_posterior else None, self.models[i].parameter_names
             )
@@ -220,8 +260,8 @@ class Result:
     def _named(self, values: np.ndarray) -> dict[str, float]:
         return {m.name: float(v) for m, v in zip(self.models, values)}
 
-    def _log_evidence(self) -> dict[str, dict[str, float | None]]:
-        ev = self.final.evidence
+    def _log_evidence(self, pop: Population) -> dict[str, dict[str, float | None]]:
+        ev = pop.evidence
         if ev is None:
             return {}
         finite = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
@@ -233,9 +273,25 @@ class Result:
         return {"final": {m.name: len(b) for m, b in zip(self.models, self.final.ellipsoids)},
                 "repaired": notes.count("repaired"), "fallback": notes.count("fallback")}
 
+    def _noise_floor(self) -> dict | None:
+        floor = self.floor
+        if floor is None:
+            return None
+        return {**floor.describe(), "model": self.models[floor.model].name}
+
+    def _at(self, pop: Population) -> dict:
+        """What the run says at population ``pop``: tolerance, model probabilities, errors."""
+        return {"population": pop.t, "epsilon": pop.epsilon, "model_probabilities": self.model_probabilities(pop.t),
+                "model_probability_se": self.model_probability_se(pop.t)}
+
     def summary(self) -> dict:
-        """The JSON summary of DESIGN.md (plus a few more fields)."""
+        """The JSON summary of DESIGN.md (plus a few more fields). The answer (model
+        probabilities, their errors, the evidence, the posterior) is read at the decision
+        population (:meth:`decision_population`: the lowest tolerance above the noise floor
+        by its spread, or the final population when the run knows no floor); ``final`` says
+        what the last population gives, and the curves are per population."""
         pops = self.populations
+        answer = self.decision_population() if pops else None
         return {
             "algorithm": self.algorithm,
             "status": "finished",
@@ -252,17 +308,21 @@ class Result:
             "simulations": [p.n_simulations for p in pops],
             "failed_simulations": [p.n_failed for p in pops],
             "redraws": [p.n_redraws for p in pops],
-            "model_probabilities": self.model_probabilities() if pops else {},
-            "model_probability_se": self.model_probability_se() if pops else {},
+            "model_probabilities": self.model_probabilities(answer.t) if answer else {},
+            "model_probability_se": self.model_probability_se(answer.t) if answer else {},
+            "decision": ({**self._at(answer), "rule": "noise_floor" if self.floor is not None else "final"}
+                         if answer else None),
+            "final": self._at(pops[-1]) if pops else None,
+            "noise_floor": self._noise_floor(),
             "model_probabilities_by_population": [self.model_probabilities(p.t) for p in pops],
-            "particle_shares": self._named(pops[-1].particle_shares) if pops else {},
+            "particle_shares": self._named(answer.particle_shares) if answer else {},
             "particle_shares_by_population": [self._named(p.particle_shares) for p in pops],
-            "log_evidence": self._log_evidence() if pops else {},
+            "log_evidence": self._log_evidence(answer) if answer else {},
             "dead_models": self.died_at(),
             "death_rules": self.death_rules(),
             "ellipsoids": self._ellipsoid_counts() if pops else {},
             "warnings": self.warnings(),
-            "posterior": self.posterior() if pops else {},
+            "posterior": self.posterior(answer.t) if answer else {},
             "notes": list(self.notes),
             "settings": self.settings,
             "models": [m.config_dict() for m in self.models],

@@ -44,8 +44,9 @@ def iterate(
 
     models = check_models(models)
     check_seed(seed)
+    noise = kwargs.pop("noise", None)  # the noise floor is ABC-NS's (abcns.noise)
     if isinstance(settings, NSSettings):
-        return abc_ns(models, executor, settings, stop, seed, **kwargs)
+        return abc_ns(models, executor, settings, stop, seed, noise=noise, **kwargs)
     if isinstance(settings, SMCSettings):
         return abc_smc(models, executor, settings, stop, seed, **kwargs)
     if isinstance(settings, RejectionSettings):

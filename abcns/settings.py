@@ -24,6 +24,8 @@ class StopReason(enum.StrEnum):
     PROPOSAL_EXHAUSTED = "proposal_exhausted"  # an ellipsoid lies (almost) outside the prior
     COMPLETED = "completed"  # a one-population algorithm (rejection) finished
     PILOT_FAILED = "pilot_failed"  # every prior-predictive simulation of the pilot failed or diverged
+    NOISE_FLOOR = "noise_floor"  # the decision tolerance was reached (abcns.noise)
+    TIES = "ties"  # every particle has the same distance: no lower tolerance leaves a particle
 
 
 
@@ -71,8 +73,13 @@ def check_seed(seed: object) -> None:
 class StopRules:
     """When to stop. Budgets (simulations, seconds) are checked inside a population too.
 
-    ``min_epsilon_decrease``: stop when eps_t - eps_{t+1} < this (paper, §3.1);
-    ``epsilon_target``: stop once a population was accepted at eps_t <= target.
+    ``min_epsilon_decrease``: stop when eps_t - eps_{t+1} < this (paper, §3.1; an absolute
+    difference of distances, % NMSE for the NMSE);
+    ``epsilon_target``: stop once a population was accepted at eps_t <= target;
+    ``noise_floor``: the evidence variant stops at the decision tolerance, the lowest
+    tolerance above the run's noise floor by its spread (``abcns.noise``), when the run knows
+    its distance's noise model; the paper variant keeps its own rules (its summary still
+    shows the decision).
     """
 
     min_epsilon_decrease: float | None = 0.01
@@ -80,6 +87,7 @@ class StopRules:
     max_populations: int | None = None
     max_simulations: int | None = None
     max_seconds: float | None = None
+    noise_floor: bool = True
 
     def __post_init__(self) -> None:
         for name in ("min_epsilon_decrease", "epsilon_target", "max_seconds"):
@@ -92,7 +100,10 @@ class StopRules:
                 f"stop.{name}",
                 f"must be an integer in [1, 2^62] or null, got {v!r}",
             )
-        _check(any(v is not None for v in asdict(self).values()), "stop", "at least one stop rule must be set")
+        _check(isinstance(self.noise_floor, bool), "stop.noise_floor", f"must be true or false, got {self.noise_floor!r}")
+        # the noise floor needs a noise model the run may not have: it is no rule on its own
+        rules = {k: v for k, v in asdict(self).items() if k != "noise_floor"}
+        _check(any(v is not None for v in rules.values()), "stop", "at least one stop rule must be set")
 
     def reason_after(self, epsilon: float, epsilon_next: float, t: int, decrease: bool = True) -> StopReason | None:
         """The rule that ends the run after population ``t`` (accepted at ``epsilon``, the

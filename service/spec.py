@@ -29,8 +29,9 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from abcns import Model, NSSettings, RejectionSettings, SMCSettings, SpecError, StopRules
-from abcns.distances import check_window
+from abcns.distances import NMSE, check_window
 from abcns.executor import Evaluate
+from abcns.noise import Noise
 from worker.evaluate import evaluator, job_parts
 from worker.simulators import Simulator
 
@@ -60,6 +61,9 @@ class DataSpec(_Strict):
     fit: Window | None = None
     test: Window | None = None
     decimate: Annotated[int, Field(ge=1, le=1000)] = 1  # keep every q-th sample, anti-aliased; windows count kept samples
+    # the measurement noise's standard deviation in the observed record's units (after decimation),
+    # when known: it sets the noise floor (abcns.noise) instead of the estimate from the best fit
+    noise_std: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
 
     @model_validator(mode="after")
     def _one_rate(self) -> DataSpec:
@@ -207,6 +211,7 @@ class Job:
     force: np.ndarray | None
     observed: np.ndarray
     simulators: list[Simulator]  # the ones ``evaluate`` runs (their substeps as chosen)
+    noise: Noise | None = None  # the distance's noise model (abcns.noise): the NMSE's; None for the others
 
 
 def spec_loc(loc: tuple) -> tuple:
@@ -340,5 +345,11 @@ def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = Fals
     settings = spec.sampler.settings()
     settings.check_particles(models)
     stop = StopRules(**spec.stop.model_dump())
+    if isinstance(distance, NMSE):
+        noise: Noise | None = distance.noise(data.noise_std)
+    elif data.noise_std is not None:
+        raise SpecError("data.noise_std", f"applies to distance 'nmse' only, not {spec.distance.name!r}")
+    else:
+        noise = None
     return Job(spec, models, evaluator(models, simulators, distance), settings, stop, spec.seed, force, observed,
-               simulators)
+               simulators, noise)

@@ -296,7 +296,7 @@ def test_append_refuses_wrong_order_and_shapes(tmp_path):
 def test_attributes_status_and_format_version(reference):
     store = Store.open(reference[0].path)
     attrs = store.attrs
-    assert attrs["format_version"] == FORMAT_VERSION == 3
+    assert attrs["format_version"] == FORMAT_VERSION == 4
     assert attrs["spec"] == SPEC and attrs["seed"] == SEED and attrs["algorithm"] == "abc-ns"
     assert attrs["data_hash"] == data_hash(np.array([0.5]))
     assert attrs["model_names"] == ["narrow", "wide"] and attrs["parameter_names"] == [["theta"], ["theta"]]
@@ -332,7 +332,7 @@ def test_open_and_create_errors(tmp_path):
     models, _ = two_models()
     store = new_store(tmp_path / "empty", models)  # an empty directory is fine
     zarr.open_group(str(store.path), mode="r+").attrs["format_version"] = 1
-    with pytest.raises(StoreError, match="format_version 1; this abcns reads version 3"):
+    with pytest.raises(StoreError, match="format_version 1; this abcns reads version 4"):
         Store.open(store.path)
 
     with pytest.raises(StoreError, match="already exists"):

@@ -1,7 +1,7 @@
 """Export a run to xarray and ArviZ.
 
 ``to_dataset(result)`` gives one xarray Dataset of every population in the result store's
-schema (``service/run/store.py``, format 3: model and parameter labelled by name, units and
+schema (``service/run/store.py``, format 4: model and parameter labelled by name, units and
 descriptions, ``format_version``), so a run from ``abcns.run`` and a store opened with
 ``xarray.open_zarr`` read alike; ``from_dataset`` reads either back into an
 :class:`abcns.Result` (particles, weights, counters, model probabilities, survivors,
@@ -71,7 +71,8 @@ def from_dataset(ds: xr.Dataset) -> Result:
 
 
 def to_inference_data(result: Result, t: int | None = None) -> dict[str, Any]:
-    """{model: arviz.InferenceData} for every model alive in population t (default: final).
+    """{model: arviz.InferenceData} for every model alive in population t (default: the
+    decision population, :meth:`abcns.Result.decision_population`, where the run's answer is read).
 
     ``posterior``: one chain, one draw per particle, a variable per free parameter;
     ``sample_stats``: ``distance`` and ``weight`` (normalised within the model) per draw;
@@ -83,7 +84,7 @@ def to_inference_data(result: Result, t: int | None = None) -> dict[str, Any]:
             import arviz as az
     except ImportError as err:  # pragma: no cover - depends on the installation
         raise ImportError("the ArviZ export needs arviz: pip install 'abcns[arviz]'") from err
-    pop = result.final if t is None else result.populations[t - 1]
+    pop = result.decision_population() if t is None else result.populations[t - 1]
     out = {}
     for i in result.alive(pop.t):
         model = result.models[i]

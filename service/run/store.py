@@ -76,9 +76,10 @@ from zarr.core.sync import sync
 import abcns
 from abcns.ellipsoid import Ellipsoid, from_matrix
 from abcns.evidence import Evidence
+from abcns.noise import Floor
 from abcns.result import Population
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4  # 4: the noise floor per population (floor_*)
 CHUNK_BYTES = 64 * 1024
 # zarr writes each metadata file through a temporary "zarr.<uuid>.partial" next to it; a
 # reader listing the group (xarray.open_zarr in Store.dataset) while the writer updates the
@@ -95,6 +96,10 @@ _RESERVED = frozenset({
 
 _P, _N, _D, _DB, _M, _E = "population", "particle", "parameter", "parameter_b", "model", "ellipsoid"
 _EVIDENCE = {name: "float64" for name in Evidence.FLOATS} | {name: "int64" for name in Evidence.INTS}
+# the noise floor (abcns.noise.Floor) per population; noise_floor and decision_tolerance are
+# derived (stored for readers of the store)
+_FLOOR_FLOATS = ("floor_best", "floor_noise_variance", "noise_floor", "decision_tolerance")
+_FLOOR_INTS = ("floor_model", "floor_n_parameters", "floor_method", "floor_n_samples")
 
 
 class StoreError(Exception):
@@ -227,6 +232,18 @@ _VARIABLES: dict[str, tuple[str, str, str | None]] = {
     "evidence_n_accepted": ("accepted proposals", "model m's new proposals accepted in this population", "1"),
     "evidence_death": ("death code", "why model m has no particles from t+1 on: "
                        "0 alive, 1 no particles, 2 improbable, 3 dead before", None),
+    "has_floor": ("has noise floor", "the run knows its distance's noise model (abcns.noise)", None),
+    "floor_best": ("best distance", "the lowest distance any particle reached up to this population", "{distance_units}"),
+    "floor_model": ("best model", "index along model of the model that reached floor_best (-1: no floor)", None),
+    "floor_n_parameters": ("parameters of the best model", "p, its number of free parameters", "1"),
+    "floor_noise_variance": ("noise per sample", "one sample's noise variance in distance units (v)",
+                             "{distance_units}"),
+    "floor_method": ("noise floor method", "0: v estimated as floor_best / (n - p); 1: v from the spec's "
+                     "data.noise_std", None),
+    "floor_n_samples": ("samples", "n, the samples the distance sums over", "1"),
+    "noise_floor": ("noise floor", "floor_best + p v: the distance expected at the true parameters", "{distance_units}"),
+    "decision_tolerance": ("decision tolerance", "noise_floor + sqrt(2 p) v: model probabilities are read at the "
+                           "lowest population tolerance at or above it", "{distance_units}"),
     "model": ("model", "the candidate models' names", None),
     "parameter": ("parameter", "the free parameters of all models, by name", None),
     "parameter_b": ("parameter", "second parameter axis of ellipsoid_matrix", None),
@@ -331,6 +348,11 @@ class Store:
         grow("ellipsoid_matrix", (m, k, d, d), "float64", np.nan, [_M, _E, _D, _DB])
         grow("ellipsoid_note", (m, k), "int8", -1, [_M, _E])
         grow("has_evidence", (), "bool", False, [])
+        grow("has_floor", (), "bool", False, [])
+        for name in _FLOOR_FLOATS:
+            grow(name, (), "float64", np.nan, [])
+        for name in _FLOOR_INTS:
+            grow(name, (), "int64", -1, [])
         for name, dtype in _EVIDENCE.items():
             grow(f"evidence_{name}", (m,), dtype, np.nan if dtype == "float64" else -1, [_M])
 
@@ -488,6 +510,13 @@ class Store:
                 if value.shape != (m,):
                     raise StoreError(f"population {pop.t}: evidence.{name} has shape {value.shape}, expected ({m},)")
             evidence[f"evidence_{name}"] = value.astype(dtype)
+        floor = pop.floor
+        floors: dict[str, Any] = {name: np.nan for name in _FLOOR_FLOATS} | {name: -1 for name in _FLOOR_INTS}
+        if floor is not None:
+            floors = {"floor_best": floor.best, "floor_noise_variance": floor.variance, "noise_floor": floor.floor,
+                      "decision_tolerance": floor.decision, "floor_model": floor.model,
+                      "floor_n_parameters": floor.n_parameters, "floor_method": floor.method,
+                      "floor_n_samples": floor.n_samples}
         return {
             "model_index": np.asarray(pop.models, dtype=np.int16),
             "theta": self._to_named(np.asarray(pop.models), np.asarray(pop.theta, dtype=np.float64)),
@@ -511,6 +540,8 @@ class Store:
             "ellipsoid_note": note,
             "has_evidence": pop.evidence is not None,
             **evidence,
+            "has_floor": floor is not None,
+            **floors,
             "population": pop.t,  # last: xarray's index shows t only once the row is written
         }
 
@@ -554,6 +585,10 @@ class Store:
         evidence = None
         if a["has_evidence"][i]:
             evidence = Evidence(**{name: a[f"evidence_{name}"][i].copy() for name in _EVIDENCE})
+        floor = None
+        if a["has_floor"][i]:
+            floor = Floor(float(a["floor_best"][i]), int(a["floor_model"][i]), int(a["floor_n_parameters"][i]),
+                          float(a["floor_noise_variance"][i]), int(a["floor_method"][i]), int(a["floor_n_samples"][i]))
         return Population(
             t=int(a["population"][i]),
             epsilon=float(a["epsilon"][i]),
@@ -571,6 +606,7 @@ class Store:
             ellipsoids=ellipsoids,
             model_probabilities=a["model_probability"][i].copy(),
             evidence=evidence,
+            floor=floor,
         )
 
     def populations(self) -> list[Population]:
@@ -663,6 +699,8 @@ _POPULATION_ARRAYS = (
     "population", "model_index", "theta", "distance", "weight", "survivor", "epsilon", "epsilon_next", "elapsed_s",
     "n_accepted", "n_simulations", "n_failed", "n_redraws", "has_survivors", "has_ellipsoids", "model_probability",
     "ellipsoid_centre", "ellipsoid_matrix", "ellipsoid_note", "has_evidence", *(f"evidence_{name}" for name in _EVIDENCE),
+    "has_floor", "floor_best", "floor_model", "floor_n_parameters", "floor_noise_variance", "floor_method",
+    "floor_n_samples",
 )
 
 

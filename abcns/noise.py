@@ -1,0 +1,138 @@
+"""The noise floor of a run, and the tolerance at which its models are decided.
+
+Below some tolerance the data's noise, not the model, decides which simulations are
+accepted: a model with more parameters can fit the noise better than the true one, so with
+nested candidate models (linear in cubic in cubic-quintic) a run taken below that tolerance
+ends up choosing the model that fits the noise best.
+
+For a distance that is a scaled sum of ``n`` squared residuals (the NMSE, paper Eq. 7:
+``d = 100 / (n s^2) sum r_i^2``) and independent noise of variance ``sigma^2`` per sample,
+let ``v = 100 sigma^2 / (n s^2)`` be one sample's noise in distance units. Linearised least
+squares (Beale 1960; Seber & Wild, *Nonlinear Regression*, 1989, §5.2) gives, for the true
+model with ``p`` free parameters, its best fit ``d_min`` and the truth ``theta*``:
+
+    d_min / v ~ chi^2_(n - p),        (d(theta*) - d_min) / v ~ chi^2_p.
+
+So once a run has found a best fit, the truth's own distance, the **noise floor**, is
+expected at ``F = d_min + p v``, with spread ``sqrt(2 p) v`` (the sd of ``v chi^2_p``), and
+``v`` is estimated by ``d_min / (n - p)`` unless the spec states the noise. The spread that
+matters is this conditional one: the noise's own sampling spread, ``F sqrt(2 / n)``, is
+shared by every model's distances and moves them together.
+
+The **decision tolerance** is the floor plus its spread, ``eps_dec = F + sqrt(2 p) v``: the
+run's model probabilities are read at the lowest population tolerance at or above it
+(:meth:`abcns.result.Result.decision_population`), and the evidence variant stops there by
+default (``StopRules.noise_floor``). Why this level:
+
+- the accepted region of the true model, ``{d < eps_dec}``, holds the truth with the
+  probability of ``chi^2_p < p + sqrt(2 p)`` (0.85-0.88 for p = 1..8), the joint
+  confidence region of nonlinear least squares at that level; the ABC posterior there is
+  uniform on it, with per-parameter variance ``(eps_dec - d_min) / (p + 2)`` in whitened
+  units against the Gaussian posterior's ``v``: ``(p + sqrt(2 p)) / (p + 2)`` is 0.8-1.2
+  for p = 1..8, so its 50 % and 95 % intervals hold the truth at close to their nominal
+  rates;
+- a nested model that fits the noise better by ``v chi^2_1`` keeps the simpler (true)
+  model's region at ``eps_dec - d_min >= (p + sqrt(2 p) - chi^2_1) v``, positive but in
+  about 1 % of data sets, so the prior volume (the evidence's Occam factor), not the fit to
+  the noise, decides between them.
+
+``d_min`` is the lowest distance any model has reached and ``p`` the largest number of free
+parameters among the models still alive (the conservative choice: with nested models the best
+fit is the most flexible model's, and a floor that uses its ``p`` cannot rise when the best
+fit passes from one model to another, so the decision tolerance only falls as the run
+goes on). The estimate assumes independent noise samples; with correlated residuals (a
+model error that the data resolve) the floor is optimistic, and a stated noise
+(``Noise.variance``) overrides the estimate.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from abcns.priors import Model, SpecError
+
+#: how a floor was estimated (``Floor.method``; stored as its index)
+METHODS = ("estimated", "stated")
+
+
+@dataclass(frozen=True)
+class Noise:
+    """What a run knows of its distance's noise: the distance is a scaled sum of squares of
+    ``n_samples`` residuals (the NMSE over its fit window), and, when the user states it,
+    ``variance``, one sample's noise variance in distance units (``NMSE.noise_variance``
+    converts a noise standard deviation in the data's units)."""
+
+    n_samples: int
+    variance: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.n_samples, int) and self.n_samples >= 2):
+            raise SpecError("data.fit", f"a noise floor needs at least 2 samples, got {self.n_samples!r}")
+        if self.variance is not None and not (math.isfinite(self.variance) and self.variance > 0):
+            raise SpecError("data.noise_std", f"must give a finite positive noise variance, got {self.variance!r}")
+
+
+@dataclass(frozen=True)
+class Floor:
+    """The noise floor as estimated after one population (see the module docstring).
+
+    ``best``: the lowest distance any particle of the run has reached so far, by model
+    ``model``; ``n_parameters``: the most free parameters of a model alive (p); ``variance``: one sample's noise in
+    distance units (``METHODS[method]``: estimated from ``best`` or stated); ``floor`` = best +
+    p v, the truth's expected distance; ``spread`` = sqrt(2 p) v; ``decision`` = floor +
+    spread, the decision tolerance."""
+
+    best: float
+    model: int
+    n_parameters: int
+    variance: float
+    method: int
+    n_samples: int
+
+    @property
+    def floor(self) -> float:
+        return self.best + self.n_parameters * self.variance
+
+    @property
+    def spread(self) -> float:
+        return math.sqrt(2.0 * self.n_parameters) * self.variance
+
+    @property
+    def decision(self) -> float:
+        return self.floor + self.spread
+
+    def describe(self) -> dict:
+        """JSON for the summary."""
+        return {"best_distance": self.best, "model_index": self.model, "n_parameters": self.n_parameters,
+                "noise_variance": self.variance, "method": METHODS[self.method], "n_samples": self.n_samples,
+                "floor": self.floor, "spread": self.spread, "decision_tolerance": self.decision}
+
+
+def estimate(noise: Noise, models: Sequence[Model], best: np.ndarray, alive: np.ndarray) -> Floor | None:
+    """The floor from each model's best distance so far (``best`` (n_models,), +inf for a
+    model never seen) and the models ``alive`` (boolean (n_models,)); None when no model has a
+    finite best distance."""
+    finite = np.isfinite(best)
+    if not finite.any():
+        return None
+    m = int(np.argmin(np.where(finite, best, np.inf)))
+    d_min = float(best[m])
+    p = max(models[i].n_dim for i in range(len(models)) if alive[i] or i == m)
+    if noise.variance is not None:
+        variance, method = noise.variance, METHODS.index("stated")
+    else:
+        variance, method = d_min / max(noise.n_samples - p, 1), METHODS.index("estimated")
+    return Floor(d_min, m, p, variance, method, noise.n_samples)
+
+
+def best_by_model(which: np.ndarray, distances: np.ndarray, n_models: int,
+                  previous: np.ndarray | None = None) -> np.ndarray:
+    """Each model's lowest distance among ``distances`` (+inf where it has none), combined
+    with the ``previous`` running minimum."""
+    best = np.full(n_models, np.inf) if previous is None else np.array(previous, dtype=float)
+    np.minimum.at(best, which, distances)
+    return best
