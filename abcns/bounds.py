@@ -20,7 +20,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from scipy.linalg.lapack import dtrtrs
 from scipy.special import gammaincinv, logsumexp
 
 from abcns import ellipsoid as ell
@@ -45,78 +44,36 @@ def min_points(d: int) -> int:
     return 2 * (d + 1)
 
 
-def _node(points: np.ndarray) -> tuple[float, np.ndarray, np.ndarray] | None:
-    """(log volume of the points' covariance ellipsoid scaled to hold them all, the points
-    whitened by that covariance, the covariance), or None when the covariance is singular.
-    The cheap part of ``ellipsoid.fit`` that the split search needs."""
-    n, d = points.shape
-    centred = points - points.sum(axis=0) / n  # the mean, as ``mean(axis=0)`` computes it
-    cov = centred.T @ centred / (n - 1)
-    try:
-        chol = np.linalg.cholesky(cov)
-    except np.linalg.LinAlgError:
-        return None
-    # solve_triangular(chol, centred.T, lower=True) without its argument checks (the factor
-    # of a finite covariance is finite): the LAPACK call it makes for a C-ordered factor
-    y = dtrtrs(chol.T, centred.T, lower=0, trans=1)[0].T
-    r2 = float((y * y).sum(axis=1).max())
-    if not r2 > 0:
-        return None
-    log_volume = ell._log_unit_ball(d) + float(np.log(chol.diagonal()).sum()) + 0.5 * d * np.log(r2)
-    return log_volume, y, cov
+def _tree_sets(points: np.ndarray, max_ellipsoids: int) -> list[np.ndarray] | None:
+    """The row sets (each ascending) of the at most ``max_ellipsoids`` ellipsoids of least
+    total volume that hold ``points``, or None when the points have no covariance
+    ellipsoid (singular covariance, or every point at the mean).
+
+    The tree: a node's ellipsoid is its points' covariance ellipsoid scaled to hold them
+    all; a node of at least 2 ``leaf`` points (``leaf`` = max(LEAF_POINTS, 2 (d + 1))) is
+    split by a 2-means clustering in whitened coordinates, started at the two points
+    farthest apart along the leading eigenvector of its covariance (deterministic,
+    ``KMEANS_ITERATIONS`` Lloyd steps at most), when both halves keep ``leaf`` and d + 1
+    points and have an ellipsoid; a node's best set of at most k ellipsoids is its own
+    ellipsoid, or its halves' best sets together (k1 for the first half, k - k1 for the
+    second, k1 of least total) when they hold less than ``SPLIT_GAIN`` of the volume of
+    its best set of at most k - 1. Compiled (``abcns.compiled.tree_rows``): only the
+    sets come from there, never an ellipsoid."""
+    from abcns import compiled
+
+    leaf = max(LEAF_POINTS, min_points(points.shape[1]))
+    ok, rows, offsets = compiled.tree_rows(np.ascontiguousarray(points, dtype=float), max_ellipsoids, leaf,
+                                           SPLIT_GAIN, KMEANS_ITERATIONS)
+    return [rows[a:b] for a, b in zip(offsets[:-1], offsets[1:])] if ok else None
 
 
-def two_means(points: np.ndarray, y: np.ndarray, axis: np.ndarray) -> np.ndarray:
-    """A 2-means clustering of ``points`` in whitened coordinates ``y``, started at the two
-    points farthest apart along ``axis`` (deterministic): which points are in the second
-    cluster (a boolean mask)."""
-    proj = points @ axis
-    centres = y[[np.argmin(proj), np.argmax(proj)]]
-    second = np.zeros(points.shape[0], dtype=bool)
-    for i in range(KMEANS_ITERATIONS):
-        # nearer to centre 1 than to centre 0: a half-space test
-        new = y @ (centres[1] - centres[0]) > 0.5 * (centres[1] @ centres[1] - centres[0] @ centres[0])
-        if i > 0 and (new == second).all():
-            break
-        second = new
-        for k, members in enumerate((~second, second)):
-            count = np.count_nonzero(members)
-            if count:  # the members' mean, as ``mean(axis=0)`` computes it
-                centres[k] = y[members].sum(axis=0) / count
-    return second
+def _radii(points: np.ndarray) -> np.ndarray | None:
+    """Squared whitened radii of the points in their covariance ellipsoid (None as
+    :func:`_tree_sets`)."""
+    from abcns import compiled
 
-
-def _tree(points: np.ndarray, rows: np.ndarray, log_volume: float, y: np.ndarray, cov: np.ndarray,
-          max_ellipsoids: int, leaf: int, log_root: float) -> list[tuple[float, list[np.ndarray]]]:
-    """``best[k - 1]``: (total volume relative to the root's, the row sets) of the at most k
-    ellipsoids of least total volume that hold ``points[rows]``: the node's own ellipsoid, or
-    the best choices of its two 2-means halves together (found the same way, recursively;
-    the halves are started along the leading eigenvector of the node's covariance ``cov``)."""
-    own = float(np.exp(log_volume - log_root))
-    best = [(own, [rows])] * max_ellipsoids
-    d = points.shape[1]
-    if max_ellipsoids < 2 or rows.size < 2 * leaf:
-        return best
-    in_second = two_means(points[rows], y, np.linalg.eigh(cov)[1][:, -1])
-    parts = [rows[~in_second], rows[in_second]]
-    if min(p.size for p in parts) < max(leaf, d + 1):
-        return best
-    halves = []
-    for part in parts:
-        node = _node(points[part])
-        if node is None:
-            return best
-        halves.append(_tree(points, part, node[0], node[1], node[2], max_ellipsoids - 1, leaf, log_root))
-    first, second = halves
-    for k in range(2, max_ellipsoids + 1):
-        # k1 ellipsoids for the first half, k - k1 for the second (the first k1 of least total)
-        k1 = min(range(1, k), key=lambda k1: first[k1 - 1][0] + second[k - k1 - 1][0])
-        total = first[k1 - 1][0] + second[k - k1 - 1][0]
-        if total < SPLIT_GAIN * best[k - 2][0]:
-            best[k - 1] = (total, first[k1 - 1][1] + second[k - k1 - 1][1])
-        else:
-            best[k - 1] = best[k - 2]
-    return best
+    ok, r2 = compiled.radii(np.ascontiguousarray(points, dtype=float))
+    return r2 if ok else None
 
 
 def outliers(y: np.ndarray) -> np.ndarray:
@@ -126,10 +83,13 @@ def outliers(y: np.ndarray) -> np.ndarray:
     never; a stochastic simulator's lucky draw far from the accepted region (which would
     otherwise make the bound ten times larger) is left out, and the cross-validated
     coverage counts what that leaves out."""
-    n, d = y.shape
-    r2 = np.sum(y * y, axis=1)
+    return _far(np.sum(y * y, axis=1), y.shape[1])
+
+
+def _far(r2: np.ndarray, d: int) -> np.ndarray:
+    """:func:`outliers` of points with squared whitened radii ``r2`` in d dimensions."""
     scale = float(np.median(r2)) / _chi2_quantile(0.5, d)
-    return r2 > _chi2_quantile(1.0 - OUTLIER_TAIL / n, d) * scale
+    return r2 > _chi2_quantile(1.0 - OUTLIER_TAIL / r2.shape[0], d) * scale
 
 
 def _chi2_quantile(q: float, d: int) -> float:
@@ -147,18 +107,15 @@ def fit_union(points: np.ndarray, enlargement: float, max_ellipsoids: int, fallb
     :func:`min_points` points; of the ellipsoids of that tree, the set of at most
     ``max_ellipsoids`` with the least total volume is kept (a node is replaced by its
     halves' best sets only when those hold less than ``SPLIT_GAIN`` of its volume)."""
-    root = _node(points) if max_ellipsoids > 1 and points.shape[0] > points.shape[1] else None
-    if root is not None:
-        far = outliers(root[1])
+    sets = None
+    if max_ellipsoids > 1 and points.shape[0] > points.shape[1] and (r2 := _radii(points)) is not None:
+        far = _far(r2, points.shape[1])
         if np.any(far) and np.count_nonzero(~far) > 2 * min_points(points.shape[1]):
             points = points[~far]
-            root = _node(points)
-    if root is None:
+        sets = _tree_sets(points, max_ellipsoids)
+    if sets is None:
         chosen = [ell.fit(points, fallback=fallback)]
     else:
-        leaf = max(LEAF_POINTS, min_points(points.shape[1]))
-        rows = np.arange(points.shape[0])
-        _, sets = _tree(points, rows, root[0], root[1], root[2], max_ellipsoids, leaf, root[0])[-1]
         parent = ell.fit(points, fallback=fallback)
         chosen = [parent] if len(sets) == 1 else [ell.fit(points[r], fallback=parent) for r in sets]
     return tuple(ell.enlarge(e, enlargement) for e in chosen)
