@@ -130,14 +130,37 @@ def _log_volumes(bound: Union) -> np.ndarray:
     return np.array([e.log_volume for e in bound])
 
 
+def _mixture_draws(bound: Union, n: int, rng: np.random.Generator) -> tuple[np.ndarray, list[np.ndarray],
+                                                                             list[np.ndarray]]:
+    """The random numbers of ``n`` draws from the ellipsoids' volume-weighted mixture: which
+    ellipsoid each draw is from (``rng.choice(len(bound), size=n, p=volume shares)``, by the
+    same numbers: its cumulative shares searched with ``rng.random(n)``), then each
+    ellipsoid's normals and uniforms (:func:`ellipsoid.unit_draws`) for its draws, in order."""
+    logv = _log_volumes(bound)
+    cdf = np.exp(logv - logsumexp(logv)).cumsum()
+    cdf /= cdf[-1]
+    from abcns import compiled
+
+    which = compiled.labels(cdf, rng.random(n))
+    counts = np.bincount(which, minlength=len(bound))
+    zs, us = [], []
+    for e, k in zip(bound, counts):
+        z, u = ell.unit_draws(e.n_dim, int(k), rng)
+        zs.append(z)
+        us.append(u)
+    return which, zs, us
+
+
 def _mixture(bound: Union, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` draws from the ellipsoids' volume-weighted mixture (not yet uniform on the union)."""
-    logv = _log_volumes(bound)
-    k = rng.choice(len(bound), size=n, p=np.exp(logv - logsumexp(logv)))
-    x = np.empty((n, bound[0].n_dim))
+    which, zs, us = _mixture_draws(bound, n, rng)
+    return _place(bound, which, zs, us)
+
+
+def _place(bound: Union, which: np.ndarray, zs: list[np.ndarray], us: list[np.ndarray]) -> np.ndarray:
+    x = np.empty((which.shape[0], bound[0].n_dim))
     for j, e in enumerate(bound):
-        rows = np.flatnonzero(k == j)
-        x[rows] = ell.sample(e, rows.size, rng)
+        x[which == j] = ell.from_unit_draws(e, zs[j], us[j])
     return x
 
 
@@ -157,15 +180,29 @@ def sample_union(bound: Union, n: int, rng: np.random.Generator) -> np.ndarray:
     return np.concatenate(got)
 
 
-def union_volume(
-    bound: Union, inside: Callable[[np.ndarray], np.ndarray], n_draws: int, rng: np.random.Generator
-) -> tuple[float, float]:
-    """(log vol(union ∩ {inside}), its standard error) by ``n_draws`` Monte Carlo draws.
+def union_volume(bound: Union, box: tuple[np.ndarray, np.ndarray], n_draws: int,
+                 rng: np.random.Generator) -> tuple[float, float]:
+    """(log vol(union ∩ box), its standard error) by ``n_draws`` Monte Carlo draws; ``box``
+    is (low, high), a point inside when ``low <= x <= high``.
 
-    vol = sum_k vol(E_k) * E[1{inside(x)} / q(x)] for x from the volume-weighted mixture,
-    q(x) the number of ellipsoids holding x (1 for a single ellipsoid)."""
-    x = _mixture(bound, n_draws, rng)
-    w = inside(x) / n_inside(bound, x) if len(bound) > 1 else inside(x).astype(float)
+    vol = sum_k vol(E_k) * E[1{x in box} / q(x)] for x from the volume-weighted mixture,
+    q(x) the number of ellipsoids holding x (1 for a single ellipsoid). The weights come
+    from a compiled loop (``abcns.compiled.mixture_weights``) that decides each point's box
+    and ellipsoids with margins covering both its rounding and numpy's, so they are those
+    of the points ``_mixture`` makes; when a point is too close to call, the points are made
+    (from the same random numbers) and tested in numpy."""
+    from abcns import compiled
+
+    low, high = (np.broadcast_to(np.asarray(v, dtype=float), (bound[0].n_dim,)) for v in box)
+    which, zs, us = _mixture_draws(bound, n_draws, rng)
+    w, ok = compiled.mixture_weights(which, np.concatenate(zs), np.concatenate(us)[:, 0],
+                                     np.stack([e.centre for e in bound]), np.stack([e.axes for e in bound]),
+                                     np.ascontiguousarray(low), np.ascontiguousarray(high), ell.CONTAINS_SLACK,
+                                     len(bound) > 1)
+    if not ok:
+        x = _place(bound, which, zs, us)
+        held = np.all((x >= low) & (x <= high), axis=-1)
+        w = held / n_inside(bound, x) if len(bound) > 1 else held.astype(float)
     mean = float(np.mean(w))
     if mean <= 0.0:
         return -np.inf, np.inf
@@ -194,12 +231,6 @@ def coverage(
     return 1.0 - 0.5 * (1.0 - held / n), n
 
 
-def in_unit_box(x: np.ndarray) -> np.ndarray:
-    return np.all((x >= 0.0) & (x <= 1.0), axis=-1)
-
-
-
-
 class Frame:
     """The coordinates a model's bound lives in: its unit prior box ``(theta - low) / width``
     (so that a condition-number cap and a volume mean the same for every parameter), or the
@@ -219,11 +250,11 @@ class Frame:
     def from_frame(self, x: np.ndarray) -> np.ndarray:
         return self.low + self.width * x if self.unit else x
 
-    def inside(self, x: np.ndarray) -> np.ndarray:
-        """Which rows of ``x`` (in this frame) lie inside the prior box."""
-        if self.unit:
-            return in_unit_box(x)
-        return np.all((x >= self.low) & (x <= self.high), axis=-1)
+    @property
+    def box(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) of the prior box in these coordinates."""
+        d = self.low.shape[0]
+        return (np.zeros(d), np.ones(d)) if self.unit else (self.low, self.high)
 
     def box_ellipsoid(self) -> ell.Ellipsoid:
         """The ellipsoid through the prior box's corners (the first fallback shape)."""

@@ -59,6 +59,29 @@ def _invert(a: np.ndarray, out: np.ndarray) -> bool:
 
 
 @njit(cache=True, error_model="numpy")
+def _distances(xt: np.ndarray, inv: np.ndarray, centre: np.ndarray, diff: np.ndarray, y: np.ndarray,
+               s: np.ndarray) -> None:
+    """``s[i] = |inv (x_i - centre)|^2`` for the columns x_i of ``xt`` (d, n); ``diff`` (d, n)
+    and ``y`` (n,) are work space. Each sum runs over the points innermost (vectorised)."""
+    d, n = xt.shape
+    for b in range(d):
+        cb = centre[b]
+        for i in range(n):
+            diff[b, i] = xt[b, i] - cb
+    for i in range(n):
+        s[i] = 0.0
+    for a in range(d):
+        for i in range(n):
+            y[i] = 0.0
+        for b in range(d):
+            c = inv[a, b]
+            for i in range(n):
+                y[i] += c * diff[b, i]
+        for i in range(n):
+            s[i] += y[i] * y[i]
+
+
+@njit(cache=True, error_model="numpy")
 def count_inside(xt: np.ndarray, axes: np.ndarray, centres: np.ndarray, slack: float) -> tuple[np.ndarray, bool]:
     """How many of the k ellipsoids (``axes`` (k, d, d), ``centres`` (k, d)) hold each column
     of ``xt`` (d, n), by the inverses of the axes, with the proven error window of
@@ -91,19 +114,10 @@ def count_inside(xt: np.ndarray, axes: np.ndarray, centres: np.ndarray, slack: f
     t = 1.0 + slack
     lo, hi = t * (1.0 - 2.0 * m), t * (1.0 + 2.0 * m)
     s = np.empty(n)
+    y = np.empty(n)
     diff = np.empty((d, n))
     for j in range(k):
-        for b in range(d):
-            cb = centres[j, b]
-            for i in range(n):
-                diff[b, i] = xt[b, i] - cb
-        s[:] = 0.0
-        for a in range(d):
-            for i in range(n):
-                ya = 0.0
-                for b in range(d):
-                    ya += inv[j, a, b] * diff[b, i]
-                s[i] += ya * ya
+        _distances(xt, inv[j], centres[j], diff, y, s)
         for i in range(n):
             v = s[i]
             if v < lo:
@@ -370,3 +384,135 @@ def tree_rows(points: np.ndarray, max_ellipsoids: int, leaf: int, split_gain: fl
             todo_v[n_todo + 1], todo_k[n_todo + 1] = child[v, 0], k1
             n_todo += 2
     return True, out[:offsets[n_sets]], offsets[:n_sets + 1]
+
+
+@njit(cache=True, error_model="numpy")
+def labels(cdf: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """``cdf.searchsorted(u, side="right")`` (``Generator.choice``'s last step), by a scan of
+    the few entries of ``cdf``: the first index whose entry exceeds u, else len(cdf)."""
+    k = cdf.shape[0]
+    out = np.empty(u.shape[0], np.int64)
+    for i in range(u.shape[0]):
+        j = 0
+        while j < k and not u[i] < cdf[j]:
+            j += 1
+        out[i] = j
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def mixture_weights(which: np.ndarray, z: np.ndarray, u: np.ndarray, centres: np.ndarray, axes: np.ndarray,
+                    low: np.ndarray, high: np.ndarray, slack: float, count: bool) -> tuple[np.ndarray, bool]:
+    """``bounds.union_volume``'s weights without the points' bits: point i of ellipsoid
+    ``which[i]`` is ``centre + axes (u^(1/d) z / |z|)`` (``z``, ``u``: that ellipsoid's
+    draws, the ellipsoids' draws one after the other in ellipsoid order, each in row order);
+    its weight is 1{low <= x <= high} / (the number of ellipsoids that hold it) (``count``)
+    or 1{low <= x <= high}. Every decision is taken with a margin that covers the rounding of
+    both this loop and numpy's arithmetic in ``ellipsoid.sample`` (so the weights are those of
+    the points numpy would make), else (w, False).
+
+    The margins. numpy's point and this loop's each lie within
+    ``e_i = (4 d + 128) eps (|centre_i| + sum_j |axes_ij|)`` of the exact one: the norm of z
+    (d + 2 roundings), the power (libm's, or numpy's SIMD one: a few ulp; 32 allowed; here a
+  square root for d = 2 and 4), the
+    product and quotient (2), the matrix product (d), the sum (1), on ``|u^(1/d) z / |z|| <= 1``,
+    with room to spare. A box face is decided when the point is farther than ``2 e_i`` from
+    it; an ellipsoid when the distance, moved by ``1.01 |inv|_F |2 e|`` (the points' shift
+    through the inverse axes) and by the relative error m of the fast distances
+    (``count_inside``'s bound), stays on one side of ``1 + slack``."""
+    n, d = z.shape
+    k = centres.shape[0]
+    w = np.zeros(n)
+    eps = 2.220446049250313e-16
+    inv = np.empty((k, d, d))
+    inv_norm = np.empty(k)
+    m = 0.0
+    for j in range(k):
+        if not _invert(axes[j], inv[j]):
+            return w, False
+        res2 = a2 = x2 = 0.0
+        for a in range(d):
+            for b in range(d):
+                r = 0.0
+                for c in range(d):
+                    r += inv[j, a, c] * axes[j, c, b]
+                if a == b:
+                    r -= 1.0
+                res2 += r * r
+                a2 += axes[j, a, b] * axes[j, a, b]
+                x2 += inv[j, a, b] * inv[j, a, b]
+        inv_norm[j] = math.sqrt(x2)
+        m = max(m, 10.0 * (math.sqrt(res2) + (d + 1 + 4 * d**3 * 2.0**d) * eps * math.sqrt(a2 * x2)))
+    if count and not m <= 1e-3:
+        return w, False
+    t = 1.0 + slack
+    rel = (4 * d + 128) * eps
+    start = np.zeros(k + 1, np.int64)  # where each ellipsoid's draws begin in z and u
+    for i in range(n):
+        start[which[i] + 1] += 1
+    for j in range(k):
+        start[j + 1] += start[j]
+    xt = np.empty((d, n))  # the points, transposed (the loops below run over points, innermost)
+    shift = np.empty(n)  # a bound on |numpy's point - this one|
+    held = np.zeros(n, np.bool_)
+    for i in range(n):
+        q = which[i]
+        at = start[q]
+        start[q] += 1
+        norm2 = 0.0
+        for b in range(d):
+            norm2 += z[at, b] * z[at, b]
+        if not norm2 > 0.0:
+            return w, False
+        if d == 1:
+            radius = u[at]
+        elif d == 2:
+            radius = math.sqrt(u[at])
+        elif d == 4:
+            radius = math.sqrt(math.sqrt(u[at]))
+        else:
+            radius = u[at] ** (1.0 / d)
+        scale = radius / math.sqrt(norm2)
+        inside = True
+        shift2 = 0.0
+        for a in range(d):
+            v = centres[q, a]
+            bound = abs(centres[q, a])
+            for b in range(d):
+                v += axes[q, a, b] * (scale * z[at, b])
+                bound += abs(axes[q, a, b])
+            xt[a, i] = v
+            err = 2.0 * rel * bound
+            shift2 += err * err
+            if abs(v - low[a]) <= err or abs(v - high[a]) <= err:
+                return w, False  # too close to a face to call
+            if not (v >= low[a] and v <= high[a]):
+                inside = False
+        held[i] = inside
+        shift[i] = math.sqrt(shift2)
+    if not count:
+        for i in range(n):
+            w[i] = 1.0 if held[i] else 0.0
+        return w, True
+    holders = np.zeros(n, np.int64)
+    t_in, t_out = math.sqrt(t / (1.0 + m)), math.sqrt(t / (1.0 - m))
+    s = np.empty(n)
+    y = np.empty(n)
+    diff = np.empty((d, n))
+    for j in range(k):
+        _distances(xt, inv[j], centres[j], diff, y, s)
+        grow = 1.01 * inv_norm[j]
+        for i in range(n):
+            # inside for sure: (sqrt(s (1 + m)) + delta)^2 (1 + m) < t; outside for sure:
+            # (sqrt(s (1 - m)) - delta)^2 (1 - m) > t; said without a square root per point
+            delta = grow * shift[i]
+            if s[i] * (1.0 + m) < (t_in - delta) ** 2 and t_in > delta:
+                holders[i] += 1
+            elif not (s[i] * (1.0 - m) > (t_out + delta) ** 2 and s[i] <= 1e300) and held[i]:
+                return w, False
+    for i in range(n):
+        if held[i]:
+            if holders[i] == 0:
+                return w, False  # numpy's 1 / 0: its own path says what that gives
+            w[i] = 1.0 / holders[i]
+    return w, True

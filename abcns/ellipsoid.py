@@ -164,11 +164,21 @@ def enlarge(ell: Ellipsoid, f0: float) -> Ellipsoid:
 
 def sample(ell: Ellipsoid, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` points uniform inside the ellipsoid, shape (n, d)."""
-    d = ell.n_dim
-    z = rng.standard_normal((n, d))
+    z, u = unit_draws(ell.n_dim, n, rng)
+    return from_unit_draws(ell, z, u)
+
+
+def unit_draws(d: int, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The random numbers of :func:`sample`: normals (n, d) (directions) and uniforms (n, 1)
+    (radii), drawn in that order."""
+    return rng.standard_normal((n, d)), rng.random((n, 1))
+
+
+def from_unit_draws(ell: Ellipsoid, z: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The points of :func:`sample` from its random numbers: ``centre + axes (u^(1/d) z / |z|)``."""
     norms = np.sqrt((z * z).sum(axis=1, keepdims=True))  # np.linalg.norm(z, axis=1), same sum
     norms[norms == 0.0] = 1.0
-    radius = rng.random((n, 1)) ** (1.0 / d)
+    radius = u ** (1.0 / ell.n_dim)
     return ell.centre + (radius * z / norms) @ ell.axes.T
 
 

@@ -292,7 +292,7 @@ def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray,
             cover, n_cover = bd.coverage(points, fit, geometry)
         else:
             cover, n_cover = float(np.mean(bd.n_inside(bound, points) > 0)), points.shape[0]
-        log_v, log_v_se = bd.union_volume(bound, frame.inside, VOLUME_DRAWS, geometry)
+        log_v, log_v_se = bd.union_volume(bound, frame.box, VOLUME_DRAWS, geometry)
         return log_v - frame.log_box_volume, log_v_se, cover, n_cover
 
     return measure
