@@ -17,6 +17,7 @@ from the generator it is given.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import numpy as np
@@ -113,12 +114,11 @@ def fit_union(points: np.ndarray, enlargement: float, max_ellipsoids: int, fallb
         if np.any(far) and np.count_nonzero(~far) > 2 * min_points(points.shape[1]):
             points = points[~far]
         sets = _tree_sets(points, max_ellipsoids)
-    if sets is None:
+    if sets is None or len(sets) == 1:
         chosen = [ell.fit(points, fallback=fallback)]
-    else:
-        parent = ell.fit(points, fallback=fallback)
-        chosen = [parent] if len(sets) == 1 else [ell.fit(points[r], fallback=parent) for r in sets]
-    return tuple(ell.enlarge(e, enlargement) for e in chosen)
+    else:  # the points' own ellipsoid is the sets' fallback shape, made only if one needs it
+        chosen = ell.fit_many([points[r] for r in sets], fallback=lambda: ell.fit(points, fallback=fallback))
+    return tuple(ell.enlarge_many(chosen, enlargement))
 
 
 def n_inside(bound: Union, x: np.ndarray) -> np.ndarray:
@@ -130,37 +130,69 @@ def _log_volumes(bound: Union) -> np.ndarray:
     return np.array([e.log_volume for e in bound])
 
 
-def _mixture_draws(bound: Union, n: int, rng: np.random.Generator) -> tuple[np.ndarray, list[np.ndarray],
-                                                                             list[np.ndarray]]:
-    """The random numbers of ``n`` draws from the ellipsoids' volume-weighted mixture: which
-    ellipsoid each draw is from (``rng.choice(len(bound), size=n, p=volume shares)``, by the
-    same numbers: its cumulative shares searched with ``rng.random(n)``), then each
-    ellipsoid's normals and uniforms (:func:`ellipsoid.unit_draws`) for its draws, in order."""
+@functools.lru_cache(maxsize=256)
+def _volume_cdf(bound: Union) -> np.ndarray:
+    """The cumulative volume shares of the union's ellipsoids, as ``Generator.choice`` makes
+    them from ``p = exp(log v - logsumexp(log v))``; computed once per bound (a bound is
+    immutable; the cache holds the last 256, keyed by identity)."""
     logv = _log_volumes(bound)
     cdf = np.exp(logv - logsumexp(logv)).cumsum()
     cdf /= cdf[-1]
+    cdf.flags.writeable = False
+    return cdf
+
+
+_SQRT_EPS = float(np.sqrt(np.finfo(float).eps))
+
+
+def choose(cdf: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``rng.choice(len(p), size=n, p=p)`` for ``cdf = p.cumsum() / its last``, by the same
+    random numbers (``rng.random(n)`` searched in ``cdf``, as numpy does) at a fraction of
+    the call's cost on few draws."""
     from abcns import compiled
 
-    which = compiled.labels(cdf, rng.random(n))
+    return compiled.labels(cdf, rng.random(n))
+
+
+def cumulative(p: np.ndarray) -> np.ndarray:
+    """The ``cdf`` of :func:`choose` for probabilities ``p``, checked as ``Generator.choice``
+    checks them (non-negative, summing to 1 within sqrt(eps))."""
+    p = np.asarray(p, dtype=float)
+    if p.ndim != 1 or (p < 0).any() or not abs(float(p.sum()) - 1.0) <= _SQRT_EPS:
+        raise ValueError(f"probabilities must be non-negative and sum to 1, got {p}")
+    cdf = p.cumsum()
+    cdf /= cdf[-1]
+    return cdf
+
+
+def _mixture_draws(bound: Union, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The random numbers of ``n`` draws from the ellipsoids' volume-weighted mixture: which
+    ellipsoid each draw is from (``rng.choice(len(bound), size=n, p=volume shares)``'s
+    numbers, :func:`choose`), then each ellipsoid's normals and uniforms
+    (:func:`ellipsoid.unit_draws`) for its draws, in ellipsoid order: (which, normals,
+    uniforms), the last two the ellipsoids' draws one after the other."""
+    which = choose(_volume_cdf(bound), n, rng)
     counts = np.bincount(which, minlength=len(bound))
-    zs, us = [], []
-    for e, k in zip(bound, counts):
-        z, u = ell.unit_draws(e.n_dim, int(k), rng)
-        zs.append(z)
-        us.append(u)
-    return which, zs, us
+    draws = [ell.unit_draws(e.n_dim, int(k), rng) for e, k in zip(bound, counts)]
+    return which, np.concatenate([z for z, _ in draws]), np.concatenate([u for _, u in draws])
 
 
 def _mixture(bound: Union, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` draws from the ellipsoids' volume-weighted mixture (not yet uniform on the union)."""
-    which, zs, us = _mixture_draws(bound, n, rng)
-    return _place(bound, which, zs, us)
+    return _place(bound, *_mixture_draws(bound, n, rng))
 
 
-def _place(bound: Union, which: np.ndarray, zs: list[np.ndarray], us: list[np.ndarray]) -> np.ndarray:
+def _place(bound: Union, which: np.ndarray, z: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The points of :func:`_mixture_draws`' numbers: ``ellipsoid.from_unit_draws`` of each
+    ellipsoid's, the elementwise steps done once for all (the same bits row by row)."""
+    w = ell.unit_ball_points(z, u)
     x = np.empty((which.shape[0], bound[0].n_dim))
+    at = 0
     for j, e in enumerate(bound):
-        x[which == j] = ell.from_unit_draws(e, zs[j], us[j])
+        rows = which == j
+        k = int(np.count_nonzero(rows))
+        x[rows] = ell.in_ellipsoid(e, w[at:at + k])
+        at += k
     return x
 
 
@@ -194,13 +226,13 @@ def union_volume(bound: Union, box: tuple[np.ndarray, np.ndarray], n_draws: int,
     from abcns import compiled
 
     low, high = (np.broadcast_to(np.asarray(v, dtype=float), (bound[0].n_dim,)) for v in box)
-    which, zs, us = _mixture_draws(bound, n_draws, rng)
-    w, ok = compiled.mixture_weights(which, np.concatenate(zs), np.concatenate(us)[:, 0],
+    which, z, u = _mixture_draws(bound, n_draws, rng)
+    w, ok = compiled.mixture_weights(which, z, u[:, 0],
                                      np.stack([e.centre for e in bound]), np.stack([e.axes for e in bound]),
                                      np.ascontiguousarray(low), np.ascontiguousarray(high), ell.CONTAINS_SLACK,
                                      len(bound) > 1)
     if not ok:
-        x = _place(bound, which, zs, us)
+        x = _place(bound, which, z, u)
         held = np.all((x >= low) & (x <= high), axis=-1)
         w = held / n_inside(bound, x) if len(bound) > 1 else held.astype(float)
     mean = float(np.mean(w))
@@ -255,6 +287,13 @@ class Frame:
         """(low, high) of the prior box in these coordinates."""
         d = self.low.shape[0]
         return (np.zeros(d), np.ones(d)) if self.unit else (self.low, self.high)
+
+    def in_prior(self, theta: np.ndarray) -> np.ndarray:
+        """Which rows of ``theta`` (raw parameters) lie inside the prior box: the test of
+        ``Model.in_prior``, compiled."""
+        from abcns import compiled
+
+        return compiled.in_box(np.ascontiguousarray(theta, dtype=float), self.low, self.high)
 
     def box_ellipsoid(self) -> ell.Ellipsoid:
         """The ellipsoid through the prior box's corners (the first fallback shape)."""

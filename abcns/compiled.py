@@ -516,3 +516,18 @@ def mixture_weights(which: np.ndarray, z: np.ndarray, u: np.ndarray, centres: np
                 return w, False  # numpy's 1 / 0: its own path says what that gives
             w[i] = 1.0 / holders[i]
     return w, True
+
+
+@njit(cache=True, error_model="numpy")
+def in_box(x: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """``np.all((x >= low) & (x <= high), axis=-1)`` for x (n, d)."""
+    n, d = x.shape
+    out = np.empty(n, np.bool_)
+    for i in range(n):
+        ok = True
+        for j in range(d):
+            if not (x[i, j] >= low[j] and x[i, j] <= high[j]):
+                ok = False
+                break
+        out[i] = ok
+    return out

@@ -315,8 +315,8 @@ class BoundProposer:
         alive = [m for m, b in enumerate(self.bounds) if b]
         if self.allocation is None:
             which = np.asarray(alive, dtype=np.int16)[rng.integers(len(alive), size=n)]
-        else:
-            which = rng.choice(len(self.models), size=n, p=self.allocation).astype(np.int16)
+        else:  # rng.choice(len(models), size=n, p=allocation), by its own numbers
+            which = bd.choose(bd.cumulative(self.allocation), n, rng).astype(np.int16)
         theta = pad(self.models, n)
         redraws = np.zeros(n, dtype=np.int64)
         for m in alive:
@@ -328,7 +328,8 @@ class BoundProposer:
             def draw(k: int, g: np.random.Generator, b: bd.Union = bound, f: bd.Frame = frame) -> np.ndarray:
                 return f.from_frame(bd.sample_union(b, k, g))
 
-            theta[rows, : model.n_dim], redraws[rows] = draw_inside(draw, model.in_prior, rows.size, rng,
+            # the model's prior box (model.in_prior's test: the frame holds its low and high)
+            theta[rows, : model.n_dim], redraws[rows] = draw_inside(draw, frame.in_prior, rows.size, rng,
                                                                     self.max_redraws)
         return which, theta, redraws
 
