@@ -58,11 +58,15 @@ def _invert(a: np.ndarray, out: np.ndarray) -> bool:
     return True
 
 
+#: points per block of the distance loops (their work arrays stay in the L1 cache)
+BLOCK = 256
+
+
 @njit(cache=True, error_model="numpy")
 def _distances(xt: np.ndarray, inv: np.ndarray, centre: np.ndarray, diff: np.ndarray, y: np.ndarray,
                s: np.ndarray) -> None:
-    """``s[i] = |inv (x_i - centre)|^2`` for the columns x_i of ``xt`` (d, n); ``diff`` (d, n)
-    and ``y`` (n,) are work space. Each sum runs over the points innermost (vectorised)."""
+    """``s[i] = |inv (x_i - centre)|^2`` for the columns x_i of ``xt`` (d, n); ``diff`` (d, >= n)
+    and ``y`` (>= n,) are work space. Each sum runs over the points innermost (vectorised)."""
     d, n = xt.shape
     for b in range(d):
         cb = centre[b]
@@ -113,17 +117,19 @@ def count_inside(xt: np.ndarray, axes: np.ndarray, centres: np.ndarray, slack: f
         return counts, False
     t = 1.0 + slack
     lo, hi = t * (1.0 - 2.0 * m), t * (1.0 + 2.0 * m)
-    s = np.empty(n)
-    y = np.empty(n)
-    diff = np.empty((d, n))
-    for j in range(k):
-        _distances(xt, inv[j], centres[j], diff, y, s)
-        for i in range(n):
-            v = s[i]
-            if v < lo:
-                counts[i] += 1
-            elif not (v > hi and v <= 1e300):
-                return counts, False
+    s = np.empty(BLOCK)
+    y = np.empty(BLOCK)
+    diff = np.empty((d, BLOCK))
+    for first in range(0, n, BLOCK):  # blocks of points: the work arrays stay in the L1 cache
+        last = min(n, first + BLOCK)
+        for j in range(k):
+            _distances(xt[:, first:last], inv[j], centres[j], diff, y, s)
+            for i in range(last - first):
+                v = s[i]
+                if v < lo:
+                    counts[first + i] += 1
+                elif not (v > hi and v <= 1e300):
+                    return counts, False
     return counts, True
 
 
@@ -496,20 +502,24 @@ def mixture_weights(which: np.ndarray, z: np.ndarray, u: np.ndarray, centres: np
         return w, True
     holders = np.zeros(n, np.int64)
     t_in, t_out = math.sqrt(t / (1.0 + m)), math.sqrt(t / (1.0 - m))
-    s = np.empty(n)
-    y = np.empty(n)
-    diff = np.empty((d, n))
-    for j in range(k):
-        _distances(xt, inv[j], centres[j], diff, y, s)
-        grow = 1.01 * inv_norm[j]
-        for i in range(n):
-            # inside for sure: (sqrt(s (1 + m)) + delta)^2 (1 + m) < t; outside for sure:
-            # (sqrt(s (1 - m)) - delta)^2 (1 - m) > t; said without a square root per point
-            delta = grow * shift[i]
-            if s[i] * (1.0 + m) < (t_in - delta) ** 2 and t_in > delta:
-                holders[i] += 1
-            elif not (s[i] * (1.0 - m) > (t_out + delta) ** 2 and s[i] <= 1e300) and held[i]:
-                return w, False
+    s = np.empty(BLOCK)
+    y = np.empty(BLOCK)
+    diff = np.empty((d, BLOCK))
+    for first in range(0, n, BLOCK):  # blocks of points: the work arrays stay in the L1 cache
+        last = min(n, first + BLOCK)
+        for j in range(k):
+            _distances(xt[:, first:last], inv[j], centres[j], diff, y, s)
+            grow = 1.01 * inv_norm[j]
+            for c in range(last - first):
+                # inside for sure: (sqrt(s (1 + m)) + delta)^2 (1 + m) < t; outside for sure:
+                # (sqrt(s (1 - m)) - delta)^2 (1 - m) > t; said without a square root per point
+                i = first + c
+                delta = grow * shift[i]
+                below, above = t_in - delta, t_out + delta
+                if s[c] * (1.0 + m) < below * below and below > 0.0:
+                    holders[i] += 1
+                elif not (s[c] * (1.0 - m) > above * above and s[c] <= 1e300) and held[i]:
+                    return w, False
     for i in range(n):
         if held[i]:
             if holders[i] == 0:
