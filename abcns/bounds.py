@@ -174,9 +174,13 @@ def _mixture_draws(bound: Union, n: int, rng: np.random.Generator) -> tuple[np.n
     (:func:`ellipsoid.unit_draws`) for its draws, in ellipsoid order: (which, normals,
     uniforms), the last two the ellipsoids' draws one after the other."""
     which = choose(_volume_shares(bound)[1], n, rng)
-    counts = np.bincount(which, minlength=len(bound))
-    draws = [ell.unit_draws(e.n_dim, int(k), rng) for e, k in zip(bound, counts)]
-    return which, np.concatenate([z for z, _ in draws]), np.concatenate([u for _, u in draws])
+    d = bound[0].n_dim
+    z, u = np.empty((n, d)), np.empty((n, 1))
+    at = 0
+    for k in np.bincount(which, minlength=len(bound)):
+        ell.unit_draws(d, int(k), rng, out=(z[at:at + k], u[at:at + k]))
+        at += k
+    return which, z, u
 
 
 def _mixture(bound: Union, n: int, rng: np.random.Generator) -> np.ndarray:

@@ -188,10 +188,16 @@ def sample(ell: Ellipsoid, n: int, rng: np.random.Generator) -> np.ndarray:
     return from_unit_draws(ell, z, u)
 
 
-def unit_draws(d: int, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def unit_draws(d: int, n: int, rng: np.random.Generator,
+               out: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The random numbers of :func:`sample`: normals (n, d) (directions) and uniforms (n, 1)
-    (radii), drawn in that order."""
-    return rng.standard_normal((n, d)), rng.random((n, 1))
+    (radii), drawn in that order (into ``out``'s C-contiguous arrays when given: the same
+    numbers)."""
+    if out is None:
+        return rng.standard_normal((n, d)), rng.random((n, 1))
+    rng.standard_normal(out=out[0])
+    rng.random(out=out[1])
+    return out
 
 
 def from_unit_draws(ell: Ellipsoid, z: np.ndarray, u: np.ndarray) -> np.ndarray:
