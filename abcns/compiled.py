@@ -86,21 +86,18 @@ def _distances(xt: np.ndarray, inv: np.ndarray, centre: np.ndarray, diff: np.nda
 
 
 @njit(cache=True, error_model="numpy")
-def count_inside(xt: np.ndarray, axes: np.ndarray, centres: np.ndarray, slack: float) -> tuple[np.ndarray, bool]:
-    """How many of the k ellipsoids (``axes`` (k, d, d), ``centres`` (k, d)) hold each column
-    of ``xt`` (d, n), by the inverses of the axes, with the proven error window of
-    ``ellipsoid.n_containing``: (counts, True), or (partial counts, False) as soon as one
-    squared distance is within the window of ``1 + slack``, not finite or above 1e300, or
-    when an axes matrix is too ill-conditioned for the bound (m > 1e-3)."""
-    d, n = xt.shape
-    k = centres.shape[0]
-    counts = np.zeros(n, np.int64)
+def _inverses(axes: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """(the inverses of the k axes matrices, their Frobenius norms, the relative error bound
+    m of ``ellipsoid.n_containing``: ``10 max_j (|X_j A_j - I|_F + (d + 1 + 4 d^3 2^d) eps
+    |A_j|_F |X_j|_F)``); m is inf when a matrix cannot be inverted."""
+    k, d, _ = axes.shape
     inv = np.empty((k, d, d))
-    u = 2.220446049250313e-16  # np.finfo(float).eps
+    norms = np.empty(k)
+    eps = 2.220446049250313e-16  # np.finfo(float).eps
     m = 0.0
     for j in range(k):
         if not _invert(axes[j], inv[j]):
-            return counts, False
+            return inv, norms, np.inf
         res2 = a2 = x2 = 0.0
         for a in range(d):
             for b in range(d):
@@ -112,25 +109,55 @@ def count_inside(xt: np.ndarray, axes: np.ndarray, centres: np.ndarray, slack: f
                 res2 += r * r
                 a2 += axes[j, a, b] * axes[j, a, b]
                 x2 += inv[j, a, b] * inv[j, a, b]
-        m = max(m, 10.0 * (math.sqrt(res2) + (d + 1 + 4 * d**3 * 2.0**d) * u * math.sqrt(a2 * x2)))
+        norms[j] = math.sqrt(x2)
+        m = max(m, 10.0 * (math.sqrt(res2) + (d + 1 + 4 * d**3 * 2.0**d) * eps * math.sqrt(a2 * x2)))
+    return inv, norms, m
+
+
+@njit(cache=True, error_model="numpy")
+def count_inside(xt: np.ndarray, axes: np.ndarray, centres: np.ndarray, slack: float) -> tuple[np.ndarray, bool]:
+    """How many of the k ellipsoids (``axes`` (k, d, d), ``centres`` (k, d)) hold each column
+    of ``xt`` (d, n), by the inverses of the axes, with the proven error window of
+    ``ellipsoid.n_containing``: (counts, True), or (partial counts, False) as soon as one
+    squared distance is within the window of ``1 + slack``, not finite or above 1e300, or
+    when an axes matrix is too ill-conditioned for the bound (m > 1e-3)."""
+    n = xt.shape[1]
+    counts = np.zeros(n, np.int64)
+    inv, inv_norm, m = _inverses(axes)
     if not m <= 1e-3:
         return counts, False
-    t = 1.0 + slack
-    lo, hi = t * (1.0 - 2.0 * m), t * (1.0 + 2.0 * m)
+    ok = _count(xt, inv, inv_norm, centres, np.zeros(n), np.ones(n, np.bool_), m, 1.0 + slack, counts)
+    return counts, ok
+
+
+@njit(cache=True, error_model="numpy")
+def _count(xt: np.ndarray, inv: np.ndarray, inv_norm: np.ndarray, centres: np.ndarray, shift: np.ndarray,
+           held: np.ndarray, m: float, t: float, holders: np.ndarray) -> bool:
+    """Add to ``holders[i]`` the ellipsoids (``inv``, ``centres``) that hold point i (column
+    of ``xt``) for sure, with distances of relative error m and points within ``shift[i]``
+    of where they should be (the distance moves by up to ``1.01 |inv|_F shift``); False as
+    soon as a point of ``held`` is too close to call (or its distance is not finite or above
+    1e300). Inside for sure: ``(sqrt(s (1 + m)) + delta)^2 (1 + m) < t``; outside for sure:
+    ``(sqrt(s (1 - m)) - delta)^2 (1 - m) > t``, said without a square root per point."""
+    d, n = xt.shape
+    t_in, t_out = math.sqrt(t / (1.0 + m)), math.sqrt(t / (1.0 - m))
     s = np.empty(BLOCK)
     y = np.empty(BLOCK)
     diff = np.empty((d, BLOCK))
     for first in range(0, n, BLOCK):  # blocks of points: the work arrays stay in the L1 cache
         last = min(n, first + BLOCK)
-        for j in range(k):
+        for j in range(centres.shape[0]):
             _distances(xt[:, first:last], inv[j], centres[j], diff, y, s)
-            for i in range(last - first):
-                v = s[i]
-                if v < lo:
-                    counts[first + i] += 1
-                elif not (v > hi and v <= 1e300):
-                    return counts, False
-    return counts, True
+            grow = 1.01 * inv_norm[j]
+            for c in range(last - first):
+                i = first + c
+                delta = grow * shift[i]
+                below, above = t_in - delta, t_out + delta
+                if s[c] * (1.0 + m) < below * below and below > 0.0:
+                    holders[i] += 1
+                elif not (s[c] * (1.0 - m) > above * above and s[c] <= 1e300) and held[i]:
+                    return False
+    return True
 
 
 @njit(cache=True, error_model="numpy")
@@ -420,35 +447,16 @@ def mixture_weights(which: np.ndarray, z: np.ndarray, u: np.ndarray, centres: np
     The margins. numpy's point and this loop's each lie within
     ``e_i = (4 d + 128) eps (|centre_i| + sum_j |axes_ij|)`` of the exact one: the norm of z
     (d + 2 roundings), the power (libm's, or numpy's SIMD one: a few ulp; 32 allowed; here a
-  square root for d = 2 and 4), the
-    product and quotient (2), the matrix product (d), the sum (1), on ``|u^(1/d) z / |z|| <= 1``,
-    with room to spare. A box face is decided when the point is farther than ``2 e_i`` from
-    it; an ellipsoid when the distance, moved by ``1.01 |inv|_F |2 e|`` (the points' shift
-    through the inverse axes) and by the relative error m of the fast distances
-    (``count_inside``'s bound), stays on one side of ``1 + slack``."""
+    square root for d = 2 and 4), the product and quotient (2), the matrix product (d), the
+    sum (1), on ``|u^(1/d) z / |z|| <= 1``, with room to spare. A box face is decided when
+    the point is farther than ``2 e_i`` from it; an ellipsoid as in :func:`_count`, the
+    distance moved by ``1.01 |inv|_F |2 e|`` (the point's shift through the inverse axes)
+    and by the relative error m of the fast distances (``count_inside``'s bound)."""
     n, d = z.shape
     k = centres.shape[0]
     w = np.zeros(n)
     eps = 2.220446049250313e-16
-    inv = np.empty((k, d, d))
-    inv_norm = np.empty(k)
-    m = 0.0
-    for j in range(k):
-        if not _invert(axes[j], inv[j]):
-            return w, False
-        res2 = a2 = x2 = 0.0
-        for a in range(d):
-            for b in range(d):
-                r = 0.0
-                for c in range(d):
-                    r += inv[j, a, c] * axes[j, c, b]
-                if a == b:
-                    r -= 1.0
-                res2 += r * r
-                a2 += axes[j, a, b] * axes[j, a, b]
-                x2 += inv[j, a, b] * inv[j, a, b]
-        inv_norm[j] = math.sqrt(x2)
-        m = max(m, 10.0 * (math.sqrt(res2) + (d + 1 + 4 * d**3 * 2.0**d) * eps * math.sqrt(a2 * x2)))
+    inv, inv_norm, m = _inverses(axes)
     if count and not m <= 1e-3:
         return w, False
     t = 1.0 + slack
@@ -501,25 +509,8 @@ def mixture_weights(which: np.ndarray, z: np.ndarray, u: np.ndarray, centres: np
             w[i] = 1.0 if held[i] else 0.0
         return w, True
     holders = np.zeros(n, np.int64)
-    t_in, t_out = math.sqrt(t / (1.0 + m)), math.sqrt(t / (1.0 - m))
-    s = np.empty(BLOCK)
-    y = np.empty(BLOCK)
-    diff = np.empty((d, BLOCK))
-    for first in range(0, n, BLOCK):  # blocks of points: the work arrays stay in the L1 cache
-        last = min(n, first + BLOCK)
-        for j in range(k):
-            _distances(xt[:, first:last], inv[j], centres[j], diff, y, s)
-            grow = 1.01 * inv_norm[j]
-            for c in range(last - first):
-                # inside for sure: (sqrt(s (1 + m)) + delta)^2 (1 + m) < t; outside for sure:
-                # (sqrt(s (1 - m)) - delta)^2 (1 - m) > t; said without a square root per point
-                i = first + c
-                delta = grow * shift[i]
-                below, above = t_in - delta, t_out + delta
-                if s[c] * (1.0 + m) < below * below and below > 0.0:
-                    holders[i] += 1
-                elif not (s[c] * (1.0 - m) > above * above and s[c] <= 1e300) and held[i]:
-                    return w, False
+    if not _count(xt, inv, inv_norm, centres, shift, held, m, t, holders):
+        return w, False
     for i in range(n):
         if held[i]:
             if holders[i] == 0:
