@@ -50,8 +50,9 @@ def draw_inside(
         draws = draw(chunk, rng)
         ok = np.flatnonzero(inside(draws))[: n - n_got]
         if ok.size:
-            gap = np.diff(ok, prepend=-1) - 1
-            gap[0] += since_last
+            gap = np.empty_like(ok)  # draws rejected before each accepted one
+            gap[0] = ok[0] + since_last
+            np.subtract(ok[1:], ok[:-1] + 1, out=gap[1:])
             gaps.append(gap)
             got.append(draws[ok])
             n_got += ok.size

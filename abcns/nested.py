@@ -318,7 +318,7 @@ def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray,
             cover, n_cover = bd.coverage(points, fit, geometry)
         else:
             cover, n_cover = float(np.mean(bd.n_inside(bound, points) > 0)), points.shape[0]
-        log_v, log_v_se = bd.union_volume(bound, frame.inside, VOLUME_DRAWS, geometry)
+        log_v, log_v_se = bd.union_volume(bound, frame.box, VOLUME_DRAWS, geometry)
         return log_v - frame.log_box_volume, log_v_se, cover, n_cover
 
     return measure
@@ -341,8 +341,8 @@ class BoundProposer:
         alive = [m for m, b in enumerate(self.bounds) if b]
         if self.allocation is None:
             which = np.asarray(alive, dtype=np.int16)[rng.integers(len(alive), size=n)]
-        else:
-            which = rng.choice(len(self.models), size=n, p=self.allocation).astype(np.int16)
+        else:  # rng.choice(len(models), size=n, p=allocation), by its own numbers
+            which = bd.choose(bd.cumulative(self.allocation), n, rng).astype(np.int16)
         theta = pad(self.models, n)
         redraws = np.zeros(n, dtype=np.int64)
         for m in alive:
@@ -354,7 +354,8 @@ class BoundProposer:
             def draw(k: int, g: np.random.Generator, b: bd.Union = bound, f: bd.Frame = frame) -> np.ndarray:
                 return f.from_frame(bd.sample_union(b, k, g))
 
-            theta[rows, : model.n_dim], redraws[rows] = draw_inside(draw, model.in_prior, rows.size, rng,
+            # the model's prior box (model.in_prior's test: the frame holds its low and high)
+            theta[rows, : model.n_dim], redraws[rows] = draw_inside(draw, frame.in_prior, rows.size, rng,
                                                                     self.max_redraws)
         return which, theta, redraws
 
