@@ -181,7 +181,7 @@ class Executor(Protocol):
 class BatchError(RuntimeError):
     """An unexpected exception while a batch was evaluated (a bug in a simulator, not a
     numerical failure, which is a counted rejection): the message names the batch
-    (population, index) and the exception's type."""
+    (population, index), the model (a :class:`SimulatorError`'s) and the exception's type."""
 
 
 #: what a simulator may raise for a particle it cannot simulate: a counted rejection (status
@@ -200,7 +200,8 @@ def evaluate_batch(evaluate: Evaluate, batch: Batch) -> Evaluated:
     try:
         return evaluate(batch)
     except Exception as err:
-        raise BatchError(f"population {batch.population}, batch {batch.index}: {type(err).__name__}: {err}") from err
+        what = str(err) if isinstance(err, SimulatorError) else f"{type(err).__name__}: {err}"  # it names the exception
+        raise BatchError(f"population {batch.population}, batch {batch.index}: {what}") from err
 
 
 class SerialExecutor:

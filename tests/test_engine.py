@@ -288,6 +288,28 @@ def test_the_issues_two_models_one_failing_on_half_its_prior():
     assert any(w.startswith("failures: ") and "of B's" in w for w in r.warnings()), r.warnings()
 
 
+@pytest.mark.parametrize("variant", ["evidence", "paper"])
+def test_a_model_whose_every_simulation_failed_dies_by_the_rule_failed(variant):
+    """P.3: a model whose simulator fails everywhere (an impossible fixed value in a plugin,
+    say) used to die at population 1 with no death rule and no warning, as if the data had
+    rejected it; it now dies by the rule ``failed``, and the summary says so."""
+
+    def broken(theta, rng):
+        return np.zeros(theta.shape[0]), np.full(theta.shape[0], FAILED, np.int8)
+
+    def fine(theta, rng):
+        return np.abs(theta[:, 0] - 0.25), np.full(theta.shape[0], OK, np.int8)
+
+    models = [Model("broken", {"x": (0, 1)}), Model("fine", {"x": (0, 1)})]
+    r = run(models, per_model([broken, fine]), NSSettings(particles=200, epsilon_initial=0.5, batch_size=50,
+                                                          variant=variant),
+            StopRules(min_epsilon_decrease=None, max_populations=3), seed=1)
+    s = r.summary()
+    assert s["dead_models"] == {"broken": 1} and s["death_rules"] == {"broken": "failed"}, s["death_rules"]
+    assert any(w.startswith("failed: every simulation of broken failed in population 1") for w in s["warnings"])
+    assert s["failures_by_model"]["broken"]["share"] == 1.0
+
+
 def test_dead_model_stays_dead_and_is_reported():
     """Model 'far' cannot get below eps ~ 1: it loses its particles and never returns."""
 
