@@ -571,7 +571,9 @@ def _linear_output(w, n_act, f, kind, y):
 
 
 @njit(**_JIT)
-def _linear_step(w, n_act, f):
+def _linear_step(w, n_act, f0, f1, hold):
+    """One sample step: ``Phi s + Gamma f0`` (``hold`` 0), plus the ramp's ``R (f1 - f0)``
+    (``hold`` 1)."""
     x = w[0]
     v = w[1]
     p11 = w[3]
@@ -580,32 +582,21 @@ def _linear_step(w, n_act, f):
     p22 = w[6]
     g1 = w[7]
     g2 = w[8]
-    for j in range(n_act):
-        x0 = x[j]
-        v0 = v[j]
-        x[j] = p11[j] * x0 + p12[j] * v0 + g1[j] * f
-        v[j] = p21[j] * x0 + p22[j] * v0 + g2[j] * f
-
-
-@njit(**_JIT)
-def _linear_step_ramp(w, n_act, f0, f1):
-    """The first-order-hold step: the held step plus the ramp's ``R (f1 - f0)``."""
-    x = w[0]
-    v = w[1]
-    p11 = w[3]
-    p12 = w[4]
-    p21 = w[5]
-    p22 = w[6]
-    g1 = w[7]
-    g2 = w[8]
-    r1 = w[12]
-    r2 = w[13]
-    df = f1 - f0
-    for j in range(n_act):
-        x0 = x[j]
-        v0 = v[j]
-        x[j] = p11[j] * x0 + p12[j] * v0 + g1[j] * f0 + r1[j] * df
-        v[j] = p21[j] * x0 + p22[j] * v0 + g2[j] * f0 + r2[j] * df
+    if hold == 0:
+        for j in range(n_act):
+            x0 = x[j]
+            v0 = v[j]
+            x[j] = p11[j] * x0 + p12[j] * v0 + g1[j] * f0
+            v[j] = p21[j] * x0 + p22[j] * v0 + g2[j] * f0
+    else:
+        r1 = w[12]
+        r2 = w[13]
+        df = f1 - f0
+        for j in range(n_act):
+            x0 = x[j]
+            v0 = v[j]
+            x[j] = p11[j] * x0 + p12[j] * v0 + g1[j] * f0 + r1[j] * df
+            v[j] = p21[j] * x0 + p22[j] * v0 + g2[j] * f0 + r2[j] * df
 
 
 @njit(**_JIT)
@@ -667,10 +658,7 @@ def linear_run(w, force, hold, kind, bound, obs, start, stop, scale, eps, cols, 
             if n_act == 0:
                 return
         if i + 1 < ns:
-            if hold == 0:
-                _linear_step(w, n_act, force[i])
-            else:
-                _linear_step_ramp(w, n_act, force[i], force[i + 1])
+            _linear_step(w, n_act, force[i], force[i + 1], hold)
         i += 1
     _finish(w, 2, n_act, scale, idx, dist, status)
 
