@@ -32,8 +32,9 @@ class Population:
     t + 1 (one in the paper variant; empty for a dead model; the whole tuple is empty for the
     baselines), in model m's unit prior box for the evidence variant and in raw units for
     the paper's. ``n_simulations_by_model`` and ``n_failed_by_model`` (n_models,) split
-    ``n_simulations`` and ``n_failed`` by model (empty when not recorded). ``evidence`` is ABC-NS's per-model evidence bookkeeping
-    (:class:`abcns.evidence.Evidence`), None for the baselines. ``model_probabilities`` are
+    ``n_simulations`` and ``n_failed`` by model (empty when not recorded). ``evidence`` is
+    ABC-NS's per-model evidence bookkeeping (:class:`abcns.evidence.Evidence`), None for the
+    baselines. ``model_probabilities`` are
     the evidence's for ABC-NS's default variant, particle shares (Eq. 12) for the paper's,
     importance-weight mass for ABC-SMC and shares for rejection.
     """

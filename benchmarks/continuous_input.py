@@ -1,12 +1,12 @@
 """A continuous input, sampled: does ``data.input_interpolation`` matter? (issue P.4)
 
-    python -m benchmarks.continuous_input [--seeds 1-5] [--interpolations hold,linear] [--processes 2]
+    python -m benchmarks.continuous_input [--seeds 1-5] [--interpolations hold,linear] [--fs 100] [--processes 2]
 
 The data are made as a user's own measurement would be, not by our simulators: a Duffing
 oscillator ``x'' + c x' + k x + k3 x^3 = u(t)`` (truth c = 1, k = 100, k3 = 1000, m = 1)
 driven by a *continuous* random-phase multisine (``N_TONES`` tones from 0.2 to 5 Hz, RMS
 ``FORCE_RMS``), integrated by scipy's DOP853 (rtol 1e-10) through the continuous force, from
-rest, and sampled at ``FS`` = 100 Hz for 20 s; Gaussian noise of ``NOISE`` (1.5 %) of the
+rest, and sampled at ``--fs`` (default ``FS`` = 100 Hz) for 20 s; Gaussian noise of ``NOISE`` (1.5 %) of the
 clean response's RMS is added. The force is the multisine at the sample times. Seed s draws
 the phases and the noise.
 
@@ -45,8 +45,8 @@ MAX_POPULATIONS = 80
 PRIORS = {"c": [0.1, 5.0], "k": [50.0, 200.0], "k3": [0.0, 5000.0]}
 
 
-def make_data(seed: int) -> dict:
-    """(force, observed, clean, noise floor in %) for seed ``seed``."""
+def make_data(seed: int, fs: float = FS) -> dict:
+    """(force, observed, clean, noise floor in %) for seed ``seed``, sampled at ``fs``."""
     from scipy.integrate import solve_ivp
 
     rng = np.random.default_rng(seed)
@@ -63,7 +63,7 @@ def make_data(seed: int) -> dict:
         x, v = s
         return [v, force(t)[0] - c * v - k * x - k3 * x**3]
 
-    t = np.arange(int(FS * DURATION)) / FS
+    t = np.arange(int(fs * DURATION)) / fs
     sol = solve_ivp(rhs, (0.0, t[-1]), [0.0, 0.0], method="DOP853", t_eval=t, rtol=1e-10, atol=1e-12)
     clean = sol.y[0]
     observed = clean + NOISE * np.sqrt(np.mean(clean**2)) * rng.standard_normal(clean.size)
@@ -71,10 +71,10 @@ def make_data(seed: int) -> dict:
     return {"force": force(t), "observed": observed, "clean": clean, "floor": float(floor)}
 
 
-def spec(data: dict, interpolation: str, seed: int) -> dict:
+def spec(data: dict, interpolation: str, seed: int, fs: float = FS) -> dict:
     return {
         "name": f"continuous-input-{interpolation}-{seed}",
-        "data": {"dt": 1.0 / FS, "input": data["force"].tolist(), "observed": data["observed"].tolist(),
+        "data": {"dt": 1.0 / fs, "input": data["force"].tolist(), "observed": data["observed"].tolist(),
                  "input_interpolation": interpolation},
         "models": [
             {"name": "linear", "simulator": "duffing", "fixed": {"m": 1, "k3": 0, "k5": 0},
@@ -89,18 +89,18 @@ def spec(data: dict, interpolation: str, seed: int) -> dict:
     }
 
 
-def one(seed: int, interpolation: str) -> dict:
+def one(seed: int, interpolation: str, fs: float = FS) -> dict:
     from abcns import run
     from service.spec import build, parse
 
-    data = make_data(seed)
-    job = build(parse(spec(data, interpolation, seed)))
+    data = make_data(seed, fs)
+    job = build(parse(spec(data, interpolation, seed, fs)))
     start = time.monotonic()
     r = run(job.models, job.evaluate, job.settings, job.stop, seed=seed)
     post = r.posterior().get("cubic", {})
     intervals = {name: (post[name]["q2_5"], post[name]["q97_5"]) if name in post else (np.nan, np.nan)
                  for name in TRUTH}
-    return {"seed": seed, "interpolation": interpolation, "floor": data["floor"], "epsilon": r.final.epsilon,
+    return {"seed": seed, "interpolation": interpolation, "fs": fs, "floor": data["floor"], "epsilon": r.final.epsilon,
             "stop": r.stop_reason.value, "populations": len(r.populations), "simulations": r.n_simulations,
             "p_cubic": r.model_probabilities()["cubic"], "intervals": intervals,
             "holds": {name: bool(lo <= TRUTH[name] <= hi) for name, (lo, hi) in intervals.items()},
@@ -108,13 +108,14 @@ def one(seed: int, interpolation: str) -> dict:
 
 
 def table(rows: list[dict]) -> str:
-    head = ("| interpolation | seed | noise floor % | final eps % | stop | p(cubic) | "
+    head = ("| interpolation | fs Hz | seed | noise floor % | final eps % | stop | p(cubic) | "
             + " | ".join(f"{n} 95 % (truth {v:g})" for n, v in TRUTH.items()) + " | all hold |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
-        cells = [f"[{lo:.4g}, {hi:.4g}] {'yes' if r['holds'][n] else 'NO'}" for n, (lo, hi) in r["intervals"].items()]
-        lines.append(f"| {r['interpolation']} | {r['seed']} | {r['floor']:.4f} | {r['epsilon']:.4f} | {r['stop']} | "
-                     f"{r['p_cubic']:.3f} | " + " | ".join(cells) + f" | {'yes' if all(r['holds'].values()) else 'NO'} |")
+        cells = [f"[{lo:.5g}, {hi:.5g}] {'yes' if r['holds'][n] else 'NO'}" for n, (lo, hi) in r["intervals"].items()]
+        lines.append(f"| {r['interpolation']} | {r['fs']:g} | {r['seed']} | {r['floor']:.4f} | {r['epsilon']:.4f} | "
+                     f"{r['stop']} | {r['p_cubic']:.3f} | " + " | ".join(cells)
+                     + f" | {'yes' if all(r['holds'].values()) else 'NO'} |")
     return "\n".join(lines)
 
 
@@ -122,9 +123,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", default="1-5")
     parser.add_argument("--interpolations", default="hold,linear")
+    parser.add_argument("--fs", type=float, default=FS, help="sample rate of the data, Hz")
     parser.add_argument("--processes", type=int, default=2)
     args = parser.parse_args()
-    jobs = [(s, i) for i in args.interpolations.split(",") for s in seeds_of(args.seeds)]
+    jobs = [(s, i, args.fs) for i in args.interpolations.split(",") for s in seeds_of(args.seeds)]
     with ProcessPoolExecutor(args.processes) as pool:
         rows = list(pool.map(one, *zip(*jobs)))
     print(table(rows))

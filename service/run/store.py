@@ -53,9 +53,10 @@ only, NaN for the other models' particles, and its slices of the per-model varia
 
 The group attributes hold ``format_version``, the spec, seed, package versions (numba,
 dask, distributed and the code's git commit included), the data hash, algorithm, model and
-parameter names (in each model's own order), status, stop reason, run information and the
-counter ``n_populations``, and ``ellipsoid_frame``. Attributes that are not a string or a number (the spec, lists,
-None) are stored as JSON text after the prefix ``json:`` (so ``ds.to_netcdf()`` works);
+parameter names (in each model's own order), status, stop reason, run information, the
+counter ``n_populations`` and ``ellipsoid_frame``. Attributes that are not a string or a
+number (the spec, lists, None) are stored as JSON text after the prefix ``json:`` (so
+``ds.to_netcdf()`` works);
 :attr:`Store.attrs` decodes them. An append (of one population or several consecutive ones)
 resizes and writes every array first, then rewrites the consolidated metadata (the arrays'
 new shapes) and bumps the counter last: a reader that trusts the counter never sees half a
