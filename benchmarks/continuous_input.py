@@ -22,7 +22,14 @@ larger than the noise), so its runs end on one of the latter.
 
 The zero-order hold lags a continuous input by half a sample (here 0.05 rad at the 1.6 Hz
 resonance), which the damping absorbs; the first-order hold's error is second order in
-the sample interval (0.1 % of the force at the resonance).
+the sample interval.
+
+Measured (seeds 1-5, 2 processes on a busy 2-core machine, 7-13 min per run): ``hold`` at
+100 Hz stops at 12-16 times the noise floor with every interval off the truth (0 of 5 seeds);
+``linear`` at 100 Hz reaches 1.1 times the floor and holds the truth in 4 of 5 seeds (14 of 15
+intervals: k3 on seed 3 is [1000.3, 1007], the ramp's own error biasing the fitted k3 by
++0.3 %); ``linear`` at ``--fs 200`` in 5 of 5 seeds. The table of each is in the report of
+issue P.
 """
 
 from __future__ import annotations
