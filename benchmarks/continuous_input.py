@@ -26,10 +26,9 @@ the sample interval.
 
 Measured (seeds 1-5, 2 processes on a busy 2-core machine, 7-13 min per run): ``hold`` at
 100 Hz stops at 12-16 times the noise floor with every interval off the truth (0 of 5 seeds);
-``linear`` at 100 Hz reaches 1.1 times the floor and holds the truth in 4 of 5 seeds (14 of 15
-intervals: k3 on seed 3 is [1000, 1007] starting less than 0.5 above the truth, the ramp's own error biasing the fitted k3 by
-+0.3 %); ``linear`` at ``--fs 200`` in 5 of 5 seeds. The table of each is in the report of
-issue P.
+``linear`` at 100 Hz reaches 1.1 times the floor and holds the truth in 4 of 5 seeds (14 of
+15 intervals: k3 on seed 3 is [1000, 1007], starting less than 0.5 above the truth; the
+ramp's own error biases the fitted k3 by +0.3 %); ``linear`` at ``--fs 200`` in 5 of 5 seeds.
 """
 
 from __future__ import annotations
