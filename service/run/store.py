@@ -84,9 +84,11 @@ import math
 import os
 import platform
 import subprocess
+import threading
 import time
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -703,10 +705,7 @@ class Store:
         for attempt in range(retries + 1):
             n = self.n_populations  # before the data: rows below the counter are complete
             try:
-                # the filters are process-wide before Python 3.14 (zarr warns from its own I/O
-                # thread), so this scope covers the listing, not only this thread
-                with warnings.catch_warnings():
-                    warnings.filterwarnings("ignore", message=PARTIAL_WARNING, category=zarr.errors.ZarrUserWarning)
+                with _ignoring(PARTIAL_WARNING):
                     ds = xr.open_zarr(str(self.path), consolidated=False)
                 return ds.isel(population=slice(0, n))
             except ValueError:  # conflicting sizes of "population" during a resize
@@ -743,11 +742,25 @@ def _group(path: Path, mode: str = "r") -> zarr.Group:
     return zarr.open_group(str(path), mode=mode, zarr_format=3)  # type: ignore[arg-type]
 
 
+_WARNING_FILTERS = threading.Lock()
+
+
+@contextmanager
+def _ignoring(message: str) -> Iterator[None]:
+    """Ignore one zarr warning for the duration. The warning filters are process-wide before
+    Python 3.14 (and zarr warns from its own I/O thread, so the scope covers that thread), and
+    ``catch_warnings`` restores the list it saw on entry: two overlapping scopes in two threads
+    (a reader's Store.dataset beside the writer's commit) would drop each other's filter, hence
+    one scope at a time in this process."""
+    with _WARNING_FILTERS, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=message, category=zarr.errors.ZarrUserWarning)
+        yield
+
+
 def _consolidate(path: Path) -> None:
     """Rewrite the group's consolidated metadata (every array's metadata, their shapes
     included, in the group's own ``zarr.json``, beside its attributes)."""
-    with warnings.catch_warnings():  # process-wide before Python 3.14, as in Store.dataset
-        warnings.filterwarnings("ignore", message=CONSOLIDATED_WARNING, category=zarr.errors.ZarrUserWarning)
+    with _ignoring(CONSOLIDATED_WARNING):
         zarr.consolidate_metadata(str(path), zarr_format=3)
 
 
