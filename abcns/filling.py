@@ -118,11 +118,16 @@ class Filled:
     n_failed: int
     n_redraws: int
     simulated_models: np.ndarray  # (n_simulations,) the model of every simulation counted
+    failed_models: np.ndarray  # (n_failed,) the model of every simulation that failed or diverged
 
     def counts(self, n_models: int) -> tuple[np.ndarray, np.ndarray]:
         """(simulations, accepted particles) per model."""
         return (np.bincount(self.simulated_models, minlength=n_models),
                 np.bincount(self.models, minlength=n_models))
+
+    def failures(self, n_models: int) -> np.ndarray:
+        """Simulations that failed or diverged, per model."""
+        return np.bincount(self.failed_models, minlength=n_models)
 
 
 def draws(propose: Propose, *, seed: int, t: int, epsilon: float, batch_size: int,
@@ -163,6 +168,7 @@ class Filling:
         n_needed, epsilon = self.n_needed, self.epsilon
         kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         simulated: list[np.ndarray] = []
+        failed: list[np.ndarray] = []
         n_kept = n_sims = n_failed = n_redraws = n_batches = 0
         try:
             budget.check()
@@ -184,7 +190,8 @@ class Filling:
                 simulated.append(batch.models[rows])
                 n_kept += take.size
                 n_sims += n_rows
-                n_failed += int(np.count_nonzero(~ok[rows]))
+                failed.append(batch.models[rows][~ok[rows]])
+                n_failed += failed[-1].size
                 n_redraws += int(batch.redraws[rows].sum())
                 budget.n_simulations += n_rows
                 if n_kept >= n_needed:
@@ -198,7 +205,8 @@ class Filling:
         finally:
             self.close()
         models, theta, distances = (np.concatenate(parts) for parts in zip(*kept))
-        return Filled(models, theta, distances, n_sims, n_failed, n_redraws, np.concatenate(simulated))
+        return Filled(models, theta, distances, n_sims, n_failed, n_redraws, np.concatenate(simulated),
+                      np.concatenate(failed))
 
 
 def fill(

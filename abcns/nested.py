@@ -245,6 +245,7 @@ def finish_population(
         quotas = survivor_quotas(settings.n_survivors, counts, capacity)
         death[alive_now & (quotas == 0)] = ev.NO_PARTICLES
         alive_next = death == ev.ALIVE
+    death[(death != ev.ALIVE) & (n_proposed > 0) & (filled.failures(n_models) == n_proposed)] = ev.SIMULATIONS_FAILED
     for m in map(int, np.flatnonzero(alive_now & ~alive_next)):
         rule = ev.DEATH_RULES[int(death[m])]
         notes.append(f"population {t}: {models[m].name} dies ({rule}; p = {p_next[m]:.3g} at the next tolerance)")

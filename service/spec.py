@@ -64,12 +64,16 @@ class DataSpec(_Strict):
     # the measurement noise's standard deviation in the observed record's units (after decimation),
     # when known: it sets the noise floor (abcns.noise) instead of the estimate from the best fit
     noise_std: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    # the input between samples: held (zero-order hold, as the paper's data were made) or
+    # linearly interpolated (first-order hold, for a measured continuous input); docs/design.md
+    input_interpolation: Literal["hold", "linear"] = "hold"
 
     @model_validator(mode="after")
     def _one_rate(self) -> DataSpec:
         if (self.dt is None) == (self.fs is None) and self.input is not None:
             raise ValueError("give exactly one of dt and fs")
         return self
+
 
     @property
     def sample_interval(self) -> float:
@@ -302,7 +306,8 @@ def description(spec: JobSpec) -> dict:
         "models": [m.model_dump() for m in spec.models],
         "distance": spec.distance.model_dump(),
         "data": {"dt": spec.data.sample_interval if spec.data.input is not None else None,
-                 "fit": list(spec.data.fit) if spec.data.fit else None},
+                 "fit": list(spec.data.fit) if spec.data.fit else None,
+                 "input_interpolation": spec.data.input_interpolation},
     }
 
 

@@ -107,11 +107,27 @@ def test_summary_lines_show_the_uncertainty_the_death_rule_and_every_warning():
     assert any("7.87 %" in line for line in lines)  # the NMSE is in percent
 
 
+def test_an_impossible_fixed_value_is_refused_before_the_run_with_exit_2(tmp_path):
+    """P.3: ``bouc_wen`` with ``fixed: {n: 1.5}`` ran (exit 0) and every simulation failed;
+    it is now refused naming the field, with the CLI's error exit, and no store is made."""
+    raw = yaml.safe_load((ROOT / "examples" / "boucwen" / "spec.yaml").read_text())
+    raw["data"].update(input=str(ROOT / "examples" / "boucwen" / "force.npy"),
+                       observed=str(ROOT / "examples" / "boucwen" / "displacement.npy"))
+    raw["models"][1]["fixed"]["n"] = 1.5
+    path = tmp_path / "n.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    done = subprocess.run([BIN / "abcns", "run", path, "--out", tmp_path / "n.zarr", "--workers", "1"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith("error: models[1].fixed.n: must be an integer in 1..4"), done.stderr
+    assert not (tmp_path / "n.zarr").exists()
+
+
 def test_a_bug_in_a_simulator_names_the_batch_and_the_exception(spec, tmp_path):
     """Issue M: an unexpected exception inside a worker (tests/faulty_plugin.py raises a
-    RuntimeError in population 1) fails the run with the batch and the exception's type, in
-    the CLI's message, the store's status and the summary; numerical failures stay counted
-    rejections."""
+    RuntimeError in population 1) fails the run with the batch, the model (P.1) and the
+    exception's type, in the CLI's message, the store's status and the summary; numerical
+    failures stay counted rejections."""
     raw = yaml.safe_load(spec.read_text())
     for model in raw["models"]:
         model["simulator"] = "tests.faulty_plugin:Faulty"
@@ -121,7 +137,8 @@ def test_a_bug_in_a_simulator_names_the_batch_and_the_exception(spec, tmp_path):
     done = subprocess.run([BIN / "abcns", "run", path, "--out", tmp_path / "f.zarr", "--workers", "1"],
                           capture_output=True, text=True, timeout=300, env=env)
     assert done.returncode == 2, done.stderr  # the CLI's error exit
-    assert re.search(r"error: the job failed in population 1, batch \d+: RuntimeError: a bug in the user's simulator",
+    assert re.search(r"error: the job failed in population 1, batch \d+: model '(linear|cubic)' \(simulator "
+                     r"'tests\.faulty_plugin:Faulty'\): RuntimeError: a bug in the user's simulator",
                      done.stderr), done.stderr[-2000:]
     assert "Traceback (most recent call last)" not in done.stderr  # a message, not a Python traceback
     s = json.loads(abcns("summary", tmp_path / "f.zarr", "--json").stdout)

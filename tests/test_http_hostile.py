@@ -557,6 +557,11 @@ def test_specs_that_would_fail_at_run_time_are_refused_at_submission(service):
         (lambda s: s.update(distance={"name": "nmse", "summaries": "gk"}), "distance.summaries"),
         (lambda s: s["sampler"].update(quantile=0.3), "sampler.quantile"),  # abc-smc's, not abc-ns's
         (lambda s: s["stop"].update(epsilon_target=0), "stop.epsilon_target"),
+        # P.3: values outside a simulator's valid range (every simulation failed, and the model "died")
+        (lambda s: s["models"][0]["fixed"].update(m=0), "models[0].fixed.m"),
+        (lambda s: s["models"][1].update(simulator="bouc_wen", fixed={"m": 1, "n": 1.5},
+                                         priors={"c": [1, 2], "A": [1, 2], "alpha": [0, 1], "beta": [0, 1]}),
+         "models[1].fixed.n"),
     )
     for change, field in cases:
         spec = duffing_spec(max_populations=1)
