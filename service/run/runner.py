@@ -90,7 +90,8 @@ def result_from_store(store: Store) -> Result:
 
 
 def summary(store: Store) -> dict:
-    out = result_from_store(store).summary() if store.n_populations else {}
+    # without a population, the run's notes still say why it stopped (nothing_accepted)
+    out = result_from_store(store).summary() if store.n_populations else {"notes": store.attrs.get("run", {}).get("notes", [])}
     out["status"] = store.attrs.get("status", "unknown")
     out["stop_reason"] = store.attrs.get("stop_reason")
     if store.attrs.get("error"):
