@@ -242,7 +242,7 @@ def run_job(
     run_info = dict(store.attrs.get("run", {}))
     store.set_status("running", job_key=key)
     executor = (SerialExecutor(job.evaluate) if client is None
-                else DaskExecutor(client, key, description(spec), arrays, allow_import))
+                else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget))
     gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget)
     start, sims_start = time.monotonic(), budget.n_simulations
     writer = PopulationWriter(store, key, on_population, interval_s)
