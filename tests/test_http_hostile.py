@@ -192,9 +192,10 @@ def test_an_upload_bomb_is_refused_from_its_header(service, bomb):
 
 # ---------------------------------------------------------------------------- N.5
 def test_data_stay_out_of_memory_and_an_ended_job_can_be_purged(service, tmp_path):
-    """N.5: an upload of 2e7 samples is kept in the job's data.npz, not in job.json; a
-    restarted service does not hold it (resident memory about that of an empty service);
-    DELETE ?purge=true removes an ended job and its folder, and refuses a running one."""
+    """N.5: an upload of 2e7 samples is kept in the job's data.npz (cut to the 1,000 samples
+    its windows read, R.4), not in job.json; a restarted service does not hold it (resident
+    memory about that of an empty service); DELETE ?purge=true removes an ended job and its
+    folder, and refuses a running one."""
     rss_empty = service.rss_mb()
     folder = ROOT / "examples" / "duffing_41"
     force, x = np.load(folder / "force.npy"), np.load(folder / "displacement.npy")
@@ -208,7 +209,7 @@ def test_data_stay_out_of_memory_and_an_ended_job_can_be_purged(service, tmp_pat
     job_dir = service.job_dir(big)
     assert (job_dir / "job.json").stat().st_size < 4096 and (job_dir / "spec.json").stat().st_size < 4096
     with np.load(job_dir / "data.npz") as d:
-        assert d["observed"].size == 20_000_000
+        assert d["observed"].size == 1000
     service.close()
     service.start()
     assert get(service, f"/jobs/{big}").json()["status"] == "finished"
@@ -606,10 +607,10 @@ def test_admission_limits_name_the_field_and_the_limit_and_come_from_the_environ
         over(lambda s: s["models"][0]["integrator"].update(substeps=10**9), "models[0].integrator.substeps", "100")
         over(lambda s: s["models"][1]["integrator"].pop("substeps") and s["models"][1]["priors"].update(k=[5, 5e9]),
              "models[1].integrator.substeps", "100")  # chosen from the priors
-        over(lambda s: s.update(models=s["models"] * 2) or [m.update(name=f"m{i}") for i, m in enumerate(s["models"])],
-             "models", "3")
-        over(lambda s: s["data"].update(input=duffing_spec()["data"]["input"], observed=duffing_spec()["data"]["observed"]),
-             "data.observed", "999")
+        over(lambda s: s.update(models=[dict(m) for m in s["models"] * 2])  # copies: each renamed once
+             or [m.update(name=f"m{i}") for i, m in enumerate(s["models"])], "models", "3")
+        over(lambda s: s["data"].update(input=duffing_spec()["data"]["input"], observed=duffing_spec()["data"]["observed"])
+             or s["data"].pop("fit"), "data.observed", "999")  # read whole (with a fit window: cut to it, R.4)
         over(lambda s: s["sampler"].update(particles=4000) or s.update(stop={"epsilon_target": 0.01}),
              "stop.max_populations", "40")  # 4000 x 9 x 8 B x 200 populations assumed: 55 MB
         over(lambda s: s["stop"].update(max_seconds=601), "stop.max_seconds", "600")

@@ -329,6 +329,8 @@ class Intake:
         except BrokenExecutor:  # a child died (killed, out of memory): a new pool for the next one
             self._pool = None
             raise Refused(503, "the process that reads job specs stopped; try again", {"Retry-After": "5"}) from None
+        except MemoryError:
+            raise Refused(503, "no memory to read this job spec now; try again", {"Retry-After": "5"}) from None
 
     def close(self) -> None:
         if self._pool is not None:
