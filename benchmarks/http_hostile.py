@@ -9,19 +9,20 @@ Starts a stock `dask scheduler` with two workers and `abcns serve` (default limi
 2. physically invalid specs (fs 1e-300 and 1e308, m = -1 and 0, priors [-1e308, 1e308],
    a force of 2^62);
 4. uploads of 2^25-sample records: four longdouble at once (a megabyte each, 512 MB per
-   record decompressed), four float64 with a fit window at once, and two float64 read
-   whole (no fit window: the largest upload a job may hold), at once;
+   record decompressed) and four float64 with a fit window at once;
 5. 30 submissions at once with ABCNS_MAX_QUEUED=3's count of places;
 6. 5,000-digit integers, in /jobs and in an upload's spec;
 7. duplicate model names;
 9. 100 KB headers, 20 event streams dropped mid-stream, and 20 concurrent GET /result of a
    job of 20,000 particles (until its tenth population, then cancelled).
 
-Point 3 (a batch outliving the budget) and 8 (a full disk) cost time or need a fault
-injected, not memory: tests/test_http_holds.py covers them. Meanwhile a thread polls
-/health; the script prints the answers by status, /health's slowest answer, and the peak
-resident memory (VmHWM) of the service process and of the child processes that parse
-submissions (and their sum, an upper bound of the whole tree's peak).
+and then, beyond the issue's suite, two uploads at once of whole 2^25-sample records (no
+fit window: the largest upload a job may hold at the default limits). Point 3 (a batch
+outliving the budget) and 8 (a full disk) cost time or need a fault injected, not memory:
+tests/test_http_holds.py covers them. Meanwhile a thread polls /health; the script prints
+the answers by status, /health's slowest answer, and the peak resident memory (VmHWM,
+reset between phases) of the service process and of the child process that parses
+submissions, phase by phase.
 
     python -m benchmarks.http_hostile
 """
@@ -46,10 +47,16 @@ from benchmarks.harness import AUTH, ROOT, Service, StockCluster, duffing_spec
 
 
 def peak_mb(pid: int) -> float:
+    """A process's peak resident memory since its start or the last reset_peak()."""
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmHWM:"):
             return int(line.split()[1]) / 1024
     return 0.0
+
+
+def reset_peak(pid: int) -> None:
+    """Reset a process's VmHWM to its current resident memory (Linux: clear_refs, 5)."""
+    Path(f"/proc/{pid}/clear_refs").write_text("5")
 
 
 def zeros_npz(n: int, dtype: str, head: dict[str, np.ndarray]) -> bytes:
@@ -101,8 +108,22 @@ def main() -> None:
     poller = threading.Thread(target=poll, daemon=True)
     poller.start()
     start = time.monotonic()
+    service_proc = psutil.Process(service.proc.pid)  # type: ignore[union-attr]
+    peaks: list[tuple[str, float, float]] = []  # (phase, service MB, parser MB)
+
+    def phase(name: str) -> None:
+        """The peaks of the phase before, then a reset for this one."""
+        children = service_proc.children(recursive=True)
+        if peaks:
+            peaks[-1] = (peaks[-1][0], peak_mb(service_proc.pid), max((peak_mb(c.pid) for c in children), default=0.0))
+        if name:
+            print(name, flush=True)
+            for pid in [service_proc.pid, *(c.pid for c in children)]:
+                reset_peak(pid)
+            peaks.append((name, 0.0, 0.0))
+
     try:
-        print("1. bodies that froze the service", flush=True)
+        phase("1. bodies that froze the service")
         deep = b'{"name":"x","data":' + b"[" * 900 + b",".join([b"0"] * 1_000_000) + b"]" * 900 + b"}"
         wide = b'{"name":"x","data":[' + b",".join([b"0"] * 14_000_000) + b"]}"
         spec = duffing_spec(max_populations=1, particles=200)
@@ -113,7 +134,7 @@ def main() -> None:
             asyncio.run(at_once([body(raw)] * 3))
         del deep, wide, full, numbers
 
-        print("2. physically invalid specs", flush=True)
+        phase("2. physically invalid specs")
         changes = [lambda s: s["data"].update(fs=1e-300), lambda s: s["data"].update(fs=1e308),
                    lambda s: s["models"][0]["fixed"].update(m=-1), lambda s: s["models"][0]["fixed"].update(m=0),
                    lambda s: s["models"][0]["priors"].update(k=[-1e308, 1e308]),
@@ -123,7 +144,7 @@ def main() -> None:
             change(spec)
             asyncio.run(at_once([body(json.dumps(spec).encode())]))
 
-        print("4. uploads of 2^25-sample records", flush=True)
+        phase("4. uploads of 2^25-sample records, with a fit window or longdouble")
         folder = ROOT / "examples" / "duffing_41"
         head = {"force": np.load(folder / "force.npy"), "x": np.load(folder / "displacement.npy")}
         spec = duffing_spec(max_populations=1, particles=200)
@@ -133,19 +154,18 @@ def main() -> None:
             whole["data"].pop(key)
         asyncio.run(at_once([upload(spec, zeros_npz(2**25, "longdouble", head))] * 4))
         asyncio.run(at_once([upload(spec, zeros_npz(2**25, "float64", head))] * 4))
-        asyncio.run(at_once([upload(whole, zeros_npz(2**25, "float64", head))] * 2))
 
-        print("5. thirty submissions at once", flush=True)
+        phase("5. thirty submissions at once")
         asyncio.run(at_once([body(json.dumps(duffing_spec(max_populations=10_000, particles=200)).encode())] * 30))
 
-        print("6., 7. long integers, duplicate names", flush=True)
+        phase("6., 7. long integers, duplicate names")
         text = json.dumps(duffing_spec(max_populations=1)).replace('"seed": 41', '"seed": ' + "7" * 5000)
         dup = duffing_spec(max_populations=1)
         dup["models"][1]["name"] = dup["models"][0]["name"]
         asyncio.run(at_once([body(text.encode()), upload(text, zeros_npz(10, "float64", {})),
                              body(json.dumps(dup).encode())]))
 
-        print("9. headers, dropped streams, concurrent results of a large job", flush=True)
+        phase("9. headers, dropped streams, concurrent results of a large job")
         statuses[httpx.get(f"{service.url}/health", headers={"X-Pad": "a" * 100_000}, timeout=30).status_code] += 1
         big = duffing_spec(max_populations=10, particles=20_000)
         big["sampler"]["batch_size"] = 1000
@@ -159,21 +179,26 @@ def main() -> None:
                 "finished", "failed", "cancelled"):
             time.sleep(1)
         asyncio.run(at_once([lambda http: http.get(f"/jobs/{job_id}/result")] * 20))
+
+        phase("beyond the issue: two uploads of whole 2^25-sample records at once (no fit window: the largest "
+              "a job may hold)")
+        asyncio.run(at_once([upload(whole, zeros_npz(2**25, "float64", head))] * 2))
+        phase("")
     finally:
         done.set()
         poller.join(timeout=60)
-        proc = psutil.Process(service.proc.pid)  # type: ignore[union-attr]
-        children = proc.children(recursive=True)
-        main_mb = peak_mb(proc.pid)
-        child_mb = [peak_mb(c.pid) for c in children]
         errors = "\n".join(line for line in service.log.read_text().splitlines() if "ERROR" in line or "Traceback" in line)
         service.close()
         cluster.close()
     print(f"{sum(statuses.values())} answers in {time.monotonic() - start:.0f} s: "
           + ", ".join(f"{n} x {s}" for s, n in sorted(statuses.items())))
     print(f"/health: {len(health)} probes, slowest {max(health):.3f} s, p99 {np.percentile(health, 99):.3f} s")
-    print(f"peak RSS: service {main_mb:.0f} MB; submission parsers {', '.join(f'{m:.0f}' for m in child_mb)} MB; "
-          f"sum {main_mb + sum(child_mb):.0f} MB")
+    print("peak RSS by phase (MB): the service process, the process that parses submissions")
+    for name, main_mb, child_mb in peaks:
+        print(f"  {main_mb:6.0f} {child_mb:6.0f}  {name}")
+    issue = [p for p in peaks if not p[0].startswith("beyond")]
+    print(f"peak RSS through the issue's suite: service {max(p[1] for p in issue):.0f} MB, parser "
+          f"{max(p[2] for p in issue):.0f} MB")
     print(f"errors in the service's log: {errors or 'none'}")
 
 

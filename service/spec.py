@@ -384,8 +384,8 @@ def check_records(force: np.ndarray | None, observed: np.ndarray) -> None:
     """Input and observed samples finite and within ``MAX_MAGNITUDE`` (before a distance
     computes anything of them). SpecError naming the record."""
     for field, record in (("data.input", force), ("data.observed", observed)):
-        if record is not None and record.size:
-            big = np.flatnonzero(~(np.abs(record) <= MAX_MAGNITUDE))
+        if record is not None and record.size and not (-MAX_MAGNITUDE <= record.min() and record.max() <= MAX_MAGNITUDE):
+            big = np.flatnonzero(~(np.abs(record) <= MAX_MAGNITUDE))  # (min and max: no copy of a long record)
             if big.size:
                 raise SpecError(field, f"sample {big[0]} is {record[big[0]]:.6g}: samples must be finite and at most "
                                        f"{MAX_MAGNITUDE:.0e} in magnitude (so no squared error or variance overflows); "

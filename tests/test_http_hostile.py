@@ -678,7 +678,7 @@ def test_a_failing_store_disk_fails_that_job_only_and_keeps_what_was_written(clu
             jobs = {}
             for name in ("full-disk", "fine"):
                 raw = {**duffing_spec(max_populations=5, particles=200), "name": name}
-                jobs[name] = manager.submit(parse(raw), arrays)
+                jobs[name] = manager.submit(parse(raw), dict(arrays))  # (submit empties the dict)
             wait_until(lambda: all(j.status in ("finished", "failed") for j in jobs.values()), 300, "both jobs to end")
             bad, good = jobs["full-disk"], jobs["fine"]
             assert bad.status == "failed" and "No space left on device" in bad.error, bad.error

@@ -329,7 +329,8 @@ class JobManager:
         reads, go compressed to data.npz beside the spec, which refers to them; everything
         is validated before it is queued (SpecError naming the field; an OSError when the
         disk takes nothing; either way nothing is left behind). The job's place in the queue
-        is taken first, under the lock (QueueFull when there is none)."""
+        is taken first, under the lock (QueueFull when there is none). ``arrays`` is emptied
+        once they are stored: build() reads them back, and a long record is not held twice."""
         with self.lock:
             waiting = len(self.queue) + self.admitting
             if self.max_queued is not None and waiting >= self.max_queued:
@@ -339,9 +340,12 @@ class JobManager:
         folder = self.store_dir / job_id
         try:
             folder.mkdir()
-            arrays = cut_to_read(spec, arrays)
-            np.savez_compressed(folder / DATA_FILE, **arrays)
-            data = spec.data.model_copy(update={k: f"{DATA_FILE}:{k}" for k in arrays})
+            stored = cut_to_read(spec, arrays)
+            arrays.clear()
+            np.savez_compressed(folder / DATA_FILE, **stored)
+            keys = list(stored)
+            del stored
+            data = spec.data.model_copy(update={k: f"{DATA_FILE}:{k}" for k in keys})
             spec = spec.model_copy(update={"data": data})
             built = build(spec, folder, allow_import=False)  # raises SpecError naming the field
             spec = admit(spec, built, self.limits)  # the service's limits (SpecError) and default budget
