@@ -267,6 +267,21 @@ def test_a_number_of_five_thousand_digits_and_duplicate_model_names_get_422(serv
     assert r.status_code == 422 and field(r) == "models[1].name" and "duplicate" in r.text, r.text[:300]
 
 
+def test_data_never_name_a_file_over_http(service, tmp_path):
+    """No files over HTTP: data given as a name (a job folder's own data.npz, another job's,
+    a 100 KB name) get 422 naming the field, in /jobs and in an upload (where only npz:KEY
+    names the upload's arrays). Found by the fuzz run: a 100 KB name reached the file
+    system (503, "File name too long")."""
+    np.savez(tmp_path / "x.npz", x=np.zeros(3))
+    for name in ("data.npz:observed", f"../{'0' * 32}/data.npz:observed", "x" * 100_000, "/etc/passwd"):
+        spec = duffing_spec(max_populations=1)
+        spec["data"]["observed"] = name
+        r = post(service, spec)
+        assert r.status_code == 422 and field(r) == "data.observed", (name[:40], r.status_code, r.text[:300])
+        r = upload(service, spec, tmp_path / "x.npz")
+        assert r.status_code == 422 and field(r) == "data.observed", (name[:40], r.status_code, r.text[:300])
+
+
 # ---------------------------------------------------------------------------- R.8
 def test_a_submission_while_the_disk_is_full_gets_503_with_retry_after(cluster, tmp_path, monkeypatch):
     """R.8: the job manager's writes fail with ENOSPC (injected into its own process: the

@@ -49,7 +49,7 @@ from starlette.requests import ClientDisconnect
 from abcns import SpecError
 from service.http import page
 from service.http.intake import Intake, Refused, as_text, problem, validation_errors
-from service.http.jobs import DATA_FILE, JobManager, JobRecord, QueueFull
+from service.http.jobs import JobManager, JobRecord, QueueFull
 from service.http.schemas import PAGE_MAX, Health, JobCreated, JobInfo, LimitsOut, PopulationOut, Status, Summary
 from service.http.settings import Settings
 from service.run.dask_executor import local_cluster
@@ -142,13 +142,8 @@ def npz_arrays(file: IO[bytes], spec: JobSpec, max_samples: int) -> dict[str, np
     each one's npy header (shape, dtype) is read and checked first, and only the samples
     the job reads (``service.spec.samples_read``) are then decompressed, in chunks, into
     an array allocated for them: at most ``max_samples`` x 8 bytes, whatever the file."""
-    wanted = {}
-    for key in ("input", "observed"):
-        value = getattr(spec.data, key)
-        if isinstance(value, str) and not value.startswith(f"{DATA_FILE}:"):  # (inline data are stored there)
-            if not value.startswith("npz:"):
-                raise problem(422, f"data.{key}", "give the data inline or as npz:KEY of the upload", "spec", value)
-            wanted[key] = value[4:]
+    wanted = {key: value[4:] for key in ("input", "observed")
+              if isinstance(value := getattr(spec.data, key), str) and value.startswith("npz:")}
     if not wanted:
         return {}
     try:
@@ -275,7 +270,7 @@ async def submit_upload(request: Request, response: Response, manager: Annotated
                 text, kind = await spec_part.read(), spec_kind(spec_part)
             else:
                 text, kind = spec_part.encode("utf-8", "surrogatepass"), "any"
-            spec, arrays = await intake.spec(text, "spec", kind)  # in a child process
+            spec, arrays = await intake.spec(text, "spec", kind, upload=True)  # in a child process
             del text
             if not isinstance(data, UploadFile):
                 raise problem(422, "data", "missing: the arrays as an .npz file part (-F data=@x.npz)", "missing")

@@ -259,9 +259,12 @@ def validate_spec(raw: Any, max_values: int, field: str = "body") -> JobSpec:
         raise Refused(422, validation_errors([{**e, "loc": ("body", *e["loc"])} for e in err.errors()])) from None
 
 
-def spec_of(text: bytes, field: str, kind: str, max_values: int) -> tuple[JobSpec, dict[str, np.ndarray]]:
+def spec_of(text: bytes, field: str, kind: str, max_values: int,
+            upload: bool = False) -> tuple[JobSpec, dict[str, np.ndarray]]:
     """(the spec, its inline arrays) of a submitted body; ``kind``: "json", "yaml" or "any"
-    (JSON when it parses as JSON, else YAML: an upload's spec part). Runs in the child."""
+    (JSON when it parses as JSON, else YAML: an upload's spec part). Data come inline, or
+    with ``upload`` as ``npz:KEY`` of the upload: never a file name (422 naming the field).
+    Runs in the child."""
     if kind == "yaml" or (kind == "any" and not text.lstrip().startswith((b"{", b"["))):
         raw = parse_yaml(text, field)
     else:
@@ -273,6 +276,10 @@ def spec_of(text: bytes, field: str, kind: str, max_values: int) -> tuple[JobSpe
         value = getattr(spec.data, key)
         if isinstance(value, list):
             arrays[key] = np.asarray(value, dtype=float)
+        elif isinstance(value, str) and not (upload and value.startswith("npz:")):
+            raise problem(422, f"data.{key}", "give the data inline" + (
+                " or as npz:KEY of the upload" if upload else "; files are not allowed here (upload an .npz: "
+                "POST /jobs/upload)"), "spec", value)
     if arrays:  # the lists stay here: the arrays travel back, and the job manager stores them
         spec = spec.model_copy(update={"data": spec.data.model_copy(update={k: f"{DATA_FILE}:{k}" for k in arrays})})
     return spec, arrays
@@ -322,10 +329,11 @@ class Intake:
         async with self._uploads:
             yield
 
-    async def spec(self, text: bytes, field: str, kind: str) -> tuple[JobSpec, dict[str, np.ndarray]]:
+    async def spec(self, text: bytes, field: str, kind: str,
+                   upload: bool = False) -> tuple[JobSpec, dict[str, np.ndarray]]:
         loop = asyncio.get_running_loop()
         try:
-            return await loop.run_in_executor(self.pool(), spec_of, text, field, kind, self.max_values)
+            return await loop.run_in_executor(self.pool(), spec_of, text, field, kind, self.max_values, upload)
         except BrokenExecutor:  # a child died (killed, out of memory): a new pool for the next one
             self._pool = None
             raise Refused(503, "the process that reads job specs stopped; try again", {"Retry-After": "5"}) from None

@@ -90,8 +90,10 @@ def result_from_store(store: Store) -> Result:
 
 
 def summary(store: Store) -> dict:
-    # without a population, the run's notes still say why it stopped (nothing_accepted)
-    out = result_from_store(store).summary() if store.n_populations else {"notes": store.attrs.get("run", {}).get("notes", [])}
+    # without a population, the run's notes and simulations still say why and after how much it stopped
+    run = store.attrs.get("run", {})
+    out = result_from_store(store).summary() if store.n_populations else {
+        "notes": run.get("notes", []), "n_simulations": run.get("n_simulations"), "wall_time_s": run.get("wall_time_s")}
     out["status"] = store.attrs.get("status", "unknown")
     out["stop_reason"] = store.attrs.get("stop_reason")
     if store.attrs.get("error"):
