@@ -66,7 +66,8 @@ def draw_inside(
 
 
 class Budget:
-    """Simulation, time and cancel budgets of a run, checked between batches."""
+    """Simulation, time and cancel budgets of a run, checked between batches (and by an
+    executor that runs ahead while it waits for a batch: ``service.run.dask_executor``)."""
 
     def __init__(
         self,
@@ -89,6 +90,11 @@ class Budget:
         if self.stop.max_simulations is None:
             return None
         return max(0, self.stop.max_simulations - self.n_simulations)
+
+    def seconds_left(self) -> float | None:
+        if self.stop.max_seconds is None:
+            return None
+        return max(0.0, self.stop.max_seconds - self.elapsed())
 
     def reason(self) -> StopReason | None:
         """Why the run must stop now (a budget spent, or cancelled), or None."""
@@ -145,7 +151,7 @@ class Filling:
 
     def __init__(self, propose: Propose, n_needed: int, epsilon: float, executor: Executor, *,
                  seed: int, t: int, batch_size: int, accept_all: bool = False):
-        self.n_needed, self.epsilon, self.accept_all = n_needed, epsilon, accept_all
+        self.n_needed, self.epsilon, self.accept_all, self.t = n_needed, epsilon, accept_all, t
         self.results = executor.map(draws(propose, seed=seed, t=t, epsilon=epsilon, batch_size=batch_size,
                                           keep_all=accept_all))
         self.expect = getattr(self.results, "expect", None)  # an executor that runs ahead takes hints:
@@ -198,6 +204,7 @@ class Filling:
                     break
                 if cut:
                     raise Stopped(StopReason.MAX_SIMULATIONS)
+                self._check_acceptance(n_kept, n_sims, budget.stop)
                 n_batches += 1
                 if self.expect is not None:  # batches still needed at this population's acceptance so far
                     self.expect((n_needed - n_kept) * n_batches / max(n_kept, 0.5))
@@ -207,6 +214,17 @@ class Filling:
         models, theta, distances = (np.concatenate(parts) for parts in zip(*kept))
         return Filled(models, theta, distances, n_sims, n_failed, n_redraws, np.concatenate(simulated),
                       np.concatenate(failed))
+
+    def _check_acceptance(self, n_kept: int, n_sims: int, stop: StopRules) -> None:
+        """Stop (NOTHING_ACCEPTED, with the sentence that says why) when this population has
+        run ``stop.max_simulations_without_acceptance`` simulations and kept none (checked
+        after each batch, so where it stops depends on the batch size alone)."""
+        limit = stop.max_simulations_without_acceptance
+        if limit is not None and n_kept == 0 and n_sims >= limit:
+            raise Stopped(StopReason.NOTHING_ACCEPTED, (
+                f"nothing accepted: population {self.t} ran {n_sims:,} simulations and none came below the tolerance "
+                f"{self.epsilon:.4g} (stop.max_simulations_without_acceptance: {limit:,}); the models, their priors "
+                "and the data cannot meet there: check the data's units and sampling rate, the masses and the priors"))
 
 
 def fill(

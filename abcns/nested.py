@@ -478,6 +478,7 @@ def abc_ns(
             )
             yield pop
     except Stopped as stopped:
+        notes.extend(stopped.notes)
         return end(stopped.reason)
     finally:
         if pending is not None:

@@ -113,7 +113,7 @@ def abc_rejection(
         filled = fill(prior_proposer(models), settings.particles, eps, executor, budget,
                       seed=seed, t=1, batch_size=settings.batch_size)
     except Stopped as stopped:
-        return RunEnd(stopped.reason, budget.n_simulations, n_pilot, source)
+        return RunEnd(stopped.reason, budget.n_simulations, n_pilot, source, stopped.notes)
     counts = np.bincount(filled.models, minlength=len(models))
     yield population_from(
         1, eps, eps, filled.models, filled.theta, filled.distances,

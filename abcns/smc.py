@@ -188,7 +188,7 @@ def abc_smc(
             pop = _with_next(pop, next_eps(pop))
             yield pop
     except Stopped as stopped:
-        return RunEnd(stopped.reason, budget.n_simulations, n_pilot, source)
+        return RunEnd(stopped.reason, budget.n_simulations, n_pilot, source, stopped.notes)
 
 
 def _with_next(pop: Population, eps_next: float) -> Population:

@@ -195,7 +195,7 @@ def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observ
 
                 try:
                     integ["substeps"] = choose_substeps(factory.omega_max(_bounds(desc, factory)), dt)
-                except (KeyError, ValueError) as err:
+                except (KeyError, ValueError, OverflowError) as err:  # Overflow: dt x omega past any int
                     raise SpecError("integrator.substeps", f"cannot be chosen from the priors ({err}); give it") from None
         # the divergence guard: 1000 x the observed scale (for a displacement output)
         bound = 1e3 * float(np.max(np.abs(observed))) if integ["output"] == "displacement" else np.inf
