@@ -1,5 +1,7 @@
 """The live page in headless Chromium (Debian's package, driven by Playwright): a running
-job's populations appear on the page, and its numbers are the API's."""
+job's populations appear on the page, its numbers are the API's, and what a person sees is
+drawn: the marginals' bars (with heights), the charts' axes with their labels and units,
+each model in its `abcns plot` colour, the workers now."""
 
 from __future__ import annotations
 
@@ -31,29 +33,52 @@ def browser():
         b.close()
 
 
+def drawn_bars(page) -> int:
+    """The marginals' bars a person sees: <rect> elements drawn with a height on screen."""
+    heights = page.eval_on_selector_all("#hists svg rect", "rs => rs.map(r => r.getBoundingClientRect().height)")
+    return sum(h > 0 for h in heights)
+
+
 def test_live_page_follows_a_running_job(browser, tmp_path):
     cluster = StockCluster(tmp_path / "dask")
     service = Service(tmp_path / "jobs", cluster.address)
     try:
-        spec = duffing_spec(max_populations=25, particles=1000)
+        spec = duffing_spec(max_populations=12, particles=500)
         job_id = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60).json()["id"]
         page = browser.new_page(viewport={"width": 1200, "height": 900})
         page.goto(f"{service.url}/jobs/{job_id}/view#token={TOKEN}")
-        # populations appear while the job runs
+        # populations appear while the job runs, and so do the marginals' bars
         seen = set()
 
         def appearing():
             text = page.inner_text("#population")
             if text.isdigit():
                 seen.add(int(text))
-            return len(seen) >= 3 and page.inner_text("#status") == "running"
+            return len(seen) >= 3 and page.inner_text("#status") == "running" and drawn_bars(page) > 0
 
-        wait_until(appearing, 120, "three populations on the live page")
+        wait_until(appearing, 120, "three populations and the marginals' bars on the live page")
         page.screenshot(path=str(tmp_path / "running.png"))
         wait_until(lambda: page.inner_text("#status") == "finished", 300, "the job to finish on the page", 0.2)
-        wait_until(lambda: page.inner_text("#population") == "25", 10, "the last population on the page")
-        wait_until(lambda: "population 25" in page.inner_text("#hists"), 10, "the histograms of the last population")
+        wait_until(lambda: page.inner_text("#population") == "12", 10, "the last population on the page")
+        wait_until(lambda: "population 12" in page.inner_text("#hists"), 10, "the histograms of the last population")
         page.screenshot(path=str(tmp_path / "finished.png"), full_page=True)
+        n_params = page.locator("#hists svg").count()
+        assert page.locator("#hists svg rect").count() == 20 * n_params and drawn_bars(page) >= 2 * n_params
+        # the charts are labelled along their axes: titles, and tick values on both axes
+        for chart, ylabel in (("#eps", "tolerance \u03b5 (%)"), ("#acc", "acceptance rate"), ("#probs", "model probability")):
+            titles = page.locator(f"{chart} text.axis-title").all_text_contents()
+            assert titles == ["population", ylabel], (chart, titles)
+            assert page.locator(f"{chart} text.lbl").count() >= 4, chart
+        assert page.inner_text("#eps-unit").strip() == "%"
+        # each model in its abcns plot colour, and the cluster's workers
+        from service.report.colours import model_colour
+
+        def rgb(hex_colour: str) -> str:
+            return "rgb({}, {}, {})".format(*(int(hex_colour[i:i + 2], 16) for i in (1, 3, 5)))
+
+        colours = page.eval_on_selector_all("#legend .model", "ss => ss.map(s => getComputedStyle(s).color)")
+        assert colours == [rgb(model_colour(i)) for i in range(len(spec["models"]))]
+        wait_until(lambda: page.inner_text("#workers") == "2", 10, "the workers on the page")
         info = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()
         api = info["progress"]
         assert int(page.inner_text("#simulations")) == api["simulations"]
@@ -63,7 +88,9 @@ def test_live_page_follows_a_running_job(browser, tmp_path):
         leader = info["models"][probs.index(max(probs))]
         assert page.inner_text("#leader").startswith(leader)
         assert page.locator("#eps path").count() == 1 and page.locator("#probs path").count() == 2
-        assert page.locator("#hists svg").count() == len(spec["models"][0 if leader == "cubic" else 1]["priors"])
+        lead = spec["models"][[m["name"] for m in spec["models"]].index(leader)]
+        assert n_params == len(lead["priors"])
+        assert page.locator(".hist text.axis-title").all_text_contents() == list(lead["priors"])  # each bar chart's parameter
         index = browser.new_page()
         index.goto(f"{service.url}/#token={TOKEN}")
         wait_until(lambda: job_id[:8] in index.inner_text("#jobs"), 10, "the job on the index page")

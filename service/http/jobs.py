@@ -307,7 +307,8 @@ class JobManager:
         except BaseException:
             shutil.rmtree(folder, ignore_errors=True)
             raise
-        job.events.append("queued", {"id": job_id, "name": job.name, "models": job.models})
+        job.events.append("queued", {"id": job_id, "name": job.name, "models": job.models,
+                                     "distance": spec.distance.name})  # the live page's tolerance unit
         with self.lock:
             self.jobs[job_id] = job
             self.queue.append(job_id)
