@@ -64,7 +64,7 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _main(
-    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, is_flag=True,
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
                                           help="Print the version and exit.")] = False,
 ) -> None:
     """ABC-NS inference for dynamical systems."""
@@ -546,7 +546,8 @@ def plot_cmd(
         if not result.populations:
             _fail(f"{path} has no complete population")
         target = out if len(stores) == 1 else out / path.stem
-        files = plot_result(result, target, known or None, data, draws)
+        files = plot_result(result, target, known or None, data, draws,
+                            unit=percent(distance_of(store.attrs.get("spec"))).strip())
         results.append(result)
         datas.append(data)
         for f in files.values():
