@@ -182,21 +182,33 @@ class ProgressLine:
             sys.stdout.write("\n")
 
 
-def connect(address: str, timeout: float = 5.0):
-    """A Dask client of the scheduler at ``address``; one line and exit 3 when it cannot be
-    reached (a TCP connection is tried first: a refused or unknown address fails at once,
-    not after Dask's 30 s of retries)."""
-    from distributed import Client
+def _unreachable(address: str, err: Exception) -> NoReturn:
+    reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err) or type(err).__name__
+    _fail(f"cannot reach the scheduler at {address}: {reason}", UNREACHABLE)
+
+
+def reach_scheduler(address: str, timeout: float = 5.0) -> None:
+    """One line and exit 3 unless a TCP connection to the scheduler's address opens: a refused
+    or unknown address fails at once, not after Dask's 30 s of retries and a traceback."""
     from distributed.comm.addressing import parse_address, parse_host_port
 
     try:
         scheme, location = parse_address(address)
         if scheme in ("tcp", "tls"):
             socket.create_connection(parse_host_port(location, 8786), timeout=timeout).close()
-        return Client(address, timeout=6 * timeout)
     except (OSError, ValueError) as err:  # TimeoutError and socket.gaierror are OSErrors
-        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err) or type(err).__name__
-        _fail(f"cannot reach the scheduler at {address}: {reason}", UNREACHABLE)
+        _unreachable(address, err)
+
+
+def connect(address: str, timeout: float = 30.0):
+    """A Dask client of the scheduler at ``address`` (:func:`reach_scheduler` first)."""
+    from distributed import Client
+
+    reach_scheduler(address)
+    try:
+        return Client(address, timeout=timeout)
+    except (OSError, ValueError) as err:
+        _unreachable(address, err)
 
 
 def dashboard_link(client) -> str | None:
@@ -363,6 +375,8 @@ def serve(
         settings = Settings(**{k: v for k, v in given.items() if v is not None})
     except ValidationError as err:
         _fail("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors()))
+    if settings.scheduler:
+        reach_scheduler(settings.scheduler)
     typer.echo(f"abcns: serving http://{host}:{port}/ (API docs at /docs), jobs in {settings.store_dir.resolve()}, "
                f"{'scheduler ' + settings.scheduler if settings.scheduler else 'an embedded cluster'}"
                f"{', token required' if settings.token else ''}; limits at /limits", err=True)

@@ -130,6 +130,9 @@ def test_a_scheduler_that_cannot_be_reached_is_one_line_and_exit_3(spec, tmp_pat
     assert done.returncode == 3, done.stderr[-2000:]
     assert done.stderr.strip().splitlines() == [f"error: cannot reach the scheduler at {address}: Connection refused"]
     assert not (tmp_path / "x.zarr").exists()
+    serve = subprocess.run([BIN / "abcns", "serve", "--scheduler", address, "--store-dir", tmp_path / "jobs"],
+                           capture_output=True, text=True, timeout=120)
+    assert serve.returncode == 3 and serve.stderr.strip().splitlines() == done.stderr.strip().splitlines(), serve.stderr
 
 
 def test_the_worker_count_is_the_cluster_s_now(tmp_path):
