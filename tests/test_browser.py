@@ -6,6 +6,7 @@ each model in its `abcns plot` colour, the workers now."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 
 import httpx
@@ -58,8 +59,6 @@ def rgb(hex_colour: str) -> str:
 def test_live_page_follows_a_running_job(browser, service, tmp_path):
     """A job far longer than the checks (400 populations), cancelled once the running page
     has been checked, so it is running while it is looked at on any machine."""
-    from service.report.colours import model_colour
-
     spec = duffing_spec(max_populations=400, particles=500)
     job_id = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60).json()["id"]
     page = browser.new_page(viewport={"width": 1200, "height": 900})
@@ -84,6 +83,8 @@ def test_live_page_follows_a_running_job(browser, service, tmp_path):
         assert page.locator(f"{chart} text.lbl").count() >= 4, chart
     assert page.inner_text("#eps-unit").strip() == "%"
     # each model in its abcns plot colour, and the cluster's workers
+    from service.report.colours import model_colour
+
     colours = page.eval_on_selector_all("#legend .model", "ss => ss.map(s => getComputedStyle(s).color)")
     assert colours == [rgb(model_colour(i)) for i in range(len(spec["models"]))]
     wait_until(lambda: page.inner_text("#workers") == "2", 10, "the workers on the page")
@@ -93,7 +94,8 @@ def test_live_page_follows_a_running_job(browser, service, tmp_path):
     info = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()
     api, last = info["progress"], str(info["progress"]["population"])
     wait_until(lambda: page.inner_text("#population") == last, 10, "the last population on the page")
-    wait_until(lambda: f"population {last}:" in page.inner_text("#hists"), 10, "the histograms of the last population")
+    wait_until(lambda: re.search(rf"population {last}\b", page.inner_text("#hists")), 10,
+               "the histograms of the last population")
     page.screenshot(path=str(tmp_path / "ended.png"), full_page=True)
     assert drawn_bars(page) >= 2 * page.locator("#hists svg").count()
     assert int(page.inner_text("#simulations")) == api["simulations"]
@@ -132,7 +134,8 @@ def test_the_page_says_when_a_run_is_undecided(browser, service):
     wait_until(lambda: "warning: undecided" in page.inner_text("#warnings"), 30, "the warning on the page")
     # a finished job's page draws the last population's marginals
     last = str(len(result["epsilon"]))
-    wait_until(lambda: f"population {last}:" in page.inner_text("#hists"), 10, "the histograms of the last population")
+    wait_until(lambda: re.search(rf"population {last}\b", page.inner_text("#hists")), 10,
+               "the histograms of the last population")
     assert drawn_bars(page) >= 2 * page.locator("#hists svg").count() > 0
 
 
