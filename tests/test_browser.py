@@ -61,58 +61,61 @@ def test_live_page_follows_a_running_job(browser, service, tmp_path):
     has been checked, so it is running while it is looked at on any machine."""
     spec = duffing_spec(max_populations=400, particles=500)
     job_id = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60).json()["id"]
-    page = browser.new_page(viewport={"width": 1200, "height": 900})
-    page.goto(f"{service.url}/jobs/{job_id}/view#token={TOKEN}")
-    # populations appear while the job runs, and so do the marginals' bars
-    seen = set()
+    try:
+        page = browser.new_page(viewport={"width": 1200, "height": 900})
+        page.goto(f"{service.url}/jobs/{job_id}/view#token={TOKEN}")
+        # populations appear while the job runs, and so do the marginals' bars
+        seen = set()
 
-    def appearing():
-        text = page.inner_text("#population")
-        if text.isdigit():
-            seen.add(int(text))
-        return len(seen) >= 3 and page.inner_text("#status") == "running" and drawn_bars(page) > 0
+        def appearing():
+            text = page.inner_text("#population")
+            if text.isdigit():
+                seen.add(int(text))
+            return len(seen) >= 3 and page.inner_text("#status") == "running" and drawn_bars(page) > 0
 
-    wait_until(appearing, 120, "three populations and the marginals' bars on the live page")
-    page.screenshot(path=str(tmp_path / "running.png"))
-    n_params = page.locator("#hists svg").count()
-    assert page.locator("#hists svg rect").count() == 20 * n_params and drawn_bars(page) >= 2 * n_params
-    # the charts are labelled along their axes: titles, and tick values on both axes
-    for chart, ylabel in (("#eps", "tolerance \u03b5 (%)"), ("#acc", "acceptance rate"), ("#probs", "model probability")):
-        titles = page.locator(f"{chart} text.axis-title").all_text_contents()
-        assert titles == ["population", ylabel], (chart, titles)
-        assert page.locator(f"{chart} text.lbl").count() >= 4, chart
-    assert page.inner_text("#eps-unit").strip() == "%"
-    # each model in its abcns plot colour, and the cluster's workers
-    from service.report.colours import model_colour
+        wait_until(appearing, 120, "three populations and the marginals' bars on the live page")
+        page.screenshot(path=str(tmp_path / "running.png"))
+        n_params = page.locator("#hists svg").count()
+        assert page.locator("#hists svg rect").count() == 20 * n_params and drawn_bars(page) >= 2 * n_params
+        # the charts are labelled along their axes: titles, and tick values on both axes
+        for chart, ylabel in (("#eps", "tolerance \u03b5 (%)"), ("#acc", "acceptance rate"), ("#probs", "model probability")):
+            titles = page.locator(f"{chart} text.axis-title").all_text_contents()
+            assert titles == ["population", ylabel], (chart, titles)
+            assert page.locator(f"{chart} text.lbl").count() >= 4, chart
+        assert page.inner_text("#eps-unit").strip() == "%"
+        # each model in its abcns plot colour, and the cluster's workers
+        from service.report.colours import model_colour
 
-    colours = page.eval_on_selector_all("#legend .model", "ss => ss.map(s => getComputedStyle(s).color)")
-    assert colours == [rgb(model_colour(i)) for i in range(len(spec["models"]))]
-    wait_until(lambda: page.inner_text("#workers") == "2", 10, "the workers on the page")
-    # ended: the page shows the last population, its numbers are the API's
-    assert httpx.delete(f"{service.url}/jobs/{job_id}", headers=AUTH, timeout=60).status_code == 202
-    wait_until(lambda: page.inner_text("#status") == "cancelled", 300, "the job to end on the page", 0.2)
-    info = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()
-    api, last = info["progress"], str(info["progress"]["population"])
-    wait_until(lambda: page.inner_text("#population") == last, 10, "the last population on the page")
-    wait_until(lambda: re.search(rf"population {last}\b", page.inner_text("#hists")), 10,
-               "the histograms of the last population")
-    page.screenshot(path=str(tmp_path / "ended.png"), full_page=True)
-    assert drawn_bars(page) >= 2 * page.locator("#hists svg").count()
-    assert int(page.inner_text("#simulations")) == api["simulations"]
-    assert float(page.inner_text("#acceptance")) == pytest.approx(api["acceptance_rate"], abs=5e-4)
-    assert float(page.inner_text("#epsilon")) == pytest.approx(api["epsilon"], rel=1e-3)
-    probs = api["model_probabilities"]
-    probs = [probs[m] for m in info["models"]] if isinstance(probs, dict) else probs  # a list, or name -> value
-    leader = info["models"][probs.index(max(probs))]
-    assert page.inner_text("#leader").startswith(leader)
-    assert page.locator("#eps path").count() == 1 and page.locator("#probs path").count() == 2
-    lead = spec["models"][[m["name"] for m in spec["models"]].index(leader)]
-    assert page.locator(".hist text.axis-title").all_text_contents() == list(lead["priors"])  # each bar chart's parameter
-    index = browser.new_page()
-    index.goto(f"{service.url}/#token={TOKEN}")
-    wait_until(lambda: job_id[:8] in index.inner_text("#jobs"), 10, "the job on the index page")
-    if os.environ.get("ABCNS_SCREENSHOTS"):
-        shutil.copy(tmp_path / "running.png", os.environ["ABCNS_SCREENSHOTS"])
+        colours = page.eval_on_selector_all("#legend .model", "ss => ss.map(s => getComputedStyle(s).color)")
+        assert colours == [rgb(model_colour(i)) for i in range(len(spec["models"]))]
+        wait_until(lambda: page.inner_text("#workers") == "2", 10, "the workers on the page")
+        # ended: the page shows the last population, its numbers are the API's
+        assert httpx.delete(f"{service.url}/jobs/{job_id}", headers=AUTH, timeout=60).status_code == 202
+        wait_until(lambda: page.inner_text("#status") == "cancelled", 300, "the job to end on the page", 0.2)
+        info = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()
+        api, last = info["progress"], str(info["progress"]["population"])
+        wait_until(lambda: page.inner_text("#population") == last, 10, "the last population on the page")
+        wait_until(lambda: re.search(rf"population {last}\b", page.inner_text("#hists")), 10,
+                   "the histograms of the last population")
+        page.screenshot(path=str(tmp_path / "ended.png"), full_page=True)
+        assert drawn_bars(page) >= 2 * page.locator("#hists svg").count()
+        assert int(page.inner_text("#simulations")) == api["simulations"]
+        assert float(page.inner_text("#acceptance")) == pytest.approx(api["acceptance_rate"], abs=5e-4)
+        assert float(page.inner_text("#epsilon")) == pytest.approx(api["epsilon"], rel=1e-3)
+        probs = api["model_probabilities"]
+        probs = [probs[m] for m in info["models"]] if isinstance(probs, dict) else probs  # a list, or name -> value
+        leader = info["models"][probs.index(max(probs))]
+        assert page.inner_text("#leader").startswith(leader)
+        assert page.locator("#eps path").count() == 1 and page.locator("#probs path").count() == 2
+        lead = spec["models"][[m["name"] for m in spec["models"]].index(leader)]
+        assert page.locator(".hist text.axis-title").all_text_contents() == list(lead["priors"])  # each bar chart's parameter
+        index = browser.new_page()
+        index.goto(f"{service.url}/#token={TOKEN}")
+        wait_until(lambda: job_id[:8] in index.inner_text("#jobs"), 10, "the job on the index page")
+        if os.environ.get("ABCNS_SCREENSHOTS"):
+            shutil.copy(tmp_path / "running.png", os.environ["ABCNS_SCREENSHOTS"])
+    finally:  # the service runs one job at a time: never leave this one running for the next test
+        httpx.delete(f"{service.url}/jobs/{job_id}", headers=AUTH, timeout=60)
 
 
 def test_the_page_says_when_a_run_is_undecided(browser, service):
