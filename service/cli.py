@@ -371,7 +371,7 @@ def serve(
              "max_models": max_models, "max_memory_mb": max_memory_mb, "max_job_seconds": max_job_seconds,
              "max_job_simulations": max_job_simulations,
              "max_request_bytes": None if max_request_mb is None else int(max_request_mb * 1024 * 1024)}
-    try:  # only what was given: the rest from ABCNS_* variables (README, HTTP service) or the defaults
+    try:  # only what was given: the rest from ABCNS_* variables (README, The HTTP API) or the defaults
         settings = Settings(**{k: v for k, v in given.items() if v is not None})
     except ValidationError as err:
         _fail("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors()))
