@@ -9,6 +9,7 @@ settings) and returns a :class:`Job` ready for ``abcns.run``. Every error is an
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 import math
 import sys
@@ -253,12 +254,44 @@ def _field(loc: tuple) -> str:
 
 
 def parse(raw: dict) -> JobSpec:
-    """Validate the structure; pydantic errors become one SpecError naming every field."""
+    """Validate the structure; pydantic errors become one SpecError naming every field (the
+    first as its ``field``, each once). An unknown field gets the closest allowed name
+    there ("did you mean `priors`?"), and a required field it misspells is not reported
+    missing besides."""
     try:
         return JobSpec.model_validate(raw)
     except ValidationError as err:
-        problems = [(_field(e["loc"]), e["msg"]) for e in err.errors()]
-        raise SpecError(problems[0][0], "; ".join(f"{f}: {m}" for f, m in problems)) from None
+        errors = err.errors()
+
+    def allowed(loc: tuple) -> list[str]:  # the field names of the section at ``loc``
+        kind: Any = JobSpec
+        for part in loc:
+            if isinstance(part, int):  # an item of list[ModelSpec]
+                kind = (get_args(kind) or (None,))[0]
+                continue
+            options = [a for a in get_args(kind) if a is not type(None)] or [kind]  # X | None, unions
+            if len(options) > 1:  # the sampler's union, tagged by its algorithm
+                options = [a for a in options if part in get_args(a.model_fields["algorithm"].annotation)]
+                kind = options[0] if options else None
+            elif isinstance(options[0], type) and issubclass(options[0], BaseModel) and part in options[0].model_fields:
+                kind = options[0].model_fields[part].annotation
+            else:
+                return []
+        return list(kind.model_fields) if isinstance(kind, type) and issubclass(kind, BaseModel) else []
+
+    missing = {tuple(e["loc"]) for e in errors if e["type"] == "missing"}
+    problems, explained = [], set()
+    for e in errors:
+        loc, message = tuple(e["loc"]), e["msg"]
+        if e["type"] == "extra_forbidden" and isinstance(loc[-1], str):
+            close = difflib.get_close_matches(loc[-1], allowed(loc[:-1]), n=1, cutoff=0.6)
+            if close:
+                message += f"; did you mean `{close[0]}`?"
+                explained.add(loc[:-1] + (close[0],))
+        problems.append((loc, _field(loc), message))
+    problems = [p for p in problems if p[0] not in explained or p[0] not in missing] or problems
+    first, *rest = problems
+    raise SpecError(first[1], "; ".join([first[2], *(f"{f}: {m}" for _, f, m in rest)])) from None
 
 
 def load(path: str | Path) -> tuple[JobSpec, Path]:
@@ -417,10 +450,11 @@ def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = Fals
     check_applicable(spec)
     data = spec.data
     force, observed = load_data(spec, base_dir)
+    check_records(force, observed)  # before a distance computes anything of them
+    models, simulators, distance = job_parts(description(spec), {"force": force, "observed": observed}, allow_import)
+    evaluate = evaluator(models, simulators, distance)  # checks the records' lengths: before a window that misses
     if data.test is not None:
         check_window(data.test, observed.size, "data.test")
-    check_records(force, observed)
-    models, simulators, distance = job_parts(description(spec), {"force": force, "observed": observed}, allow_import)
     check_models(models)  # duplicate names
     check_physical(spec, simulators, distance)
     settings = spec.sampler.settings()
@@ -432,5 +466,4 @@ def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = Fals
         raise SpecError("data.noise_std", f"applies to distance 'nmse' only, not {spec.distance.name!r}")
     else:
         noise = None
-    return Job(spec, models, evaluator(models, simulators, distance), settings, stop, spec.seed, force, observed,
-               simulators, noise)
+    return Job(spec, models, evaluate, settings, stop, spec.seed, force, observed, simulators, noise)

@@ -353,7 +353,8 @@ class JobManager:
             job = JobRecord(job_id, folder, spec.name, [m.name for m in spec.models], "queued", time.time())
             job.events = EventLog(folder / "events.jsonl", self.loop)
             job.save()
-            job.events.append("queued", {"id": job_id, "name": job.name, "models": job.models})
+            job.events.append("queued", {"id": job_id, "name": job.name, "models": job.models,
+                                         "distance": spec.distance.name})  # the live page's tolerance unit
         except BaseException:
             with self.lock:
                 self.admitting -= 1

@@ -95,10 +95,17 @@ def cluster_env() -> dict[str, str]:
 
 
 def local_cluster(n_workers: int, dashboard: bool = False) -> LocalCluster:
-    """The embedded cluster: ``n_workers`` single-threaded worker processes on this machine."""
+    """The embedded cluster: ``n_workers`` single-threaded worker processes on this machine.
+
+    It never asks for a fixed port: the scheduler listens on a free port, and so does its
+    HTTP server, which Dask starts even without a dashboard (``dashboard_address=None``
+    would mean Dask's default, 8787, which a user's own Dask dashboard often holds). With
+    ``dashboard`` the dashboard is served there, on every interface; without, the HTTP
+    server is on 127.0.0.1 with no dashboard."""
     with dask.config.set(CLUSTER_CONFIG):
-        return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                            dashboard_address=":0" if dashboard else None)
+        return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, scheduler_port=0,
+                            dashboard_address=":0" if dashboard else "127.0.0.1:0",
+                            scheduler_kwargs={"dashboard": dashboard})
 
 
 class DaskExecutor:
