@@ -17,10 +17,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.cluster_model",
                                      description="The cluster model of issue O (docs/benchmarks.md).")
     sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("validate", help="predicted vs measured efficiency, every measured row; exit 1 if one is off")
+    val = sub.add_parser("validate", help="predicted vs measured efficiency, every measured row; exit 1 if one is off")
+    val.add_argument("--sensitivity", action="store_true", help="also the 16-core rows with each assumed cost moved")
     study = sub.add_parser("study", help="the design study: predicted efficiency at 1-1,024 workers")
     study.add_argument("--workers", type=_ints, default=None, help="worker counts (default 1,2,4,...,1024)")
     study.add_argument("--quick", action="store_true", help="fewer designs and worker counts (a minute)")
+    study.add_argument("--scenarios", default=None, help="scenario numbers to run, e.g. 1,3 (default: all)")
     rec = sub.add_parser("record", help="record a trace (benchmarks.scale's job, serial, in this process)")
     rec.add_argument("--variant", choices=["paper", "evidence"], default="evidence")
     rec.add_argument("--particles", type=int, default=1000)
@@ -41,15 +43,19 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     if args.command == "validate":
-        from benchmarks.cluster_model.study import print_validation
+        from benchmarks.cluster_model.study import print_sensitivity, print_validation
 
-        return 0 if print_validation() else 1
+        ok = print_validation()
+        if args.sensitivity:
+            print_sensitivity()
+        return 0 if ok else 1
     if args.command == "study":
         from benchmarks.cluster_model.study import DESIGNS, SCENARIOS, WORKERS, design_study
 
         workers = args.workers or ([1, 8, 14, 64, 256] if args.quick else WORKERS)
-        designs = [DESIGNS[0], DESIGNS[2], DESIGNS[4]] if args.quick else DESIGNS
-        design_study(workers, designs, SCENARIOS)
+        designs = [DESIGNS[0], DESIGNS[2], DESIGNS[4], DESIGNS[7]] if args.quick else DESIGNS
+        chosen = SCENARIOS if args.scenarios is None else [SCENARIOS[i - 1] for i in _ints(args.scenarios)]
+        design_study(workers, designs, chosen)
         return 0
     if args.command == "record":
         from benchmarks.cluster_model.trace import record

@@ -54,13 +54,17 @@ class Costs:
     #: Dask's batched streams: a message waits until the last batch on its stream left this
     #: long ago (distributed 2026.8's BatchedSend intervals: client -> scheduler 10 ms,
     #: scheduler -> client 2 ms, scheduler -> worker 5 ms, worker -> scheduler 2 ms)
+    #: the GIL's convoy effect on the runner's event loop (False: plain round robin)
+    convoy: bool = True
+    #: the trace's store costs times this (zarr's Python and I/O: not scaled with the step)
+    store_scale: float = 1.0
     to_scheduler_interval: float = 0.010
     to_client_interval: float = 0.002
     to_worker_interval: float = 0.005
     from_worker_interval: float = 0.002
     sources: dict[str, str] = field(default_factory=dict, compare=False)
 
-    def scaled(self, **changes: float) -> Costs:
+    def scaled(self, **changes: float | bool) -> Costs:
         return replace(self, **changes)
 
     def heartbeats_per_s(self, workers: int) -> float:
@@ -84,9 +88,14 @@ FREE = Costs("free", 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, to_scheduler_inte
 # -- the parameters of a machine ---------------------------------------------------------------
 
 #: how the event loops' CPU per task splits between the scheduler's steps and the client's
-#: gather: the stock-scheduler rows of the 2-core measurement (scheduler 1.0-1.5 ms per task,
-#: the client's loop 0.6-0.9), the scheduler's part split over its three steps by assumption
-LOOP_SPLIT = {"sched_submit": 0.20, "sched_finish": 0.30, "sched_release": 0.12, "gather": 0.38}
+#: gather. The client's part (0.4) is measured: a stock scheduler on the 2-core machine takes
+#: 1.4-1.8 ms per task, the client's loop 0.75-1.2 (benchmarks/measurements/2026-11-25-2-cores.md).
+#: The scheduler's part is split over its steps by the Dask-floor rows (its timing, not its
+#: volume, depends on the split: the floor's waves turn round faster when less is spent at
+#: submission): of the candidates 20/30/12 %, 10/40/10 % and 5/45/10 % of the per-task CPU at
+#: submission / completion / release, the last lands every floor row of both machines within
+#: 0.03 (the first misses four by 0.05-0.06); a fitted parameter
+LOOP_SPLIT = {"sched_submit": 0.05, "sched_finish": 0.45, "sched_release": 0.10, "gather": 0.40}
 #: the runner's main thread per ``client.map`` call and per task, measured on the 2-core machine
 #: (``costs``: 0.50-0.58 ms per call, 0.002-0.014 ms per task submitted and as much released)
 MAIN_CALL, MAIN_TASK = 0.55e-3, 0.005e-3
@@ -98,7 +107,7 @@ LATENCY = 0.3e-3
 
 
 def from_dask_figures(name: str, per_task: float, per_call: float, background: float, worker_task: float,
-                      runner_scale: float, worker_scale: float, sources: dict[str, str]) -> Costs:
+                      runner_scale: float, worker_scale: float, sources: dict[str, str], store_scale: float = 1.0) -> Costs:
     """Costs from the runner process's CPU per task and per ``client.map`` call (client and
     scheduler together), its CPU per second, and the worker's overhead per task."""
     loop_task = per_task - 2 * MAIN_TASK
@@ -106,28 +115,21 @@ def from_dask_figures(name: str, per_task: float, per_call: float, background: f
     return Costs(name, submit_call=MAIN_CALL, submit_task=MAIN_TASK, release_task=MAIN_TASK,
                  sched_call=per_call - MAIN_CALL, gather_latency=4 * LATENCY, worker_task=worker_task,
                  latency=LATENCY, background=background, heartbeat=0.0, sleep_overshoot=OVERSHOOT,
-                 runner_scale=runner_scale, worker_scale=worker_scale, sources=sources, **split)
+                 runner_scale=runner_scale, worker_scale=worker_scale, store_scale=store_scale, sources=sources,
+                 **split)
 
 
-def fit_runner_cpu(session, fed: dict | None = None, fed_duration: float = 8.0) -> tuple[float, float, float]:
-    """(per task, per call, per second) of the runner process's CPU, least squares over a
-    session's Dask-floor rows (CPU per task = a + c / units + B x wall / tasks, the wall from
-    the row's efficiency) and, when given, the dispatch-bound "Dask alone" rows (one call per
-    task, the runner saturated: rate x (a + c) + B = 1)."""
+def fit_runner_cpu(session, per_call: float) -> tuple[float, float]:
+    """(per task, per second) of the runner process's CPU, least squares over a session's
+    Dask-floor rows: CPU per task = a + c / units + B x wall / tasks, the wall from the row's
+    efficiency, ``c`` (per ``client.map`` call) given."""
     import numpy as np
 
     rows, rhs = [], []
     tasks = session.units * session.rounds
     for w, (eff, cpu_ms) in session.floor.items():
         wall = tasks * 0.05 / (w * eff)
-        rows.append([1.0, 1.0 / session.units, wall / tasks])
-        rhs.append(1e-3 * cpu_ms)
-    for (w, seconds), (n, _) in (fed or {}).items():
-        rate = n / fed_duration
-        if rate < 0.95 * w / (seconds + 2e-3):  # dispatch-bound: the workers waited for tasks
-            rows.append([1.0, 1.0, 1.0 / rate])
-            rhs.append(1.0 / rate)
-    a, c, b = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
-    if fed is None:
-        raise ValueError("the per-call cost needs dispatch-bound rows")
-    return float(a), float(c), float(b)
+        rows.append([1.0, wall / tasks])
+        rhs.append(1e-3 * cpu_ms - per_call / session.units)
+    a, b = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
+    return float(a), float(b)

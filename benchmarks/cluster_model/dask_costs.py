@@ -11,11 +11,11 @@ settings, tasks that only sleep, submitted as the executor does (``client.map`` 
   and in the releases, per call and per task: rounds of n = 1 and n = 16 tasks, the difference over 15;
 - **event loops' CPU** per task (the process's CPU less the main thread's: the client's
   loop, and the scheduler for a LocalCluster), and a stock scheduler's own CPU per task;
-- **the worker's overhead per task**: one worker kept fed (two tasks given at a time) with
-  ``2 x rounds`` tasks of 20 ms; wall per task less the 20 ms;
+- **the worker's overhead per task**: ``2 x rounds`` tasks of 20 ms all given to one worker
+  (restricted to it, so never queued on the scheduler); wall per task less the 20 ms;
 - **latencies**: one task at a time, from ``client.map`` to the task's start on the worker
   and from its end to its result in the main thread (``time.time()`` on both sides);
-- **background**: the runner process's CPU per second while the cluster idles;
+- **background**: the runner process's CPU per second while every worker runs one long task;
 - **sleep overshoot**: ``time.sleep(0.05)`` less 50 ms, in a worker.
 """
 

@@ -70,7 +70,9 @@ class Design:
     ``task_batches``: batches per task (None: today's adaptive size). ``step_s``: the step's
     CPU (finish + geometry, in the trace's proportions; None: the trace's, scaled).
     ``scheduler``: "runner" (a LocalCluster: the scheduler shares the runner's process) or
-    "own" (a remote cluster)."""
+    "own" (a remote cluster). ``refill``: while the executor waits for the oldest task, it
+    tops up when fewer than ``refill x W`` tasks are in flight (today 1: a worker's second
+    slot may empty first; 2: every completion refills)."""
 
     lookahead_batches: int = 0
     lookahead_share: float = 0.0
@@ -79,6 +81,7 @@ class Design:
     task_batches: int | None = None
     step_s: float | None = None
     scheduler: str = "runner"
+    refill: float = 1.0
 
     def label(self) -> str:
         la = (f"L={self.lookahead_batches}" if self.lookahead_batches else
@@ -87,7 +90,8 @@ class Design:
               f"carry={self.carry_share:g}x" if self.carry_share else "L=0")
         k = "k=auto" if self.task_batches is None else f"k={self.task_batches}"
         step = "step=trace" if self.step_s is None else f"step={1e3 * self.step_s:g}ms"
-        return f"{la} {k} {step} sched={self.scheduler}"
+        refill = "" if self.refill == 1.0 else f" refill={self.refill:g}W"
+        return f"{la} {k} {step} sched={self.scheduler}{refill}"
 
 
 @dataclass
@@ -117,7 +121,8 @@ class _Process:
     I/O waits. With ``gil``, CPython's GIL between them: a callback that finds a CPU-bound
     thread holding the GIL waits the switch interval (``quantum``) before it is handed the
     GIL, and gives it back at its next I/O wait (the "convoy effect", bpo-7946): so an event
-    loop that needs n callbacks while the main thread computes waits n x 5 ms. Without it
+    loop that needs n callbacks while the main thread computes waits n x 5 ms (or until the
+    computation ends, when it ends sooner). Without it
     (a scheduler's own process) work is served in arrival order."""
 
     CHUNK = 0.001  # a CPU-bound thread's work is cut in 1 ms pieces so a waiting callback gets in on time
@@ -125,7 +130,9 @@ class _Process:
     def __init__(self, env: simpy.Environment, quantum: float, gil: bool):
         self.env, self.quantum, self.gil = env, quantum, gil
         self.res = simpy.PriorityResource(env, 1)
+        self.loop_thread = simpy.Resource(env, 1)
         self.cpu_bound = 0  # CPU-bound threads running or waiting
+        self.burst_end = 0.0  # when the computing threads' current work ends
         self.busy = 0.0
 
     def cpu(self, seconds: float) -> Proc:
@@ -134,6 +141,7 @@ class _Process:
             while seconds > 1e-12:
                 with self.res.request(priority=1) as req:
                     yield req
+                    self.burst_end = max(self.burst_end, self.env.now + seconds)
                     q = min(seconds, self.CHUNK if self.gil else self.quantum)
                     yield self.env.timeout(q)
                     seconds -= q
@@ -153,13 +161,20 @@ class _Process:
                 self.busy += q
 
     def loop(self, seconds: float) -> Proc:
-        if self.gil and self.cpu_bound:
-            yield self.env.timeout(self.quantum)  # the switch interval, then the holder is made to drop it
-        with self.res.request(priority=0) as req:
-            yield req
-            if seconds > 0:
-                yield self.env.timeout(seconds)
-                self.busy += seconds
+        """One callback of the process's event loop (one thread: callbacks run one at a time)."""
+        with self.loop_thread.request() as turn:
+            yield turn
+            if self.gil and self.cpu_bound:
+                # the GIL comes when the computing thread gives it up (its burst ends) or, at the
+                # latest, one switch interval after the request (the holder is made to drop it)
+                wait = min(self.quantum, self.burst_end - self.env.now)
+                if wait > 0:
+                    yield self.env.timeout(wait)
+            with self.res.request(priority=0) as req:
+                yield req
+                if seconds > 0:
+                    yield self.env.timeout(seconds)
+                    self.busy += seconds
 
 
 class _Channel:
@@ -209,7 +224,7 @@ class Replay:
     def __init__(self, trace: Trace, workers: int, sim_seconds: float, costs: Costs, design: Design = Design()):
         self.trace, self.W, self.sim_s, self.c, self.design = trace, workers, sim_seconds, costs, design
         self.env = simpy.Environment()
-        self.runner = _Process(self.env, costs.quantum, gil=True)
+        self.runner = _Process(self.env, costs.quantum, gil=costs.convoy)
         own = design.scheduler == "own"
         self.sched = _Process(self.env, costs.quantum, gil=False) if own else self.runner
         env, lat = self.env, costs.latency
@@ -459,7 +474,7 @@ class Replay:
             self.last_append = self.env.now
             # zarr's writes run on its own event loop and I/O threads: short callbacks between
             # I/O waits, taking turns for the GIL with the other callbacks (no convoy)
-            yield from self.runner.slices(fixed + per * k)
+            yield from self.runner.slices(self.c.store_scale * (fixed + per * k))
         self.writer_done.succeed()
 
     def put(self, t: int) -> None:
@@ -505,11 +520,11 @@ class Replay:
         return max(1, math.ceil(share * pops[t - 1].n_needed / (self.bs * acceptance)))
 
     def main(self) -> Proc:
-        trace = self.trace
+        c, trace = self.c, self.trace
         pops, store = trace.populations, trace.store_s
         # run_job: the store created, marked running; the executor: the job's data and the
         # anchors (2 W + 1 no-op tasks held for the run), after asking for the worker count
-        yield from self.main_cpu(store["create"] + store["status"])
+        yield from self.main_cpu(c.store_scale * (store["create"] + store["status"]))
         yield from self.n_workers()
         anchors = _Stream(self, pops[0], None)
         held = yield from self.submit(anchors, [[]] * (2 * self.W + 2), 0)
@@ -532,7 +547,7 @@ class Replay:
             self.put(t)
         yield from self.close_writer()
         # the final status, and the result read back from the store (run_job's return)
-        yield from self.main_cpu(store["status"] + store["read"])
+        yield from self.main_cpu(c.store_scale * (store["status"] + store["read"]))
         self._set_phase("done")
         self.end = self.env.now
 
@@ -679,7 +694,7 @@ class _Stream:
             while task.id not in self.done:
                 got = yield self.completed.get()
                 self.done.add(got.id)  # type: ignore[attr-defined]
-                if self.in_flight() < self.W:
+                if self.in_flight() < sim.design.refill * self.W:
                     yield from self.top_up()
             self.done.discard(task.id)
             self.pending.popleft()
@@ -715,8 +730,10 @@ class _Stream:
         self.pending.clear()
         yield from self.sim.release(drop)
         have = max([last, *(b for b, _ in prefix.entries)])
-        if have < last + n:
-            tasks = yield from self.sim.submit(self, [list(range(have + 1, last + n + 1))], 1)
+        if have < last + n:  # the rest, cut into tasks as a top-up would
+            size = self.sim.group_size(last + n - have, self.consumed, self.sim.design.task_batches)
+            groups = [list(range(b, min(b + size, last + n + 1))) for b in range(have + 1, last + n + 1, size)]
+            tasks = yield from self.sim.submit(self, groups, 1)
             prefix.add(tasks)  # type: ignore[arg-type]
         self.lookahead_next = prefix
 
