@@ -1,10 +1,12 @@
 """The cluster model's cost parameters, in one place, each with its source.
 
-Seconds throughout. Two sets: this project's 2-core machine (measured here by
-``python -m benchmarks.cluster_model costs``) and the 16-core machine of
-``benchmarks/measurements/2026-11-25-16-cores.md`` (derived from that file's figures; see
-each field). The runner's own work (step, consumption, codec, store) comes from the trace,
-recorded on the 2-core machine and carried to the other machine by ``runner_scale``.
+Seconds throughout. :class:`Costs` is one machine's set; ``study.sixteen_costs`` and
+``study.local_costs`` build them for the 16-core machine of
+benchmarks/measurements/2026-11-25-16-cores.md and for this 2-core machine (measured by
+``python -m benchmarks.cluster_model costs``): Dask's CPU per task and per second fitted to
+each session's Dask floor (:func:`fit_runner_cpu`), the rest measured or stated below. The
+runner's own work (step, consumption, codec, store) comes from the trace, recorded on the
+2-core machine and carried to another by ``runner_scale`` and ``store_scale``.
 """
 
 from __future__ import annotations
@@ -97,7 +99,7 @@ FREE = Costs("free", 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, to_scheduler_inte
 #: 0.03 (the first misses four by 0.05-0.06); a fitted parameter
 LOOP_SPLIT = {"sched_submit": 0.05, "sched_finish": 0.45, "sched_release": 0.10, "gather": 0.40}
 #: the runner's main thread per ``client.map`` call and per task, measured on the 2-core machine
-#: (``costs``: 0.50-0.58 ms per call, 0.002-0.014 ms per task submitted and as much released)
+#: (``costs``: 0.44-0.61 ms per call, 0.004-0.008 ms per task submitted, 0.02 released)
 MAIN_CALL, MAIN_TASK = 0.55e-3, 0.005e-3
 #: Linux's sleep overshoot on an idle machine (timer slack 50 µs plus wake-up): assumed
 OVERSHOOT = 0.1e-3

@@ -2,29 +2,34 @@
 
 What is modelled (each piece is the code it stands for, its costs in :class:`Costs`):
 
-- **The runner's process**, one CPU shared by its threads the way the GIL shares it (round
-  robin, :attr:`Costs.quantum` at a time): the main thread (the filling loop of
-  ``abcns.filling``, the executor's top-ups and releases of ``service.run.dask_executor``,
-  the population step), the client's event loop (a result gathered per completed task), the
-  store's writer thread (``service.run.runner.PopulationWriter``: appends coalesced, one per
-  ``interval`` at most) and, for a LocalCluster, the scheduler.
+- **The runner's process** (:class:`_Process`): one CPU and one event-loop thread. The main
+  thread (the filling loop of ``abcns.filling``, the executor's top-ups and releases of
+  ``service.run.dask_executor``, the population step) computes in 1 ms pieces; the event
+  loop's callbacks (the client's gather per completed task and, for a LocalCluster, the
+  scheduler's work) run one at a time and each waits for the GIL while the main thread
+  computes, up to the switch interval (CPython's convoy effect); the store's writer
+  (``service.run.runner.PopulationWriter``: appends coalesced, one a second at most) takes
+  turns as I/O-bound Python.
 - **The scheduler** (in the runner's process, or its own): tasks queued in priority order
   (today: submission order), each single-threaded worker given at most two at a time
-  (Dask's ``worker-saturation`` 1.1), per-task CPU to take a graph, to handle a finished
-  task and to forget a released one.
+  (Dask's ``worker-saturation`` 1.1), CPU per ``client.map`` call and per task taken,
+  finished and released.
+- **Dask's batched streams** (:class:`_Channel`): a message waits for its stream's interval
+  since the last batch, then :attr:`Costs.latency`.
 - **W single-threaded workers**: a task's batches run back to back (sleep per simulation,
   the trace's evaluator CPU, the codec), plus a per-task overhead; a released task that
   has not started never runs, one that has finishes and is dropped (surplus).
-- **Messages** between processes take :attr:`Costs.latency`.
-- **Today's executor policies**, ported line by line from ``Stream`` (``_top_up``,
-  ``expect``, ``_oldest``, ``group_size``, ``close``): batches grouped into tasks by measured
-  cost, the queue depth from the hints with 10 % margin, two tasks per worker thread in
-  flight, results consumed in submission order, surplus released when the population is
-  full, the step on the main thread, the next population opened before the geometry.
-- **The look-ahead design** (:class:`Design`): while population t fills, ``L`` batches of
-  t + 1 drawn from t's bounds run at a lower priority than t's own; t + 1 consumes them
-  first, each yielding the trace's measured share of accepted rows (rows inside t + 1's
-  bounds, below its tolerance), then its regular batches.
+- **Today's executor policies**, ported from ``Stream`` (``_top_up``, ``expect``,
+  ``_oldest``, ``close``; ``DaskExecutor.group_size`` and ``_measured`` called as they are):
+  batches grouped into tasks by measured cost, the queue depth from the hints with 10 %
+  margin, two tasks per worker thread in flight, results consumed in submission order,
+  surplus released when the population is full, the 2 W + 2 held no-op tasks, the step on
+  the main thread, the next population opened before the geometry, the run's start and end.
+- **Designs** (:class:`Design`): issue O's look-ahead (while population t fills, ``L``
+  batches of t + 1 drawn from t's bounds run at a lower priority than t's own; t + 1
+  consumes them first, each yielding the trace's measured share of accepted rows, then its
+  regular batches), carry-over (t + 1 first consumes t's next batches), tasks of k batches,
+  the step's CPU, the scheduler's process, the top-up threshold.
 
 Efficiency is the trace's simulations (what today's algorithm uses) x the simulation
 time over (W x wall), the ``benchmarks.scale`` figure; so a design that wastes simulations
@@ -45,7 +50,7 @@ import simpy
 
 from benchmarks.cluster_model.costs import Costs
 from benchmarks.cluster_model.trace import PopulationTrace, Trace
-from service.run.dask_executor import IN_FLIGHT_PER_THREAD, MAX_TASK_SECONDS, MIN_TASK_SECONDS, NEED_MARGIN
+from service.run.dask_executor import IN_FLIGHT_PER_THREAD, NEED_MARGIN, DaskExecutor
 
 #: Dask's worker-saturation 1.1 on a single-threaded worker: ceil(1.1 x 1) tasks at a time
 WORKER_SLOTS = 2
@@ -435,21 +440,13 @@ class Replay:
         return self.W
 
     def group_size(self, need: int, consumed: int, forced: int | None) -> int:
-        """``DaskExecutor.group_size`` (or the design's fixed size)."""
+        """``DaskExecutor.group_size`` itself (it reads only ``batch_seconds``), or the design's size."""
         if forced is not None:
             return forced
-        if self.batch_seconds is None:
-            return 1
-        size = math.ceil(max(need, consumed) / (2 * self.W))
-        if self.batch_seconds > 0:
-            most = max(1, int(MAX_TASK_SECONDS / self.batch_seconds))
-            least = min(most, math.ceil(MIN_TASK_SECONDS / self.batch_seconds))
-            size = min(max(size, least), most)
-        return max(1, size)
+        return DaskExecutor.group_size(self, need, consumed, self.W)  # type: ignore[arg-type]
 
     def measured(self, seconds: float, size: int) -> None:
-        per = seconds / size
-        self.batch_seconds = per if self.batch_seconds is None else 0.7 * self.batch_seconds + 0.3 * per
+        DaskExecutor._measured(self, seconds, size)  # type: ignore[arg-type]
 
     # -- the writer thread ---------------------------------------------------------------------------
 

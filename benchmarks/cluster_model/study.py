@@ -208,6 +208,7 @@ SCENARIOS = [
     ("N = 1000, 2 ms, batch 5", "evidence-1000-b5", 0.002),
     ("N = 5000, 20 ms, batch 25", "evidence-5000", 0.020),
     ("N = 5000, 20 ms, batch 5", "evidence-5000-b5", 0.020),
+    ("N = 20000, 20 ms, batch 25", "evidence-20000", 0.020),
 ]
 
 CHEAP_STEP = 0.003
@@ -227,7 +228,8 @@ DESIGNS = [
 
 #: issue O's targets: (scenario prefix, workers, efficiency at least)
 TARGETS = [("N = 1000, 20 ms", 8, 0.9), ("N = 1000, 20 ms", 14, 0.85), ("N = 1000, 2 ms", 8, 0.9),
-           ("N = 1000, 2 ms", 14, 0.85), ("N = 1000, 20 ms", 64, 0.8), ("N = 5000, 20 ms", 256, 0.7)]
+           ("N = 1000, 2 ms", 14, 0.85), ("N = 1000, 20 ms", 64, 0.8), ("N = 5000, 20 ms", 256, 0.7),
+           ("N = 20000, 20 ms", 256, 0.7)]
 
 BREAKDOWN_KEYS = ["useful", "surplus", "task overhead", "idle: dispatch", "idle: tail", "step", "start", "end"]
 
