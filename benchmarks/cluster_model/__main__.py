@@ -37,6 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     one.add_argument("--workers", type=_ints, default=[1, 8, 14])
     one.add_argument("--sleep-ms", type=float, default=2.0)
     one.add_argument("--lookahead", type=float, default=0.0, help="look-ahead: a share of the expected batches")
+    one.add_argument("--carry", type=float, default=0.0, help="carry-over: a share of the expected batches")
     one.add_argument("--task-batches", type=int, default=None)
     one.add_argument("--step-ms", type=float, default=None)
     one.add_argument("--scheduler", choices=["runner", "own"], default="runner")
@@ -72,12 +73,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.command == "replay":
         from benchmarks.cluster_model.model import Design, replay
-        from benchmarks.cluster_model.study import BREAKDOWN_KEYS, sixteen_costs
+        from benchmarks.cluster_model.study import BREAKDOWN_KEYS, design_costs, sixteen_costs
         from benchmarks.cluster_model.trace import Trace
 
         trace = Trace.load(args.trace)
-        costs = sixteen_costs(trace.job.get("variant", "evidence") if trace.job.get("variant") == "paper" else "evidence")
-        design = Design(lookahead_share=args.lookahead, task_batches=args.task_batches,
+        # the paper variant: its own session's costs; the evidence variant: the design study's
+        costs = sixteen_costs("paper") if trace.job.get("variant") == "paper" else design_costs()
+        design = Design(lookahead_share=args.lookahead, carry_share=args.carry, task_batches=args.task_batches,
                         step_s=None if args.step_ms is None else args.step_ms / 1e3, scheduler=args.scheduler)
         print(f"{trace.label}, {args.sleep_ms:g} ms per simulation, {design.label()}, costs: {costs.name}")
         print("| workers | efficiency | steady | wall s | executed | " + " | ".join(BREAKDOWN_KEYS) + " |")

@@ -234,10 +234,16 @@ TARGETS = [("N = 1000, 20 ms", 8, 0.9), ("N = 1000, 20 ms", 14, 0.85), ("N = 100
 BREAKDOWN_KEYS = ["useful", "surplus", "task overhead", "idle: dispatch", "idle: tail", "step", "start", "end"]
 
 
+def design_costs() -> Costs:
+    """The design study's costs: the 16-core machine in its paper session (the one the model
+    validates best), with the evidence variant's step and evaluator ratios."""
+    evidence = sixteen_costs("evidence")
+    return sixteen_costs("paper").scaled(runner_scale=evidence.runner_scale, worker_scale=evidence.worker_scale)
+
+
 def design_study(workers: list[int], designs: list[Design], scenarios=SCENARIOS, costs: Costs | None = None,
                  breakdown_at: tuple[int, ...] = (8, 64, 256)) -> dict:
-    costs = costs or sixteen_costs("paper").scaled(runner_scale=sixteen_costs("evidence").runner_scale,
-                                                   worker_scale=sixteen_costs("evidence").worker_scale)
+    costs = costs or design_costs()
     print("# Design study: predicted efficiency (the 16-core machine's costs, paper session; evidence variant's "
           "traces; efficiency = today's simulations x their time / (W x wall); in brackets the steady figure, "
           "populations 2 on, without the run's start and end)")
