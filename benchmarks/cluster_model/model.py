@@ -121,14 +121,14 @@ class Outcome:
 
 
 class _Process:
-    """A process's CPU. ``cpu``: a CPU-bound thread's work (the runner's main thread, the
-    store writer), a quantum at a time; ``loop``: one event-loop callback, run between two
-    I/O waits. With ``gil``, CPython's GIL between them: a callback that finds a CPU-bound
-    thread holding the GIL waits the switch interval (``quantum``) before it is handed the
-    GIL, and gives it back at its next I/O wait (the "convoy effect", bpo-7946): so an event
-    loop that needs n callbacks while the main thread computes waits n x 5 ms (or until the
-    computation ends, when it ends sooner). Without it
-    (a scheduler's own process) work is served in arrival order."""
+    """A process's CPU. ``cpu``: a CPU-bound thread's work (the runner's main thread), in
+    1 ms pieces; ``slices``: I/O-bound Python (zarr's writes); ``loop``: one callback of the
+    process's one event-loop thread, run between two I/O waits. With ``gil``, CPython's GIL
+    between them: a callback that finds the main thread computing waits until it stops or
+    for the switch interval (``quantum``), then gets the GIL and gives it back at its next
+    I/O wait (the "convoy effect", bpo-7946), so an event loop that needs n callbacks while
+    the main thread computes waits up to n x 5 ms. Without it (a scheduler's own process)
+    work is served in arrival order."""
 
     CHUNK = 0.001  # a CPU-bound thread's work is cut in 1 ms pieces so a waiting callback gets in on time
 
@@ -243,7 +243,6 @@ class Replay:
         self.processing = [0] * workers  # tasks the scheduler has given each worker
         self.ready: list[list] = [[] for _ in range(workers)]  # each worker's tasks, by priority
         self.wake: list[simpy.Event | None] = [None] * workers
-        self.running: list[_Task | None] = [None] * workers
         bs = trace.batch_size
         self.bs = bs
         # worker seconds per batch beside the sleep: evaluator CPU and the codec, scaled
@@ -390,7 +389,6 @@ class Replay:
             self._account()
             self.idle -= 1
             task.state = "running"
-            self.running[w] = task
             compute = task.seconds
             yield self.env.timeout(self.c.worker_task + compute)
             self._account()
@@ -399,7 +397,6 @@ class Replay:
             self.executed += task.rows
             self._add("simulating", compute)
             task.state = "finished"
-            self.running[w] = None
             self.from_worker[w].send(lambda task=task, w=w: self.env.process(self._finished(task, w)))
 
     # -- the client's side ------------------------------------------------------------------------
