@@ -437,10 +437,15 @@ class Replay:
         return self.W
 
     def group_size(self, need: int, consumed: int, forced: int | None) -> int:
-        """``DaskExecutor.group_size`` itself (it reads only ``batch_seconds``), or the design's size."""
+        """``DaskExecutor.group_size`` itself (it reads ``batch_seconds`` and :meth:`time_cap`),
+        or the design's size."""
         if forced is not None:
             return forced
         return DaskExecutor.group_size(self, need, consumed, self.W)  # type: ignore[arg-type]
+
+    def time_cap(self) -> int:
+        """A replay has no time budget (``DaskExecutor.time_cap`` without one)."""
+        return 2**62
 
     def measured(self, seconds: float, size: int) -> None:
         DaskExecutor._measured(self, seconds, size)  # type: ignore[arg-type]
