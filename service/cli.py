@@ -92,7 +92,8 @@ def summary_lines(s: dict, distance: str = "nmse") -> list[str]:
     se = s.get("model_probability_se") or {}
     lines.append("model probabilities: " + ", ".join(
         f"{k} {v:.3f}" + (f" ± {se[k]:.3f}" if se.get(k) is not None and se[k] == se[k] else "")
-        for k, v in s.get("model_probabilities", {}).items()))
+        for k, v in s.get("model_probabilities", {}).items()) + where_decided(s, unit))
+    lines += decision_lines(s, unit)
     if s.get("dead_models"):
         lines.append("models out: " + "; ".join(f"{k} from population {t} ({death_rule(s, k)})"
                                                  for k, t in s["dead_models"].items()))
@@ -103,6 +104,33 @@ def summary_lines(s: dict, distance: str = "nmse") -> list[str]:
         lines.append(f"{model}:")
         for name, q in params.items():
             lines.append(f"  {name:8s} mean {q['mean']:12.6g}  std {q['std']:10.4g}  95% [{q['q2_5']:.6g}, {q['q97_5']:.6g}]")
+    return lines
+
+
+def where_decided(s: dict, unit: str) -> str:
+    """Where the answer is read: the decision population and its tolerance (``summary.decision``)."""
+    dec = s.get("decision")
+    if not dec:
+        return ""
+    if s.get("noise_floor") is None:
+        return f"  (final population {dec['population']}, eps {dec['epsilon']:.4g}{unit}; no noise floor for this distance)"
+    return f"  (the answer: population {dec['population']}, eps {dec['epsilon']:.4g}{unit})"
+
+
+def decision_lines(s: dict, unit: str) -> list[str]:
+    """The noise floor and the decision tolerance (docs/design.md, "The noise floor and the
+    decision tolerance"), and the final population's probabilities when it is another."""
+    floor, dec, final = s.get("noise_floor"), s.get("decision"), s.get("final")
+    if floor is None or not dec:
+        return []
+    how = ("estimated from the run's best fit" if floor["method"] == "estimated"
+           else "from the stated noise, data.noise_std")
+    lines = [f"noise floor {floor['floor']:.4g}{unit} ({how}); decision tolerance {floor['decision_tolerance']:.4g}{unit} "
+             f"(floor + its spread): the answer is read at the lowest tolerance at or above it"]
+    if final and final["population"] != dec["population"]:
+        probs = ", ".join(f"{k} {v:.3f}" for k, v in final["model_probabilities"].items())
+        lines.append(f"model probabilities at the final population {final['population']}, eps {final['epsilon']:.4g}{unit} "
+                     f"(below the decision tolerance, where the noise decides; not the answer): {probs}")
     return lines
 
 
@@ -132,11 +160,12 @@ def memory_warning(job) -> None:
 
 
 class ProgressLine:
-    """The line per population of ``run`` and ``submit``: the population, its tolerance and
-    acceptance, the simulations so far, the population's own rate (its simulations over the
-    wall time since the previous population ended; the first population's also counts the
-    pilot and compiling the kernels), the model probabilities and the workers now. On a
-    terminal one line is rewritten in place; otherwise a line per population."""
+    """The line per population of ``run`` and ``submit``: the population, its tolerance (and
+    the decision tolerance once the run has a noise floor) and acceptance, the simulations so
+    far, the population's own rate (its simulations over the wall time since the previous
+    population ended; the first population's also counts the pilot and compiling the
+    kernels), the model probabilities and the workers now. On a terminal one line is
+    rewritten in place; otherwise a line per population."""
 
     def __init__(self, unit: str, quiet: bool, workers: Callable[[], int],
                  start: tuple[int, float] = (0, 0.0)):
@@ -160,7 +189,9 @@ class ProgressLine:
         return self.n_workers
 
     def show(self, t: int, epsilon: float, acceptance: float, simulations: int, elapsed_s: float,
-             probabilities: Mapping[str, float | None]) -> None:
+             probabilities: Mapping[str, float | None], decision: float | None = None) -> None:
+        """``decision``: the decision tolerance as estimated after this population (None
+        while the run knows no noise floor)."""
         before, self.last = self.last, (simulations, elapsed_s)
         if self.quiet:
             return
@@ -168,7 +199,8 @@ class ProgressLine:
         rate = f"{(simulations - before[0]) / wall:9.0f}" if wall > 0 else f"{'-':>9}"
         probs = " ".join(f"{name}={'-' if p is None else format(p, '.2f')}" for name, p in probabilities.items())
         workers = self.workers_now()
-        line = (f"population {t:4d}  eps {epsilon:11.5g}{self.unit}  acceptance {acceptance:5.2f}  "
+        dec = "" if decision is None else f"  decision {decision:.4g}{self.unit}"
+        line = (f"population {t:4d}  eps {epsilon:11.5g}{self.unit}{dec}  acceptance {acceptance:5.2f}  "
                 f"sims {simulations:8d}  {rate} sims/s  {probs}  workers {'-' if workers is None else workers}")
         if self.live:
             sys.stdout.write(f"\r\x1b[2K{line}")
@@ -297,7 +329,8 @@ def run(
         def progress(p: Progress) -> None:
             pop = p.population
             line.show(pop.t, pop.epsilon, pop.acceptance_rate, p.n_simulations_total, p.elapsed_s,
-                      dict(zip(names, pop.model_probabilities.tolist())))
+                      dict(zip(names, pop.model_probabilities.tolist())),
+                      None if pop.floor is None else pop.floor.decision)
 
         try:
             run_job(job_spec, base, out, client, seed=seed, on_population=progress, allow_import=True)
@@ -495,7 +528,8 @@ def submit(
                 if event == "population":
                     probs = info["model_probabilities"]
                     line.show(info["population"], info["epsilon"], info["acceptance_rate"], info["simulations"],
-                              info["elapsed_s"], probs if isinstance(probs, dict) else dict(zip(names, probs)))
+                              info["elapsed_s"], probs if isinstance(probs, dict) else dict(zip(names, probs)),
+                              info.get("decision_tolerance"))
                 elif event in ("finished", "failed", "cancelled"):
                     end, error = event, info.get("error")
         except KeyboardInterrupt:

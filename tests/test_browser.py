@@ -5,6 +5,7 @@ each model in its `abcns plot` colour, the workers now."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -140,6 +141,72 @@ def test_the_page_says_when_a_run_is_undecided(browser, service):
     wait_until(lambda: re.search(rf"population {last}\b", page.inner_text("#hists")), 10,
                "the histograms of the last population")
     assert drawn_bars(page) >= 2 * page.locator("#hists svg").count() > 0
+
+
+def test_the_page_says_where_the_answer_is_read_and_marks_the_floor(browser):
+    """Issue T: the page says at which population and tolerance the answer (the leading
+    model) is read, and marks the noise floor and the decision tolerance on the tolerance
+    chart and the decision population on the model-probability chart. The page is served
+    as the service serves it (its HTML and Content-Security-Policy) by Playwright's routing,
+    with five population events (tolerance 10 / t; a floor from population 2: 2.8, decision
+    3.2), so population 3 (3.333) holds the answer, linear 0.9, though the last says cubic."""
+    from service.http.page import CSP, VIEW
+
+    origin, job = "http://abcns.test", "0123456789abcdef"
+    events = []
+    for t in range(1, 6):
+        floor = (None, None) if t == 1 else (2.8, 3.2)
+        events.append(("population", {"population": t, "epsilon": 10.0 / t, "epsilon_next": 10.0 / (t + 1),
+                                      "acceptance_rate": 0.5, "simulations": 1000 * t, "elapsed_s": float(t),
+                                      "model_probabilities": {"linear": 0.9 if t <= 3 else 0.1,
+                                                              "cubic": 0.1 if t <= 3 else 0.9},
+                                      "simulations_per_s": None, "noise_floor": floor[0],
+                                      "decision_tolerance": floor[1]}))
+    events.append(("finished", {}))
+    stream = "".join(f"id: {i}\nevent: {e}\ndata: {json.dumps(d)}\n\n" for i, (e, d) in enumerate(events, 1))
+    answers = {f"/jobs/{job}/view": ("text/html", VIEW), f"/jobs/{job}/events": ("text/event-stream", stream),
+               f"/jobs/{job}": ("application/json", json.dumps({"id": job, "name": "toy", "models": ["linear", "cubic"],
+                                                                "status": "running"})),
+               f"/jobs/{job}/result": ("application/json", json.dumps({"warnings": []})),
+               "/health": ("application/json", json.dumps({"workers": 2}))}
+
+    def serve(route):
+        path = route.request.url[len(origin):]
+        if path in answers:
+            kind, body = answers[path]
+            route.fulfill(status=200, content_type=kind, body=body, headers={"Content-Security-Policy": CSP})
+        else:
+            route.fulfill(status=404, body="")
+
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    page.route(f"{origin}/**", serve)
+    page.goto(f"{origin}/jobs/{job}/view")
+    wait_until(lambda: page.inner_text("#status") == "finished" and page.inner_text("#population") == "5", 30,
+               "the five populations on the page")
+    assert page.inner_text("#answer-at") == "population 3, \u03b5 3.333 % (decision tolerance 3.200 %, noise floor 2.800 %)"
+    assert page.inner_text("#leader") == "linear (0.90)"
+    assert page.locator("#eps text.mark-label").all_text_contents() == ["decision 3.200 %", "noise floor 2.800 %"]
+    assert page.locator("#probs text.mark-label").all_text_contents() == ["answer (population 3)"]
+
+    def box(selector: str) -> list[dict]:
+        return page.eval_on_selector_all(selector, "es => es.map(e => { const b = e.getBoundingClientRect(); "
+                                                   "return {x: b.x, y: b.y, w: b.width, h: b.height}; })")
+
+    # drawn where they belong: the marks across the tolerance curve (10 down to 2, top to bottom),
+    # the decision above the floor; the answer's line at population 3's tick
+    decision, floor = box("#eps line.mark")
+    curve = box("#eps path")[0]
+    assert decision["w"] > 100 and floor["w"] > 100
+    assert curve["y"] < decision["y"] < floor["y"] < curve["y"] + curve["h"]
+    (answer,) = box("#probs line.mark")
+    tick = [b for b, label in zip(box("#probs text.lbl"), page.locator("#probs text.lbl").all_text_contents())
+            if label == "3"][0]
+    assert answer["h"] > 100 and abs(answer["x"] - (tick["x"] + tick["w"] / 2)) < 2
+    assert page.eval_on_selector("#eps line.mark", "e => getComputedStyle(e).stroke") == "rgb(0, 0, 0)"
+    # the labels are filled text, not outlined in the grid's light grey (the chart's <div class="grid">
+    # passed its stroke down to every <text>)
+    strokes = page.eval_on_selector_all("svg text", "ts => ts.map(t => getComputedStyle(t).stroke)")
+    assert strokes and set(strokes) == {"none"}, set(strokes)
 
 
 XSS = '<img src=x onerror="document.title=\'pwned:\'+sessionStorage.getItem(\'abcns-token\')">'

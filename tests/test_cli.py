@@ -99,6 +99,48 @@ def test_the_rate_is_each_population_s_own():
     assert shown[1].endswith("linear=0.30 cubic=0.70  workers 2") and "cubic=-" in shown[2]
 
 
+def test_the_summary_gives_the_answer_at_the_decision_tolerance():
+    """Issue T: the human summary says where its answer is read (the decision population and
+    its tolerance), the noise floor and how it was found, and, when the final population is
+    another, its probabilities on their own line, labelled as not the answer. The toy result
+    (tests/toy_results.py) turns from linear 0.9 to cubic 0.9 below its decision tolerance."""
+    from dataclasses import replace
+
+    from toy_results import FLOOR, floored_result
+
+    from service.cli import summary_lines
+
+    lines = summary_lines(floored_result().summary())
+    assert "model probabilities: linear 0.900, cubic 0.100  (the answer: population 3, eps 3.333 %)" in lines
+    assert ("noise floor 2.8 % (estimated from the run's best fit); decision tolerance 3.2 % (floor + its spread): "
+            "the answer is read at the lowest tolerance at or above it") in lines
+    assert ("model probabilities at the final population 5, eps 2 % (below the decision tolerance, where the noise "
+            "decides; not the answer): linear 0.100, cubic 0.900") in lines
+    stated = summary_lines(floored_result(floor=replace(FLOOR, method=1)).summary())
+    assert any(line.startswith("noise floor 2.8 % (from the stated noise, data.noise_std)") for line in stated)
+    # no floor (a summary distance): the final population is the answer, and the line says so
+    plain = summary_lines(floored_result(floor=None).summary())
+    assert ("model probabilities: linear 0.100, cubic 0.900  (final population 5, eps 2 %; no noise floor for "
+            "this distance)") in plain
+    assert not any(line.startswith(("noise floor", "model probabilities at the final")) for line in plain)
+
+
+def test_the_progress_line_shows_the_decision_tolerance_once_known():
+    from service.cli import ProgressLine
+
+    shown: list[str] = []
+    line = ProgressLine(" %", quiet=False, workers=lambda: 2)
+    line.live = False
+    import typer
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(typer, "echo", shown.append)
+        line.show(1, 100.0, 0.5, 1000, 10.0, {"linear": 0.5, "cubic": 0.5})
+        line.show(2, 50.0, 0.4, 3000, 11.0, {"linear": 0.3, "cubic": 0.7}, 0.012463)
+    assert "decision" not in shown[0]
+    assert re.search(r"eps\s+50 %  decision 0.01246 %  acceptance", shown[1]), shown[1]
+
+
 def test_run_prints_populations_then_a_short_summary(spec, cluster, tmp_path):
     lines = abcns("run", spec, "--out", tmp_path / "a.zarr", "--scheduler", cluster).stdout.splitlines()
     pops = [line for line in lines if line.startswith("population ")]

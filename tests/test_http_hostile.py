@@ -375,6 +375,28 @@ def test_events_give_the_model_probabilities_by_name(service):
     assert info["models"] == names and list(info["progress"]["model_probabilities"]) == names
 
 
+# ---------------------------------------------------------------------------- T (issue 23)
+def test_events_and_the_result_give_the_noise_floor_and_the_decision(service):
+    """Issue T: each population event (and the job's progress) carries the noise floor and
+    the decision tolerance as estimated after that population (the §4.1 NMSE has a floor
+    from its first population: numbers, the decision above the floor); GET /jobs/{id}/result
+    is the summary, with the answer's population (``decision``) and the ``noise_floor`` as
+    the last event gave them, read from the store."""
+    job_id = post(service, duffing_spec(max_populations=3, particles=200)).json()["id"]
+    pops = [e["data"] for e in follow(service.url, job_id) if e["event"] == "population"]
+    assert len(pops) == 3
+    for p in pops:
+        assert 0 < p["noise_floor"] < p["decision_tolerance"], p
+    info = get(service, f"/jobs/{job_id}").json()
+    assert info["progress"]["decision_tolerance"] == pops[-1]["decision_tolerance"]
+    result = get(service, f"/jobs/{job_id}/result").json()
+    floor, decision = result["noise_floor"], result["decision"]
+    assert floor["floor"] == pytest.approx(pops[-1]["noise_floor"], rel=1e-12)
+    assert floor["decision_tolerance"] == pytest.approx(pops[-1]["decision_tolerance"], rel=1e-12)
+    assert floor["method"] == "estimated" and decision["rule"] == "noise_floor"
+    assert decision["population"] in (1, 2, 3) and decision["model_probabilities"] == result["model_probabilities"]
+
+
 # ---------------------------------------------------------------------------- N.12
 def _closed(sock: socket.socket) -> bytes:
     """Read until the server closes the connection (the socket's timeout fails a hang)."""

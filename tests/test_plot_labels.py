@@ -47,3 +47,32 @@ def test_the_response_is_named():
                                              integrator={"output": "velocity"})])
     assert response_label(SimpleNamespace(force=np.zeros(3), spec=spec), "m") == "velocity (unit of data.observed)"
     assert response_label(SimpleNamespace(force=None, spec=spec), "m") == "observed value"
+
+
+def test_the_probabilities_against_the_tolerance_mark_the_floor_and_the_decision():
+    """Issue T: the model-probability figure draws p_m(eps) against the tolerance, with
+    vertical lines at the noise floor (2.8) and the decision tolerance (3.2) named in the
+    legend, and marks the decision population (3) among the populations."""
+    from toy_results import floored_result
+
+    fig = model_probability_figure(floored_result(), "%")
+    bars, curve = fig.axes
+    assert curve.get_xscale() == "log" and curve.get_xlabel() == "tolerance $\\varepsilon$ (%)"
+    lines = {line.get_label(): line for line in curve.get_lines()}
+    assert [to_hex(lines[m].get_color()) for m in ("linear", "cubic")] == [model_colour(0), model_colour(1)]
+    assert list(lines["linear"].get_xdata()) == pytest.approx([10, 5, 10 / 3, 2.5, 2])
+    assert list(lines["linear"].get_ydata()) == pytest.approx([0.9, 0.9, 0.9, 0.1, 0.1])
+    floor, decision = lines["noise floor 2.8 % (estimated)"], lines["decision tolerance 3.2 %"]
+    assert list(floor.get_xdata()) == pytest.approx([2.8, 2.8]) and list(decision.get_xdata()) == pytest.approx([3.2, 3.2])
+    assert [t.get_text() for t in curve.get_legend().get_texts()] == [
+        "linear", "cubic", "noise floor 2.8 % (estimated)", "decision tolerance 3.2 %"]
+    labels = [t.get_text() for t in bars.get_legend().get_texts()]
+    assert labels == ["decision: population 3", "linear (answer 0.90, final 0.10)", "cubic (answer 0.10, final 0.90)"]
+    assert [list(line.get_xdata()) for line in bars.get_lines()] == [[3, 3]]
+
+
+def test_without_a_floor_the_figure_draws_no_floor_lines():
+    from toy_results import floored_result
+
+    _, curve = model_probability_figure(floored_result(floor=None)).axes
+    assert [line.get_label() for line in curve.get_lines()] == ["linear", "cubic"]

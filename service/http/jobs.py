@@ -448,12 +448,16 @@ class JobManager:
 
     @staticmethod
     def _progress(pop, models: list[str], n_simulations_total: int, elapsed_s: float, rate: float | None) -> dict:
-        """A population event: the model probabilities by model name."""
+        """A population event: the model probabilities by model name; the noise floor and the
+        decision tolerance as estimated after the population (null while the run knows none)."""
+        floor = pop.floor
         return {
             "population": pop.t, "epsilon": pop.epsilon, "epsilon_next": pop.epsilon_next,
             "acceptance_rate": pop.acceptance_rate, "simulations": int(n_simulations_total),
             "model_probabilities": {name: float(p) for name, p in zip(models, pop.model_probabilities)},
             "elapsed_s": float(elapsed_s), "simulations_per_s": rate,
+            "noise_floor": None if floor is None else floor.floor,
+            "decision_tolerance": None if floor is None else floor.decision,
         }
 
     def _backfill(self, job: JobRecord) -> None:

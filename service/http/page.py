@@ -30,7 +30,8 @@ STYLE = r"""
  .card h2{font-size:1em;margin:0 0 .3em} .kv span{display:inline-block;margin-right:1.4em} .kv b{font-variant-numeric:tabular-nums}
  svg{width:100%;height:230px} .axis{stroke:#777;stroke-width:1} .grid{stroke:#e4e4e4;stroke-width:1} .lbl{font-size:11px;fill:#333}
  .axis-title{font-size:12px;fill:#111} .hist{display:inline-block;margin:0 1.4em .8em 0} .hist svg{width:240px;height:112px}
- .gap{margin-top:1em}
+ .gap{margin-top:1em} .mark{stroke:#000;stroke-width:1.2} .mark-label{font-size:11px;fill:#000}
+ svg text{stroke:none}
  .status-running{color:#b60} .status-finished{color:#070} .status-failed{color:#b00} .status-cancelled{color:#777}
 #warnings{color:#a40;margin:.5em 0;padding-left:1.2em}
 """
@@ -111,7 +112,10 @@ function tickText(x) { const a = Math.abs(x); return (a === 0 || (a >= 1e-3 && a
 function line(svg, series, opts) {
   const W = 500, H = 230, L = 58, R = 12, T = 10, B = 40;  // the plot area: x in [L, W - R], y in [T, H - B]
   svg.setAttribute("viewBox", `0 0 ${W} ${H}`);
-  const xs = series.flatMap(s => s.points.map(p => p[0])), ys = series.flatMap(s => s.points.map(p => p[1]));
+  // marks: dashed lines across the plot at {x} or {y}, each with its label (the floor, the decision)
+  const marks = opts.marks || [];
+  const xs = series.flatMap(s => s.points.map(p => p[0])),
+        ys = series.flatMap(s => s.points.map(p => p[1])).concat(marks.filter(m => m.y !== undefined).map(m => m.y));
   const titles = [sv("text", {class: "axis-title", x: L + (W - L - R) / 2, y: H - 4, "text-anchor": "middle"}, "population"),
     sv("text", {class: "axis-title", x: 0, y: 0, "text-anchor": "middle",
                 transform: `translate(13,${T + (H - B - T) / 2}) rotate(-90)`}, opts.ylabel)];
@@ -134,6 +138,14 @@ function line(svg, series, opts) {
     const d = s.points.map((p, i) => (i ? "L" : "M") + X(p[0]).toFixed(1) + "," + Y(p[1]).toFixed(1)).join("");
     out.push(sv("path", {d: d, fill: "none", stroke: s.color, "stroke-width": 1.6}));
   }
+  for (const m of marks) {
+    const at = m.x !== undefined ? {x1: X(m.x), y1: T, x2: X(m.x), y2: H - B} : {x1: L, y1: Y(m.y), x2: W - R, y2: Y(m.y)};
+    const left = m.x !== undefined && X(m.x) > L + (W - L - R) / 2;  // a label beside its line, inside the plot
+    const where = m.x !== undefined ? {x: X(m.x) + (left ? -3 : 3), y: T + 10, "text-anchor": left ? "end" : "start"}
+                                    : {x: W - R - 2, y: Y(m.y) - 3, "text-anchor": "end"};
+    out.push(sv("line", Object.assign({class: "mark", "stroke-dasharray": m.dash || "5,3"}, at)),
+             sv("text", Object.assign({class: "mark-label"}, where), m.label));
+  }
   svg.replaceChildren(...out);
 }
 
@@ -155,24 +167,41 @@ function hist(values, label, color) {
 
 function leader(probs) { let k = 0; probs.forEach((p, i) => { if (p > probs[k]) k = i; }); return k; }
 
+// the population the answer is read at: the lowest tolerance at or above the decision
+// tolerance as the last population estimates it (abcns.result.Result.decision_population);
+// the last population while the run knows no noise floor
+function decisionPop() {
+  const p = pops[pops.length - 1];
+  if (!p || p.decision_tolerance === null || p.decision_tolerance === undefined) return p;
+  const above = pops.filter(q => q.epsilon >= p.decision_tolerance * (1 - 1e-12));
+  return above.length ? above.reduce((a, b) => (b.epsilon <= a.epsilon ? b : a)) : pops[0];
+}
+
 function render() {
   const p = pops[pops.length - 1];
   if (p) {
-    const probs = probsOf(p, modelNames);
     text("population", p.population); text("epsilon", fmt(p.epsilon)); text("eps-unit", unit);
     text("acceptance", p.acceptance_rate.toFixed(3)); text("simulations", p.simulations); text("elapsed", p.elapsed_s.toFixed(1));
-    const k = leader(probs);
-    text("leader", (modelNames[k] || "model " + (k + 1)) + " (" + probs[k].toFixed(2) + ")");
   }
+  const d = decisionPop(), known = p && p.decision_tolerance !== null && p.decision_tolerance !== undefined;
+  if (d) {  // the leading model where the answer is read, and which tolerance that is
+    const probs = probsOf(d, modelNames), k = leader(probs);
+    text("leader", (modelNames[k] || "model " + (k + 1)) + " (" + probs[k].toFixed(2) + ")");
+    text("answer-at", known ? `population ${d.population}, \u03b5 ${fmt(d.epsilon)}${unit} (decision tolerance ${fmt(p.decision_tolerance)}${unit}, noise floor ${fmt(p.noise_floor)}${unit})`
+                            : `population ${d.population} (the last: no noise floor yet)`);
+  }
+  const epsMarks = known ? [{y: Math.log10(p.decision_tolerance), label: "decision " + fmt(p.decision_tolerance) + unit},
+                            {y: Math.log10(p.noise_floor), label: "noise floor " + fmt(p.noise_floor) + unit, dash: "2,3"}] : [];
   line(document.getElementById("eps"), [{color: EPS_COLOR, points: pops.map(q => [q.population, Math.log10(q.epsilon)])}],
        {ylabel: "tolerance \u03b5" + (unit ? " (" + unit.trim() + ")" : ""), fmt: v => tickText(Math.pow(10, v)),
-        yticks: logTicks});  // a log axis labelled with the tolerance itself
+        yticks: logTicks, marks: epsMarks});  // a log axis labelled with the tolerance itself
   line(document.getElementById("acc"), [{color: ACC_COLOR, points: pops.map(q => [q.population, q.acceptance_rate])}],
        {y0: 0, y1: 1, ylabel: "acceptance rate", fmt: tickText});
   const n = pops.length ? probsOf(pops[0], modelNames).length : modelNames.length;
   line(document.getElementById("probs"), Array.from({length: n}, (_, i) => ({color: COLORS[i % COLORS.length],
        points: pops.map(q => [q.population, probsOf(q, modelNames)[i]])})),
-       {y0: 0, y1: 1, ylabel: "model probability", fmt: tickText});
+       {y0: 0, y1: 1, ylabel: "model probability", fmt: tickText,
+        marks: known ? [{x: d.population, label: "answer (population " + d.population + ")"}] : []});
   const legend = Array.from({length: n}, (_, i) => { const s = el("span", {class: "model"}, "\u25A0 " + (modelNames[i] || "model " + (i + 1)) + "  ");
     s.style.color = COLORS[i % COLORS.length]; return s; });
   document.getElementById("legend").replaceChildren(...legend);
@@ -271,12 +300,12 @@ VIEW = ("<!doctype html><html><head><title>abcns job</title>" + _HEAD + r"""</he
 <div class="kv card"><span>status <b id="status">-</b></span><span>population <b id="population">-</b></span>
 <span>tolerance <b id="epsilon">-</b><b id="eps-unit"></b></span><span>acceptance <b id="acceptance">-</b></span>
 <span>simulations <b id="simulations">-</b></span><span>elapsed <b id="elapsed">-</b> s</span>
-<span>leading model <b id="leader">-</b></span><span>workers <b id="workers">-</b></span></div>
+<span>leading model <b id="leader">-</b></span><span>answer read at <b id="answer-at">-</b></span><span>workers <b id="workers">-</b></span></div>
 <ul id="warnings"></ul>
 <div class="grid gap">
  <div class="card"><h2>tolerance per population (log scale)</h2><svg id="eps"></svg></div>
  <div class="card"><h2>acceptance rate per population</h2><svg id="acc"></svg></div>
- <div class="card"><h2>model probabilities per population</h2><svg id="probs"></svg><div id="legend"></div></div>
+ <div class="card"><h2>model probabilities per population (dashed: where the answer is read)</h2><svg id="probs"></svg><div id="legend"></div></div>
  <div class="card"><h2>marginals of the leading model (last population; particles per bar)</h2><div id="hists"></div></div>
 </div>
 <p id="error"></p>

@@ -24,6 +24,8 @@ class ProgressOut(BaseModel):
     model_probabilities: dict[str, float]  # by model name
     elapsed_s: float
     simulations_per_s: float | None = None
+    noise_floor: float | None = None  # abcns.noise.Floor.floor after this population; null without a floor
+    decision_tolerance: float | None = None  # the floor plus its spread: the answer is read at or above it
 
 
 class JobInfo(BaseModel):

@@ -4,7 +4,8 @@ Each ``*_figure`` function returns a :class:`matplotlib.figure.Figure`; :func:`p
 writes every figure of a finished store to a directory (``abcns plot``).
 
 - :func:`tolerance_figure`: tolerance and acceptance rate per population (Figs. 2, 12, 21);
-- :func:`model_probability_figure`: model probabilities per population (Figs. 11, 19, 23);
+- :func:`model_probability_figure`: model probabilities per population (Figs. 11, 19, 23) and
+  against the tolerance, with the noise floor and the decision tolerance;
 - :func:`marginals_figure`, :func:`pairs_figure`: one model's final population, with the
   truth when known (Figs. 9, 13);
 - :func:`predictive_figure`: observed record with the predictive median, 50 % and 99 %
@@ -21,10 +22,11 @@ import numpy as np
 from matplotlib import colormaps
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
-from matplotlib.ticker import MaxNLocator, ScalarFormatter
+from matplotlib.ticker import LogFormatter, MaxNLocator, ScalarFormatter
 
 from abcns import Result
 from abcns.analysis import Confusion, Predictive
+from abcns.noise import METHODS
 from service.report.colours import model_colour
 
 
@@ -50,21 +52,49 @@ def tolerance_figure(result: Result, unit: str = "") -> Figure:
     return fig
 
 
-def model_probability_figure(result: Result) -> Figure:
+def model_probability_figure(result: Result, unit: str = "") -> Figure:
+    """Model probabilities per population (the paper's figures, stacked bars) and p_m(eps)
+    against the tolerance, with the noise floor and the decision tolerance (docs/design.md,
+    "The noise floor and the decision tolerance") as vertical lines; the answer is read at the
+    decision population, marked in both panels. ``unit``: the distance's ("%" for the NMSE)."""
     pops = result.populations
     t = np.array([p.t for p in pops])
+    eps = np.array([p.epsilon for p in pops])
     probs = np.stack([p.model_probabilities for p in pops])
-    fig = Figure(figsize=(7, 3.8), layout="constrained")
-    ax = fig.subplots()
+    answer = result.decision_population()
+    k = answer.t - 1
+    fig = Figure(figsize=(12, 3.8), layout="constrained")
+    ax, ax_eps = fig.subplots(1, 2)
     width = 0.8 if len(t) < 60 else 1.0
     bottom = np.zeros(len(t))
     for i, name in enumerate(result.model_names):
-        ax.bar(t, probs[:, i], width, bottom=bottom, label=f"{name} (final {probs[-1, i]:.2f})",
-               color=model_colour(i), linewidth=0)
+        at = f"answer {probs[k, i]:.2f}" + ("" if answer is result.final else f", final {probs[-1, i]:.2f}")
+        ax.bar(t, probs[:, i], width, bottom=bottom, label=f"{name} ({at})", color=model_colour(i), linewidth=0)
         bottom += probs[:, i]
+    if answer is not result.final:
+        ax.axvline(answer.t, color="k", ls="--", lw=1, label=f"decision: population {answer.t}")
     ax.set(xlabel="population", ylabel="model probability", ylim=(0, 1), xlim=(t[0] - 0.5, t[-1] + 0.5),
            title="model probabilities per population")
     ax.legend(loc="upper left", fontsize=8, framealpha=0.9)
+
+    shown = np.isfinite(eps) & (eps > 0)  # a log axis (a baseline's first tolerance may be infinite)
+    for i, name in enumerate(result.model_names):
+        ax_eps.plot(eps[shown], probs[shown, i], "o-", ms=3, color=model_colour(i), label=name)
+    floor = result.floor
+    if floor is not None:
+        ax_eps.axvline(floor.floor, color="0.3", ls=":", lw=1.5,
+                       label=f"noise floor {floor.floor:.4g}{' ' + unit if unit else ''} ({METHODS[floor.method]})")
+        ax_eps.axvline(floor.decision, color="k", ls="--", lw=1.2,
+                       label=f"decision tolerance {floor.decision:.4g}{' ' + unit if unit else ''}")
+    if shown.any():
+        ax_eps.set_xscale("log")
+        ax_eps.xaxis.set_major_formatter(LogFormatter())  # 3, 4, 6 rather than 3x10^0 on a short range
+        ax_eps.xaxis.set_minor_formatter(LogFormatter(minor_thresholds=(2, 0.5)))
+    ax_eps.invert_xaxis()  # the run goes from left to right
+    ax_eps.set(xlabel=_with_unit("tolerance $\\varepsilon$", unit), ylabel="model probability", ylim=(-0.02, 1.02),
+               title="$p_m(\\varepsilon)$: the answer is read at the decision tolerance")
+    ax_eps.grid(True, which="both", alpha=0.3)
+    ax_eps.legend(loc="best", fontsize=8, framealpha=0.9)
     return fig
 
 
@@ -283,7 +313,7 @@ def plot_result(result: Result, out: str | Path, truth: Mapping[str, float] | No
 
     out = Path(out)
     files = {"tolerance": save(tolerance_figure(result, unit), out / "tolerance.png"),
-             "model_probabilities": save(model_probability_figure(result), out / "model_probabilities.png")}
+             "model_probabilities": save(model_probability_figure(result, unit), out / "model_probabilities.png")}
     for i in result.alive():
         name = result.models[i].name
         files[f"marginals_{name}"] = save(marginals_figure(result, i, truth), out / f"marginals_{name}.png")
