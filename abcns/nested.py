@@ -40,7 +40,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass
-from functools import partial
 
 import numpy as np
 
@@ -275,11 +274,8 @@ def finish_population(
         else:
             fallback = frame.box_ellipsoid()
         points = frame.to_frame(theta[rows, : model.n_dim])
-        fit: Callable[[np.ndarray], bd.Union] | None = None
         if settings.evidence:
-            fit = partial(bd.fit_union, enlargement=settings.enlargement, max_ellipsoids=settings.n_ellipsoids,
-                          fallback=fallback)
-            bound = fit(points)
+            bound = bd.fit_union(points, settings.enlargement, settings.n_ellipsoids, fallback)
         else:
             fitted = ell.fit(theta[np.sort(keep), : model.n_dim], fallback=fallback)
             bound = (ell.enlarge(fitted, settings.enlargement),)
@@ -287,7 +283,8 @@ def finish_population(
             if e.note:
                 notes.append(f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)")
         bounds.append(bound)
-        geometry_jobs.append(_geometry_job(bound, frame, points, fit))
+        geometry_jobs.append(_geometry_job(bound, frame, points, is_new[rows],
+                                           settings.enlargement if settings.evidence else None))
 
     # ---- proposals of t + 1
     acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
@@ -306,16 +303,17 @@ def finish_population(
                 tied=found is None)
 
 
-def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray,
-                  fit: Callable[[np.ndarray], bd.Union] | None) -> Geometry:
+def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, new: np.ndarray,
+                  enlargement: float | None) -> Geometry:
     """The measurement of one model's new bound, for :meth:`Step.evidence`: (log prior mass
     of the bound, its standard error, the share of the accepted region it holds, points
-    tested). The coverage is cross-validated when the bound is a fit of ``points`` (``fit``),
-    else the share of ``points`` the bound holds; then the volume by Monte Carlo."""
+    tested). The coverage is cross-validated on the ``new`` points (uniform in the region
+    sampled) when the bound is a fit of ``points`` with this ``enlargement`` (the evidence
+    variant), else the share of ``points`` the bound holds; then the volume by Monte Carlo."""
 
     def measure(geometry: np.random.Generator) -> GeometryResult:
-        if fit is not None:
-            cover, n_cover = bd.coverage(points, fit, geometry)
+        if enlargement is not None:
+            cover, n_cover = bd.coverage(points, bound, enlargement, geometry, new)
         else:
             cover, n_cover = float(np.mean(bd.n_inside(bound, points) > 0)), points.shape[0]
         log_v, log_v_se = bd.union_volume(bound, frame.inside, VOLUME_DRAWS, geometry)
