@@ -66,21 +66,20 @@ class Evidence:
 
 
 def log_share(k: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(log(k / n), its variance (1 - k/n) / k) elementwise; -inf and inf where k = 0."""
+    """(log a, its variance) for a share a of k successes in n binomial trials, elementwise.
+
+    The point is log(k / n); where k = 0, log((1/2) / (n + 1)) (finite: a share of zero
+    must not declare a model dead on its own). The variance is the delta method's
+    (1 - a) / (n a), evaluated at the Agresti-Coull estimate a = (k + 2) / (n + 4) (two
+    successes and two failures added): (n - k + 2) / ((n + 4)(k + 2)). At a = k / n it would
+    rest on the count of the rarer outcome, which is the error's own source: an acceptance
+    near 1 with fewer rejections than due is too high and its variance too small at once
+    (docs/design.md, "The evidence's standard error"). Infinite where n = 0."""
     k, n = np.asarray(k, float), np.asarray(n, float)
     with np.errstate(divide="ignore", invalid="ignore"):
-        share = np.where(n > 0, k / n, 0.0)
-        log = np.where(k > 0, np.log(share), -np.inf)
-        var = np.where(k > 0, (1.0 - share) / k, np.inf)
+        log = np.where(k > 0, np.log(k / np.maximum(n, 1.0)), np.log(0.5 / (n + 1.0)))
+        var = np.where(n > 0, (n - k + 2.0) / ((n + 4.0) * (k + 2.0)), np.inf)
     return log, var
-
-
-def log_share_smoothed(k: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """log((k + 1/2) / (n + 1)) and its variance: finite for k = 0 (a ratio that must not
-    declare a model dead on its own)."""
-    k, n = np.asarray(k, float), np.asarray(n, float)
-    r = (k + 0.5) / (n + 1.0)
-    return np.log(r), (1.0 - r) / ((n + 1.0) * r)
 
 
 def combine(a: np.ndarray, var_a: np.ndarray, b: np.ndarray, var_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

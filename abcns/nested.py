@@ -203,9 +203,6 @@ def finish_population(
         prev = previous.evidence
         assert prev is not None
         log_a, var_a = ev.log_share(n_accepted, n_proposed)
-        smooth_a, smooth_var = ev.log_share_smoothed(n_accepted, n_proposed)
-        log_a, var_a = np.where(n_accepted > 0, log_a, smooth_a), np.where(n_accepted > 0, var_a, smooth_var)
-        var_a = np.where(n_proposed > 0, var_a, np.inf)
         # binomial error of the held-out share, plus the error of its 1/n correction (which
         # halves the missed share: it is uncertain by as much as it corrects, 1 - c)
         n_cov = np.maximum(prev.n_coverage, 1)
@@ -224,7 +221,7 @@ def finish_population(
     n_new = np.bincount(which, weights=is_new, minlength=n_models)
     k_all = np.bincount(which, weights=below, minlength=n_models)
     k_r, n_r = np.where(n_new > 0, k_new, k_all), np.where(n_new > 0, n_new, counts)
-    log_r, var_r = ev.log_share_smoothed(k_r, n_r)
+    log_r, var_r = ev.log_share(k_r, n_r)
     log_z_next = np.where(capacity > 0, log_z + log_r, -np.inf)
     var_next = np.where(capacity > 0, var_z + var_r, np.inf)
     p_next, se_next = ev.probabilities(log_z_next, np.sqrt(var_next))
