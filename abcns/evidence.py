@@ -82,6 +82,29 @@ def log_share(k: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return log, var
 
 
+def log_coverage_variance(coverage: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Variance of log c for a coverage c measured by ``bounds.coverage`` on n points: the
+    binomial error of the held-out share (at least one point's worth), plus the error of its
+    1/n correction, which halves the share the half-fits miss and is uncertain by as much as
+    it corrects (1 - c); zero where nothing was measured (n = 0)."""
+    c, n = np.asarray(coverage, float), np.asarray(n, float)
+    m = np.maximum(n, 1.0)
+    return np.where(n > 0, np.maximum(1.0 - c, 1.0 / m) / (np.maximum(c, 1e-12) * m) + (1.0 - c) ** 2, 0.0)
+
+
+def coverage_term_next(coverage: np.ndarray, var_c: np.ndarray, w_pred: np.ndarray, log_r: np.ndarray) -> np.ndarray:
+    """What log c adds to the variance of the prediction log Z + log r + log c.
+
+    log Z holds -log c with the direct estimate's weight 1 - w (w: the prediction's weight),
+    so the sum holds +log c with weight w: its variance w^2 var_c replaces the (1 - w)^2 var_c
+    log Z carries, a change of (2 w - 1) var_c. The correction assumes the bound's misses lie
+    outside the region at the next tolerance; at worst they lie inside it, which is then short
+    of at most (1 - c) / r: that share enters as an error of its own size."""
+    r = np.exp(np.minimum(np.asarray(log_r, float), 0.0))
+    miss = np.minimum((1.0 - np.asarray(coverage, float)) / np.maximum(r, 1e-12), 1.0)
+    return (2.0 * np.asarray(w_pred, float) - 1.0) * var_c + miss**2
+
+
 def combine(a: np.ndarray, var_a: np.ndarray, b: np.ndarray, var_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Inverse-variance mean of two estimates (either may be missing: infinite variance)."""
     a, b = np.asarray(a, float), np.asarray(b, float)

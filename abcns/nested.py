@@ -197,33 +197,36 @@ def finish_population(
     alive_now = counts > 0
 
     # ---- evidence at eps_t: the prediction from t - 1 combined with this population's counts
+    # (docs/design.md, "The evidence's standard error", derives every term)
     if previous is None:  # rejection from the priors: Z = accepted / proposed, exactly
         log_z, var_z = ev.log_share(n_accepted, n_proposed)
+        cover, var_c, w_pred = np.ones(n_models), np.zeros(n_models), np.zeros(n_models)
     else:
         prev = previous.evidence
         assert prev is not None
         log_a, var_a = ev.log_share(n_accepted, n_proposed)
-        # binomial error of the held-out share, plus the error of its 1/n correction (which
-        # halves the missed share: it is uncertain by as much as it corrects, 1 - c)
-        n_cov = np.maximum(prev.n_coverage, 1)
-        var_c = np.where(prev.n_coverage > 0,
-                         np.maximum(1 - prev.coverage, 1 / n_cov) / (np.maximum(prev.coverage, 1e-12) * n_cov), 0.0)
-        var_c = var_c + (1 - prev.coverage) ** 2
-        direct = log_a + prev.log_volume - np.log(np.maximum(prev.coverage, 1e-12))
-        log_z, var_z = ev.combine(prev.log_z_next, prev.log_z_next_se**2, direct, var_a + prev.log_volume_se**2 + var_c)
+        cover = np.where(prev.n_coverage > 0, np.maximum(prev.coverage, 1e-12), 1.0)
+        var_c = ev.log_coverage_variance(cover, prev.n_coverage)
+        direct = log_a + prev.log_volume - np.log(cover)
+        var_pred = prev.log_z_next_se**2
+        log_z, var_z = ev.combine(prev.log_z_next, var_pred, direct, var_a + prev.log_volume_se**2 + var_c)
+        with np.errstate(invalid="ignore"):  # the prediction's weight in the combination
+            w_pred = np.where(np.isfinite(var_pred), np.nan_to_num(var_z / var_pred, nan=1.0, posinf=1.0), 0.0)
     log_z = np.where(alive_now, log_z, -np.inf)
     var_z = np.where(alive_now, var_z, np.inf)
     p_now, _ = ev.probabilities(log_z, np.sqrt(var_z))
 
-    # ---- prediction at eps_next: the share of each model's new particles below it
+    # ---- prediction at eps_next: the share of each model's new particles below it, times the
+    # coverage of the bound they were drawn from (its misses lie at the edge of the region at
+    # eps_t, outside the region at eps_next, so the share overstates the ratio by 1 / coverage)
     below = distances < eps_next
     k_new = np.bincount(which, weights=is_new & below, minlength=n_models)
     n_new = np.bincount(which, weights=is_new, minlength=n_models)
     k_all = np.bincount(which, weights=below, minlength=n_models)
     k_r, n_r = np.where(n_new > 0, k_new, k_all), np.where(n_new > 0, n_new, counts)
     log_r, var_r = ev.log_share(k_r, n_r)
-    log_z_next = np.where(capacity > 0, log_z + log_r, -np.inf)
-    var_next = np.where(capacity > 0, var_z + var_r, np.inf)
+    log_z_next = np.where(capacity > 0, log_z + log_r + np.log(cover), -np.inf)
+    var_next = np.where(capacity > 0, var_z + var_r + ev.coverage_term_next(cover, var_c, w_pred, log_r), np.inf)
     p_next, se_next = ev.probabilities(log_z_next, np.sqrt(var_next))
 
     # ---- deaths and survivor quotas
