@@ -25,8 +25,8 @@ Two variants (``NSSettings.variant``):
   each model's evidence (``abcns.evidence``); survivors follow the probability predicted at
   eps_{t+1} (at least 2 (d + 1) each while a model has them), proposals follow it too
   (p / acceptance, with a floor per alive model); a model dies when it has no particle below
-  eps_{t+1}, or when its probability plus three standard errors falls below
-  ``min_model_probability``. Bounds are fitted in the unit prior box to every particle below
+  eps_{t+1}, or when its probability plus three standard errors at the next tolerance falls
+  below ``min_model_probability`` in two populations in a row. Bounds are fitted in the unit prior box to every particle below
   eps_{t+1} (the region the next population must sample, not only the survivors) and split
   into several ellipsoids where that halves the volume (``abcns.bounds``).
 
@@ -234,7 +234,16 @@ def finish_population(
     notes: list[str] = []
     if settings.evidence:
         death[alive_now & (capacity == 0)] = ev.NO_PARTICLES
+        # by probability only when the previous population's prediction was below the threshold
+        # too: one population's error bar can be wrong (a few in a thousand beyond 3 standard
+        # errors), and death is for good
         improbable = alive_now & (capacity > 0) & (p_next + 3 * se_next < settings.death_probability)
+        if previous is not None:
+            assert previous.evidence is not None
+            p_was, se_was = ev.probabilities(previous.evidence.log_z_next, previous.evidence.log_z_next_se)
+            improbable &= p_was + 3 * se_was < settings.death_probability
+        else:
+            improbable[:] = False
         death[improbable] = ev.IMPROBABLE
         alive_next = death == ev.ALIVE
         shares = np.where(alive_next, p_next, 0.0)
