@@ -15,11 +15,14 @@ under eps. ABC-NS already counts what Z needs, every population:
   cross-validation when the bound is fitted), so the direct estimate is
   ``log Z = log a + log V - log c``, V the prior mass of B_m (Monte Carlo, in the unit box);
 - the share r_m of m's new particles below the next tolerance predicts Z_m(eps_{t+1}) =
-  Z_m(eps_t) r_m (the nested-sampling recursion).
+  Z_m(eps_t) r_m c_m (the nested-sampling recursion; c_m the coverage of the bound the new
+  particles came from, whose misses lie at the edge of the region at eps_t).
 
 Each population's log Z combines the prediction from the previous population and the direct
-estimate by inverse variance (binomial variances on the log scale; delta method), so the
-estimate gathers information over populations. Pure functions on arrays, one entry per model.
+estimate by inverse variance (binomial variances on the log scale at the Agresti-Coull
+estimate; delta method), so the estimate gathers information over populations. Every term of
+the standard error is derived in docs/design.md ("The evidence's standard error"). Pure
+functions on arrays, one entry per model.
 """
 
 from __future__ import annotations

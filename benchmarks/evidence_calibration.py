@@ -9,7 +9,8 @@ A check is one model in one population, from the third population on (as
 ``tests/test_closed_form.py``'s ``check_evidence``), where the model holds at least 100
 particles: z = (log Z - exact) / its standard error. If the standard error is right, z is
 close to a standard normal: sd 1, |z| > 3 in 0.27 % of checks, |z| > 4 in 0.006 %. The
-largest |p - exact| is over every model of every population from the third on. Deaths by
+largest |p - exact| is over every model of every population from the third on, and p's own
+z-scores, (p - exact) / its standard error, are those of the first model there. Deaths by
 probability are counted with the exact probability of the model at that population's next
 tolerance (a death is wrong when that exact p is above the threshold).
 """
@@ -62,13 +63,13 @@ def problem(toy: str):
 def one(toy: str, seed: int, batch: int) -> dict:
     """The checks of one toy and seed."""
     from abcns import NSSettings, StopRules, run
-    from abcns.evidence import IMPROBABLE
+    from abcns.evidence import IMPROBABLE, probabilities
 
     models, evaluate, exact_log_z = problem(toy)
     ns, stop = TOYS[toy]
     settings = NSSettings(particles=1000, batch_size=batch, **ns)
     r = run(models, evaluate, settings, StopRules(min_epsilon_decrease=None, **stop), seed=seed)
-    checks, p_err, deaths = [], 0.0, []
+    checks, p_err, p_z, deaths = [], 0.0, [], []
     for pop in r.populations:
         ev = pop.evidence
         exact = exact_log_z(pop.epsilon)
@@ -80,19 +81,22 @@ def one(toy: str, seed: int, batch: int) -> dict:
         if pop.t < 3:
             continue
         p_err = max(p_err, float(np.max(np.abs(pop.model_probabilities - p_exact))))
+        _, p_se = probabilities(ev.log_z, ev.log_z_se)
+        if p_se[0] > 0:  # two models: the second's z is the first's, negated
+            p_z.append(float((pop.model_probabilities[0] - p_exact[0]) / p_se[0]))
         for m in range(len(models)):
             if counts[m] >= MIN_PARTICLES:
                 checks.append({"t": pop.t, "m": m, "n": int(counts[m]), "z": float((ev.log_z[m] - exact[m]) / ev.log_z_se[m]),
                                "se": float(ev.log_z_se[m]), "err": float(ev.log_z[m] - exact[m]),
                                "accepted": int(ev.n_accepted[m]), "proposed": int(ev.n_proposed[m])})
     return {"toy": toy, "seed": seed, "populations": len(r.populations), "checks": checks, "p_err": p_err,
-            "deaths": deaths}
+            "p_z": p_z, "deaths": deaths}
 
 
 def table(rows: list[dict], threshold: float) -> list[str]:
     out = ["| toy | seeds | checks | mean z | sd z | |z| > 3 | |z| > 4 | worst z (seed, t, model) "
-           "| max |p - exact| | deaths by p (wrong) |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
+           "| max |p - exact| | p: sd z, |z| > 3 | deaths by p (wrong) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for toy in dict.fromkeys(r["toy"] for r in rows):
         mine = [r for r in rows if r["toy"] == toy]
         checks = [(r["seed"], c) for r in mine for c in r["checks"]]
@@ -100,10 +104,12 @@ def table(rows: list[dict], threshold: float) -> list[str]:
         worst_seed, worst = max(checks, key=lambda sc: abs(sc[1]["z"]))
         deaths = [d for r in mine for d in r["deaths"]]
         wrong = sum(d["p_exact_next"] > threshold for d in deaths)
+        zp = np.array([v for r in mine for v in r.get("p_z", [])])
+        p_cal = f"{zp.std(ddof=1):.3f}, {np.mean(np.abs(zp) > 3):.2%}" if zp.size > 1 else "—"
         out.append(f"| {toy} | {len(mine)} | {z.size:,} | {z.mean():+.3f} | {z.std(ddof=1):.3f} "
                    f"| {np.mean(np.abs(z) > 3):.2%} | {np.mean(np.abs(z) > 4):.2%} "
                    f"| {worst['z']:+.2f} ({worst_seed}, {worst['t']}, {worst['m']}) "
-                   f"| {max(r['p_err'] for r in mine):.3f} | {len(deaths)} ({wrong}) |")
+                   f"| {max(r['p_err'] for r in mine):.3f} | {p_cal} | {len(deaths)} ({wrong}) |")
     return out
 
 

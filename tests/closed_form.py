@@ -81,3 +81,36 @@ def balls_4_and_5():
 def balls_4_and_5_log_evidence(eps):
     """Exact log Z of :func:`balls_4_and_5` (eps <= 0.5)."""
     return np.log([np.pi**2 / 2 * (eps / 2) ** 4, 8 * np.pi**2 / 15 * eps**5])
+
+
+def _uniform_ball(centre, radius, n, rng):
+    d = len(centre)
+    g = rng.standard_normal((n, d))
+    g /= np.linalg.norm(g, axis=1)[:, None]
+    return np.asarray(centre) + radius * g * (rng.random(n) ** (1.0 / d))[:, None]
+
+
+def two_models_region(m, eps, n, rng, a=(5.0, 20.0)):
+    """n draws of model m's theta given |s - S_OBS| < eps (:func:`two_models`), in its unit
+    prior box: the accepted mass the evidence counts (rejection from theta within 8 of the
+    data, where all but 1e-15 of it lies)."""
+    lo, hi = max(-a[m], S_OBS - eps - 8), min(a[m], S_OBS + eps + 8)
+    out, got = [], 0
+    while got < n:
+        theta = rng.uniform(lo, hi, 4 * n)
+        keep = theta[np.abs(theta + rng.standard_normal(theta.size) - S_OBS) < eps]
+        out.append(keep)
+        got += keep.size
+    return ((np.concatenate(out)[:n] + a[m]) / (2 * a[m]))[:, None]
+
+
+def line_and_disc_region(m, eps, n, rng, x0=0.3, y0=0.6):
+    """n points uniform in model m's accepted set of :func:`line_and_disc` (eps <= 0.3)."""
+    if m == 0:
+        return (x0 + eps * (2 * rng.random(n) - 1))[:, None]
+    return _uniform_ball((x0, y0), eps, n, rng)
+
+
+def balls_4_and_5_region(m, eps, n, rng):
+    """n points uniform in model m's accepted ball of :func:`balls_4_and_5` (eps <= 0.5)."""
+    return _uniform_ball(np.full(4 + m, 0.5), eps / 2 if m == 0 else eps, n, rng)
