@@ -23,9 +23,20 @@ $(DEV): $(RUNTIME)
 	$(PIP) install --quiet -e '.[dev]'
 	touch $(DEV)
 
+# the authors' run as published (variant: paper), then the same data with the default
+# sampler (variant: evidence: model probabilities with their standard errors), then what next
 demo: $(RUNTIME)
-	rm -rf out/authors-demo.zarr
+	rm -rf out/authors-demo.zarr out/authors-demo-evidence.zarr
+	@echo "== The authors' run (examples/authors_demo/spec.yaml: variant paper, as published)"
 	$(BIN)/abcns run examples/authors_demo/spec.yaml --out out/authors-demo.zarr
+	@echo ""
+	@echo "== The same data with the default sampler (examples/authors_demo/evidence.yaml: variant evidence;"
+	@echo "   its model probabilities come with their standard errors)"
+	$(BIN)/abcns run examples/authors_demo/evidence.yaml --out out/authors-demo-evidence.zarr --quiet
+	@echo ""
+	@echo "Next: the figures:   $(BIN)/abcns plot out/authors-demo-evidence.zarr --out out/figures --spec examples/authors_demo/evidence.yaml"
+	@echo "      the live page: $(BIN)/abcns serve   (then open http://127.0.0.1:8000/ and send a job: abcns submit SPEC)"
+	@echo "      your own data: README.md, \"Your own data in 10 minutes\""
 
 test: $(DEV) browser
 	$(BIN)/ruff check abcns worker service tests benchmarks examples

@@ -18,10 +18,9 @@ from the generator it is given.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import functools
 
 import numpy as np
-from scipy.linalg.lapack import dtrtrs
 from scipy.special import gammaincinv, logsumexp
 
 from abcns import ellipsoid as ell
@@ -46,78 +45,36 @@ def min_points(d: int) -> int:
     return 2 * (d + 1)
 
 
-def _node(points: np.ndarray) -> tuple[float, np.ndarray, np.ndarray] | None:
-    """(log volume of the points' covariance ellipsoid scaled to hold them all, the points
-    whitened by that covariance, the covariance), or None when the covariance is singular.
-    The cheap part of ``ellipsoid.fit`` that the split search needs."""
-    n, d = points.shape
-    centred = points - points.sum(axis=0) / n  # the mean, as ``mean(axis=0)`` computes it
-    cov = centred.T @ centred / (n - 1)
-    try:
-        chol = np.linalg.cholesky(cov)
-    except np.linalg.LinAlgError:
-        return None
-    # solve_triangular(chol, centred.T, lower=True) without its argument checks (the factor
-    # of a finite covariance is finite): the LAPACK call it makes for a C-ordered factor
-    y = dtrtrs(chol.T, centred.T, lower=0, trans=1)[0].T
-    r2 = float((y * y).sum(axis=1).max())
-    if not r2 > 0:
-        return None
-    log_volume = ell._log_unit_ball(d) + float(np.log(chol.diagonal()).sum()) + 0.5 * d * np.log(r2)
-    return log_volume, y, cov
+def _tree_sets(points: np.ndarray, max_ellipsoids: int) -> list[np.ndarray] | None:
+    """The row sets (each ascending) of the at most ``max_ellipsoids`` ellipsoids of least
+    total volume that hold ``points``, or None when the points have no covariance
+    ellipsoid (singular covariance, or every point at the mean).
+
+    The tree: a node's ellipsoid is its points' covariance ellipsoid scaled to hold them
+    all; a node of at least 2 ``leaf`` points (``leaf`` = max(LEAF_POINTS, 2 (d + 1))) is
+    split by a 2-means clustering in whitened coordinates, started at the two points
+    farthest apart along the leading eigenvector of its covariance (deterministic,
+    ``KMEANS_ITERATIONS`` Lloyd steps at most), when both halves keep ``leaf`` and d + 1
+    points and have an ellipsoid; a node's best set of at most k ellipsoids is its own
+    ellipsoid, or its halves' best sets together (k1 for the first half, k - k1 for the
+    second, k1 of least total) when they hold less than ``SPLIT_GAIN`` of the volume of
+    its best set of at most k - 1. Compiled (``abcns.compiled.tree_rows``): only the
+    sets come from there, never an ellipsoid."""
+    from abcns import compiled
+
+    leaf = max(LEAF_POINTS, min_points(points.shape[1]))
+    ok, rows, offsets = compiled.tree_rows(np.ascontiguousarray(points, dtype=float), max_ellipsoids, leaf,
+                                           SPLIT_GAIN, KMEANS_ITERATIONS)
+    return [rows[a:b] for a, b in zip(offsets[:-1], offsets[1:])] if ok else None
 
 
-def two_means(points: np.ndarray, y: np.ndarray, axis: np.ndarray) -> np.ndarray:
-    """A 2-means clustering of ``points`` in whitened coordinates ``y``, started at the two
-    points farthest apart along ``axis`` (deterministic): which points are in the second
-    cluster (a boolean mask)."""
-    proj = points @ axis
-    centres = y[[np.argmin(proj), np.argmax(proj)]]
-    second = np.zeros(points.shape[0], dtype=bool)
-    for i in range(KMEANS_ITERATIONS):
-        # nearer to centre 1 than to centre 0: a half-space test
-        new = y @ (centres[1] - centres[0]) > 0.5 * (centres[1] @ centres[1] - centres[0] @ centres[0])
-        if i > 0 and (new == second).all():
-            break
-        second = new
-        for k, members in enumerate((~second, second)):
-            count = np.count_nonzero(members)
-            if count:  # the members' mean, as ``mean(axis=0)`` computes it
-                centres[k] = y[members].sum(axis=0) / count
-    return second
+def _radii(points: np.ndarray) -> np.ndarray | None:
+    """Squared whitened radii of the points in their covariance ellipsoid (None as
+    :func:`_tree_sets`)."""
+    from abcns import compiled
 
-
-def _tree(points: np.ndarray, rows: np.ndarray, log_volume: float, y: np.ndarray, cov: np.ndarray,
-          max_ellipsoids: int, leaf: int, log_root: float) -> list[tuple[float, list[np.ndarray]]]:
-    """``best[k - 1]``: (total volume relative to the root's, the row sets) of the at most k
-    ellipsoids of least total volume that hold ``points[rows]``: the node's own ellipsoid, or
-    the best choices of its two 2-means halves together (found the same way, recursively;
-    the halves are started along the leading eigenvector of the node's covariance ``cov``)."""
-    own = float(np.exp(log_volume - log_root))
-    best = [(own, [rows])] * max_ellipsoids
-    d = points.shape[1]
-    if max_ellipsoids < 2 or rows.size < 2 * leaf:
-        return best
-    in_second = two_means(points[rows], y, np.linalg.eigh(cov)[1][:, -1])
-    parts = [rows[~in_second], rows[in_second]]
-    if min(p.size for p in parts) < max(leaf, d + 1):
-        return best
-    halves = []
-    for part in parts:
-        node = _node(points[part])
-        if node is None:
-            return best
-        halves.append(_tree(points, part, node[0], node[1], node[2], max_ellipsoids - 1, leaf, log_root))
-    first, second = halves
-    for k in range(2, max_ellipsoids + 1):
-        # k1 ellipsoids for the first half, k - k1 for the second (the first k1 of least total)
-        k1 = min(range(1, k), key=lambda k1: first[k1 - 1][0] + second[k - k1 - 1][0])
-        total = first[k1 - 1][0] + second[k - k1 - 1][0]
-        if total < SPLIT_GAIN * best[k - 2][0]:
-            best[k - 1] = (total, first[k1 - 1][1] + second[k - k1 - 1][1])
-        else:
-            best[k - 1] = best[k - 2]
-    return best
+    ok, r2 = compiled.radii(np.ascontiguousarray(points, dtype=float))
+    return r2 if ok else None
 
 
 def outliers(y: np.ndarray) -> np.ndarray:
@@ -127,10 +84,13 @@ def outliers(y: np.ndarray) -> np.ndarray:
     never; a stochastic simulator's lucky draw far from the accepted region (which would
     otherwise make the bound ten times larger) is left out, and the cross-validated
     coverage counts what that leaves out."""
-    n, d = y.shape
-    r2 = np.sum(y * y, axis=1)
+    return _far(np.sum(y * y, axis=1), y.shape[1])
+
+
+def _far(r2: np.ndarray, d: int) -> np.ndarray:
+    """:func:`outliers` of points with squared whitened radii ``r2`` in d dimensions."""
     scale = float(np.median(r2)) / _chi2_quantile(0.5, d)
-    return r2 > _chi2_quantile(1.0 - OUTLIER_TAIL / n, d) * scale
+    return r2 > _chi2_quantile(1.0 - OUTLIER_TAIL / r2.shape[0], d) * scale
 
 
 def _chi2_quantile(q: float, d: int) -> float:
@@ -148,21 +108,17 @@ def fit_union(points: np.ndarray, enlargement: float, max_ellipsoids: int, fallb
     :func:`min_points` points; of the ellipsoids of that tree, the set of at most
     ``max_ellipsoids`` with the least total volume is kept (a node is replaced by its
     halves' best sets only when those hold less than ``SPLIT_GAIN`` of its volume)."""
-    root = _node(points) if max_ellipsoids > 1 and points.shape[0] > points.shape[1] else None
-    if root is not None:
-        far = outliers(root[1])
+    sets = None
+    if max_ellipsoids > 1 and points.shape[0] > points.shape[1] and (r2 := _radii(points)) is not None:
+        far = _far(r2, points.shape[1])
         if np.any(far) and np.count_nonzero(~far) > 2 * min_points(points.shape[1]):
             points = points[~far]
-            root = _node(points)
-    if root is None:
+        sets = _tree_sets(points, max_ellipsoids)
+    if sets is None or len(sets) == 1:
         chosen = [ell.fit(points, fallback=fallback)]
-    else:
-        leaf = max(LEAF_POINTS, min_points(points.shape[1]))
-        rows = np.arange(points.shape[0])
-        _, sets = _tree(points, rows, root[0], root[1], root[2], max_ellipsoids, leaf, root[0])[-1]
-        parent = ell.fit(points, fallback=fallback)
-        chosen = [parent] if len(sets) == 1 else [ell.fit(points[r], fallback=parent) for r in sets]
-    return tuple(ell.enlarge(e, enlargement) for e in chosen)
+    else:  # the points' own ellipsoid is the sets' fallback shape, made only if one needs it
+        chosen = ell.fit_many([points[r] for r in sets], fallback=lambda: ell.fit(points, fallback=fallback))
+    return tuple(ell.enlarge_many(chosen, enlargement))
 
 
 def n_inside(bound: Union, x: np.ndarray) -> np.ndarray:
@@ -174,14 +130,77 @@ def _log_volumes(bound: Union) -> np.ndarray:
     return np.array([e.log_volume for e in bound])
 
 
+@functools.lru_cache(maxsize=256)
+def _volume_shares(bound: Union) -> tuple[float, np.ndarray]:
+    """(log of the ellipsoids' total volume, their cumulative volume shares as
+    ``Generator.choice`` makes them from ``p = exp(log v - logsumexp(log v))``), computed
+    once per bound (a bound is immutable; the cache holds the last 256, keyed by identity:
+    scipy's logsumexp costs ~0.1 ms a call)."""
+    logv = _log_volumes(bound)
+    total = float(logsumexp(logv))
+    cdf = np.exp(logv - total).cumsum()
+    cdf /= cdf[-1]
+    cdf.flags.writeable = False
+    return total, cdf
+
+
+_SQRT_EPS = float(np.sqrt(np.finfo(float).eps))
+
+
+def choose(cdf: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``rng.choice(len(p), size=n, p=p)`` for ``cdf = p.cumsum() / its last``, by the same
+    random numbers (``rng.random(n)`` searched in ``cdf``, as numpy does) at a fraction of
+    the call's cost on few draws."""
+    from abcns import compiled
+
+    return compiled.labels(cdf, rng.random(n))
+
+
+def cumulative(p: np.ndarray) -> np.ndarray:
+    """The ``cdf`` of :func:`choose` for probabilities ``p``, checked as ``Generator.choice``
+    checks them (non-negative, summing to 1 within sqrt(eps))."""
+    p = np.asarray(p, dtype=float)
+    if p.ndim != 1 or (p < 0).any() or not abs(float(p.sum()) - 1.0) <= _SQRT_EPS:
+        raise ValueError(f"probabilities must be non-negative and sum to 1, got {p}")
+    cdf = p.cumsum()
+    cdf /= cdf[-1]
+    return cdf
+
+
+def _mixture_draws(bound: Union, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The random numbers of ``n`` draws from the ellipsoids' volume-weighted mixture: which
+    ellipsoid each draw is from (``rng.choice(len(bound), size=n, p=volume shares)``'s
+    numbers, :func:`choose`), then each ellipsoid's normals and uniforms
+    (:func:`ellipsoid.unit_draws`) for its draws, in ellipsoid order: (which, normals,
+    uniforms), the last two the ellipsoids' draws one after the other."""
+    which = choose(_volume_shares(bound)[1], n, rng)
+    d = bound[0].n_dim
+    z, u = np.empty((n, d)), np.empty((n, 1))
+    at = 0
+    for k in np.bincount(which, minlength=len(bound)):
+        ell.unit_draws(d, int(k), rng, out=(z[at:at + k], u[at:at + k]))
+        at += k
+    return which, z, u
+
+
 def _mixture(bound: Union, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` draws from the ellipsoids' volume-weighted mixture (not yet uniform on the union)."""
-    logv = _log_volumes(bound)
-    k = rng.choice(len(bound), size=n, p=np.exp(logv - logsumexp(logv)))
-    x = np.empty((n, bound[0].n_dim))
-    for j, e in enumerate(bound):
-        rows = np.flatnonzero(k == j)
-        x[rows] = ell.sample(e, rows.size, rng)
+    return _place(bound, *_mixture_draws(bound, n, rng))
+
+
+def _place(bound: Union, which: np.ndarray, z: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The points of :func:`_mixture_draws`' numbers: ``ellipsoid.from_unit_draws`` of each
+    ellipsoid's, the elementwise steps done once for all (the same bits row by row)."""
+    w = ell.unit_ball_points(z, u)
+    grouped = np.empty_like(w)  # the points in ellipsoid order, as the numbers come
+    at = 0
+    for e, k in zip(bound, np.bincount(which, minlength=len(bound))):
+        part = grouped[at:at + k]
+        np.matmul(w[at:at + k], e.axes.T, out=part)
+        part += e.centre  # ellipsoid.in_ellipsoid's centre + w @ axes.T
+        at += k
+    x = np.empty_like(grouped)
+    x[np.argsort(which, kind="stable")] = grouped
     return x
 
 
@@ -201,20 +220,34 @@ def sample_union(bound: Union, n: int, rng: np.random.Generator) -> np.ndarray:
     return np.concatenate(got)
 
 
-def union_volume(
-    bound: Union, inside: Callable[[np.ndarray], np.ndarray], n_draws: int, rng: np.random.Generator
-) -> tuple[float, float]:
-    """(log vol(union ∩ {inside}), its standard error) by ``n_draws`` Monte Carlo draws.
+def union_volume(bound: Union, box: tuple[np.ndarray, np.ndarray], n_draws: int,
+                 rng: np.random.Generator) -> tuple[float, float]:
+    """(log vol(union ∩ box), its standard error) by ``n_draws`` Monte Carlo draws; ``box``
+    is (low, high), a point inside when ``low <= x <= high``.
 
-    vol = sum_k vol(E_k) * E[1{inside(x)} / q(x)] for x from the volume-weighted mixture,
-    q(x) the number of ellipsoids holding x (1 for a single ellipsoid)."""
-    x = _mixture(bound, n_draws, rng)
-    w = inside(x) / n_inside(bound, x) if len(bound) > 1 else inside(x).astype(float)
+    vol = sum_k vol(E_k) * E[1{x in box} / q(x)] for x from the volume-weighted mixture,
+    q(x) the number of ellipsoids holding x (1 for a single ellipsoid). The weights come
+    from a compiled loop (``abcns.compiled.mixture_weights``) that decides each point's box
+    and ellipsoids with margins covering both its rounding and numpy's, so they are those
+    of the points ``_mixture`` makes; when a point is too close to call, the points are made
+    (from the same random numbers) and tested in numpy."""
+    from abcns import compiled
+
+    low, high = (np.broadcast_to(np.asarray(v, dtype=float), (bound[0].n_dim,)) for v in box)
+    which, z, u = _mixture_draws(bound, n_draws, rng)
+    w, ok = compiled.mixture_weights(which, z, u[:, 0],
+                                     np.stack([e.centre for e in bound]), np.stack([e.axes for e in bound]),
+                                     np.ascontiguousarray(low), np.ascontiguousarray(high), ell.CONTAINS_SLACK,
+                                     len(bound) > 1)
+    if not ok:
+        x = _place(bound, which, z, u)
+        held = np.all((x >= low) & (x <= high), axis=-1)
+        w = held / n_inside(bound, x) if len(bound) > 1 else held.astype(float)
     mean = float(np.mean(w))
     if mean <= 0.0:
         return -np.inf, np.inf
     se = float(np.std(w, ddof=1)) / np.sqrt(n_draws) / mean if n_draws > 1 else np.inf
-    return float(logsumexp(_log_volumes(bound)) + np.log(mean)), se
+    return float(_volume_shares(bound)[0] + np.log(mean)), se
 
 
 def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.random.Generator,
@@ -266,12 +299,6 @@ def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.rando
     return n_in / n * (1.0 - 0.5 * missed), n
 
 
-def in_unit_box(x: np.ndarray) -> np.ndarray:
-    return np.all((x >= 0.0) & (x <= 1.0), axis=-1)
-
-
-
-
 class Frame:
     """The coordinates a model's bound lives in: its unit prior box ``(theta - low) / width``
     (so that a condition-number cap and a volume mean the same for every parameter), or the
@@ -291,11 +318,18 @@ class Frame:
     def from_frame(self, x: np.ndarray) -> np.ndarray:
         return self.low + self.width * x if self.unit else x
 
-    def inside(self, x: np.ndarray) -> np.ndarray:
-        """Which rows of ``x`` (in this frame) lie inside the prior box."""
-        if self.unit:
-            return in_unit_box(x)
-        return np.all((x >= self.low) & (x <= self.high), axis=-1)
+    @property
+    def box(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) of the prior box in these coordinates."""
+        d = self.low.shape[0]
+        return (np.zeros(d), np.ones(d)) if self.unit else (self.low, self.high)
+
+    def in_prior(self, theta: np.ndarray) -> np.ndarray:
+        """Which rows of ``theta`` (raw parameters) lie inside the prior box: the test of
+        ``Model.in_prior``, compiled."""
+        from abcns import compiled
+
+        return compiled.in_box(np.ascontiguousarray(theta, dtype=float), self.low, self.high)
 
     def box_ellipsoid(self) -> ell.Ellipsoid:
         """The ellipsoid through the prior box's corners (the first fallback shape)."""

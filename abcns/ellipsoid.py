@@ -18,8 +18,9 @@ Degenerate inputs are handled explicitly and reported in ``Ellipsoid.note``:
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,24 +44,38 @@ class Ellipsoid:
         return int(self.centre.shape[0])
 
 
+@functools.lru_cache(maxsize=64)
 def _log_unit_ball(d: int) -> float:
     return 0.5 * d * math.log(math.pi) - math.lgamma(0.5 * d + 1.0)
 
 
 def from_matrix(centre: np.ndarray, matrix: np.ndarray, note: str = "") -> Ellipsoid:
     """Build an ellipsoid from its centre and a symmetric positive-definite matrix."""
-    centre = np.asarray(centre, dtype=float).reshape(-1)
-    matrix = np.asarray(matrix, dtype=float)
-    d = centre.shape[0]
-    if matrix.shape != (d, d):
-        raise ValueError(f"matrix has shape {matrix.shape}, expected ({d}, {d}) for a {d}-d centre")
-    matrix = 0.5 * (matrix + matrix.T)
-    eigval, eigvec = np.linalg.eigh(matrix)
-    if not np.all(np.isfinite(eigval)) or eigval[0] <= 0.0:
-        raise ValueError(f"ellipsoid matrix must be positive definite; eigenvalues {eigval}")
-    axes = eigvec * np.sqrt(eigval)
-    log_volume = _log_unit_ball(d) + 0.5 * float(np.sum(np.log(eigval)))
-    return Ellipsoid(centre, matrix, axes, log_volume, note)
+    return from_matrices([centre], [matrix], [note])[0]
+
+
+def from_matrices(centres: Sequence[np.ndarray], matrices: Sequence[np.ndarray],
+                  notes: Sequence[str]) -> list[Ellipsoid]:
+    """:func:`from_matrix` of each (centre, matrix, note), of one dimension d, in one stacked
+    call of each numpy step (a stack gives each matrix the bits it gets alone)."""
+    cs = [np.asarray(c, dtype=float).reshape(-1) for c in centres]
+    d = cs[0].shape[0]
+    ms = [np.asarray(m, dtype=float) for m in matrices]
+    for c, m in zip(cs, ms):
+        if m.shape != (c.shape[0], c.shape[0]) or c.shape[0] != d:
+            raise ValueError(f"matrix has shape {m.shape}, expected ({c.shape[0]}, {c.shape[0]}) for a "
+                             f"{c.shape[0]}-d centre")
+    stack = np.stack(ms)
+    stack = 0.5 * (stack + stack.transpose(0, 2, 1))
+    eigval, eigvec = np.linalg.eigh(stack)
+    for ev in eigval:
+        if not np.isfinite(ev).all() or ev[0] <= 0.0:
+            raise ValueError(f"ellipsoid matrix must be positive definite; eigenvalues {ev}")
+    axes = eigvec * np.sqrt(eigval)[:, None, :]
+    log_det = np.sum(np.log(eigval), axis=1)
+    lub = _log_unit_ball(d)
+    return [Ellipsoid(c, stack[i].copy(), axes[i].copy(), lub + 0.5 * float(log_det[i]), note)
+            for i, (c, note) in enumerate(zip(cs, notes))]
 
 
 def from_box(low: np.ndarray, high: np.ndarray) -> Ellipsoid:
@@ -101,10 +116,12 @@ def n_containing(ells: Sequence[Ellipsoid], x: np.ndarray) -> np.ndarray:
     """How many of ``ells`` hold each row of ``x`` (:func:`contains` of each, counted).
 
     Always the counts of ``mahalanobis2_each(ells, x) <= 1 + CONTAINS_SLACK``, bit for bit,
-    at about half its cost: the squared distances are first computed with the inverses of
-    the ``axes`` (a product instead of an LU solve), and used only if no point lies within
-    their proven error of the threshold; otherwise (rare) the whole call is redone by that
-    exact expression.
+    at a fraction of its cost: the squared distances are first computed with the inverses
+    of the ``axes`` (a product instead of an LU solve, in one compiled pass over the points:
+    ``abcns.compiled.count_inside``), and used only if no point lies within their proven
+    error of the threshold; otherwise (rare) the whole call is redone by that exact
+    expression. (The bound below holds for any order of the sums, so for the compiled loops
+    as for BLAS.)
 
     Error bound, relative, for ``A = axes``, the computed inverse ``X``, ``u = eps`` (twice
     the unit roundoff), ``kappa = |A|_F |X|_F`` and the same ``diff = x - centre`` both ways
@@ -130,38 +147,24 @@ def n_containing(ells: Sequence[Ellipsoid], x: np.ndarray) -> np.ndarray:
     return np.sum(mahalanobis2_each(ells, x) <= 1.0 + CONTAINS_SLACK, axis=0) if counts is None else counts
 
 
-def _frobenius2(a: np.ndarray) -> np.ndarray:
-    """Squared Frobenius norms of a stack of matrices (k, d, d)."""
-    return np.einsum("kij,kij->k", a, a)
-
-
 def _n_containing_fast(ells: Sequence[Ellipsoid], x: np.ndarray) -> np.ndarray | None:
-    """:func:`n_containing` by the inverses of ``axes``; None when it cannot be sure."""
+    """:func:`n_containing` by the inverses of ``axes`` (compiled:
+    ``abcns.compiled.count_inside``, one pass over the points); None when it cannot be sure
+    (and on any input the exact path should judge: a bad shape or type, a singular matrix)."""
     x = np.atleast_2d(x)
-    if x.ndim != 2:
+    if x.ndim != 2 or x.dtype.kind not in "biuf" or not ells:
         return None
-    axes = np.stack([e.axes for e in ells])
-    centres = np.stack([e.centre for e in ells])
-    d = centres.shape[1]
-    u = np.finfo(float).eps
-    with np.errstate(all="ignore"):
-        try:  # on a bad shape or a singular matrix, the exact path raises its own error
-            diff = np.ascontiguousarray(x.T)[None, :, :] - centres[:, :, None]  # mahalanobis2_each's, transposed
-            inv = np.linalg.inv(axes)
-        except ValueError:  # np.linalg.LinAlgError included
+    from abcns import compiled
+
+    try:  # on a bad shape or a singular matrix, the exact path raises its own error
+        axes = np.stack([e.axes for e in ells]).astype(float, copy=False)
+        centres = np.stack([e.centre for e in ells]).astype(float, copy=False)
+        if axes.shape[1:] != (x.shape[1], x.shape[1]) or centres.shape[1] != x.shape[1]:
             return None
-        residual = inv @ axes - np.eye(d)
-        kappa = np.sqrt(_frobenius2(axes) * _frobenius2(inv))
-        m = 10.0 * float(np.max(np.sqrt(_frobenius2(residual)) + (d + 1 + 4 * d**3 * 2.0**d) * u * kappa))
-        if not m <= 1e-3:
-            return None
-        y = inv @ diff
-        d2 = np.einsum("kin,kin->kn", y, y)
-        t = 1.0 + CONTAINS_SLACK
-        lo, hi = t * (1.0 - 2.0 * m), t * (1.0 + 2.0 * m)
-        if not np.all((d2 < lo) | ((d2 > hi) & (d2 <= 1e300))):
-            return None
-    return np.sum(d2 <= t, axis=0)
+        counts, ok = compiled.count_inside(np.ascontiguousarray(x.T, dtype=float), axes, centres, CONTAINS_SLACK)
+    except ValueError:  # np.linalg.LinAlgError included
+        return None
+    return counts if ok else None
 
 
 def enlarge(ell: Ellipsoid, f0: float) -> Ellipsoid:
@@ -169,36 +172,83 @@ def enlarge(ell: Ellipsoid, f0: float) -> Ellipsoid:
 
     The result is built by :func:`from_matrix`, so an ellipsoid stored as (centre, matrix)
     and rebuilt with ``from_matrix`` is bit-identical to it (resume depends on this)."""
+    return enlarge_many([ell], f0)[0]
+
+
+def enlarge_many(ells: Sequence[Ellipsoid], f0: float) -> list[Ellipsoid]:
+    """:func:`enlarge` of each (one stacked :func:`from_matrices`)."""
     if not f0 > 0:
         raise ValueError(f"enlargement factor must be > 0, got {f0}")
-    return from_matrix(ell.centre, ell.matrix * f0, ell.note)
+    return from_matrices([e.centre for e in ells], [e.matrix * f0 for e in ells], [e.note for e in ells])
 
 
 def sample(ell: Ellipsoid, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` points uniform inside the ellipsoid, shape (n, d)."""
-    d = ell.n_dim
-    z = rng.standard_normal((n, d))
+    z, u = unit_draws(ell.n_dim, n, rng)
+    return from_unit_draws(ell, z, u)
+
+
+def unit_draws(d: int, n: int, rng: np.random.Generator,
+               out: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The random numbers of :func:`sample`: normals (n, d) (directions) and uniforms (n, 1)
+    (radii), drawn in that order (into ``out``'s C-contiguous arrays when given: the same
+    numbers)."""
+    if out is None:
+        return rng.standard_normal((n, d)), rng.random((n, 1))
+    rng.standard_normal(out=out[0])
+    rng.random(out=out[1])
+    return out
+
+
+def from_unit_draws(ell: Ellipsoid, z: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The points of :func:`sample` from its random numbers: ``centre + axes (u^(1/d) z / |z|)``."""
+    return in_ellipsoid(ell, unit_ball_points(z, u))
+
+
+def unit_ball_points(z: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Points uniform in the unit ball from normals ``z`` (n, d) and uniforms ``u`` (n, 1):
+    ``u^(1/d) z / |z|`` (row by row: the same bits for any stack of rows)."""
     norms = np.sqrt((z * z).sum(axis=1, keepdims=True))  # np.linalg.norm(z, axis=1), same sum
     norms[norms == 0.0] = 1.0
-    radius = rng.random((n, 1)) ** (1.0 / d)
-    return ell.centre + (radius * z / norms) @ ell.axes.T
+    radius = u ** (1.0 / z.shape[1])
+    return radius * z / norms
 
 
-def _repair(cov: np.ndarray, max_condition: float, scale: float) -> tuple[np.ndarray, bool] | None:
-    """Clip small eigenvalues; None when the covariance carries no usable shape (not
-    finite, or no spread above the rounding error of coordinates of size ``scale``)."""
-    cov = 0.5 * (cov + cov.T)
-    if not np.all(np.isfinite(cov)):
-        return None
-    eigval, eigvec = np.linalg.eigh(cov)
-    top = eigval[-1]
-    if not top > (1e3 * np.finfo(float).eps * scale) ** 2:
-        return None
-    floor = top / max_condition
-    if eigval[0] >= floor:
-        return cov, False
-    eigval = np.maximum(eigval, floor)
-    return (eigvec * eigval) @ eigvec.T, True
+def in_ellipsoid(ell: Ellipsoid, w: np.ndarray) -> np.ndarray:
+    """The unit ball's points ``w`` (n, d) mapped into the ellipsoid: ``centre + axes w``."""
+    return ell.centre + w @ ell.axes.T
+
+
+def _repair(covs: np.ndarray, max_condition: float, scales: Sequence[float]) -> list[tuple[np.ndarray, bool] | None]:
+    """Clip small eigenvalues of each covariance (k, d, d); None where one carries no usable
+    shape (not finite, or no spread above the rounding error of coordinates of size its
+    ``scales``)."""
+    covs = 0.5 * (covs + covs.transpose(0, 2, 1))
+    out: list[tuple[np.ndarray, bool] | None] = [None] * covs.shape[0]
+    finite = [i for i in range(covs.shape[0]) if np.isfinite(covs[i]).all()]
+    if not finite:
+        return out
+    eigval, eigvec = np.linalg.eigh(covs[finite])
+    for i, ev, vec in zip(finite, eigval, eigvec):
+        top = ev[-1]
+        if not top > (1e3 * np.finfo(float).eps * scales[i]) ** 2:
+            continue
+        floor = top / max_condition
+        if ev[0] >= floor:
+            out[i] = covs[i].copy(), False
+        else:
+            out[i] = (vec * np.maximum(ev, floor)) @ vec.T, True
+    return out
+
+
+def _covariance(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """``np.cov(points, rowvar=False)`` (n > 1 points, (d, d)), by its own steps (the same
+    bits: ``centre`` is the points' mean as ``np.cov`` computes it), without its checks."""
+    x = np.array(points, dtype=float).T
+    x -= centre[:, None]
+    c = np.dot(x, x.T.conj())
+    c *= np.true_divide(1, points.shape[0] - 1)
+    return c
 
 
 def fit(
@@ -215,28 +265,52 @@ def fit(
         (n < d + 1, zero or non-finite covariance); required in that case.
     max_condition : largest condition number kept; above it the covariance is repaired.
     """
-    points = np.atleast_2d(np.asarray(points, dtype=float))
-    n, d = points.shape
-    if n == 0:
-        raise ValueError("cannot fit an ellipsoid to zero points")
-    if not np.all(np.isfinite(points)):
-        raise ValueError("cannot fit an ellipsoid to non-finite points")
-    centre = points.mean(axis=0)
-    scale = max(1e-300, float(np.max(np.abs(points))))
-    repaired = _repair(np.cov(points, rowvar=False).reshape(d, d), max_condition, scale) if n > d else None
-    if repaired is None:
-        if fallback is None:
-            raise ValueError(f"{n} points in {d} dimensions define no ellipsoid and no fallback was given")
-        if fallback.n_dim != d:
-            raise ValueError(f"fallback has {fallback.n_dim} dimensions, points have {d}")
-        shape, note = fallback.matrix, "fallback"
-        trial = from_matrix(centre, shape, note)
-        scale = max(1.0, float(np.max(mahalanobis2(trial, points))))
-    else:
-        shape, was_repaired = repaired
-        note = "repaired" if was_repaired else ""
-        trial = from_matrix(centre, shape, note)
-        scale = float(np.max(mahalanobis2(trial, points)))
-        if not scale > 0.0:  # every point at the centre: keep the covariance shape as is
+    return fit_many([points], fallback, max_condition)[0]
+
+
+def fit_many(
+    point_sets: Sequence[np.ndarray],
+    fallback: Ellipsoid | Callable[[], Ellipsoid] | None = None,
+    max_condition: float = MAX_CONDITION,
+) -> list[Ellipsoid]:
+    """:func:`fit` of each set of points (of one dimension), the matrix steps stacked.
+    ``fallback`` may be a function that makes it, called only if a set needs it."""
+    sets = [np.atleast_2d(np.asarray(p, dtype=float)) for p in point_sets]
+    d = sets[0].shape[1]
+    for p in sets:
+        if p.shape[0] == 0:
+            raise ValueError("cannot fit an ellipsoid to zero points")
+        if not np.isfinite(p).all():
+            raise ValueError("cannot fit an ellipsoid to non-finite points")
+    centres = [p.mean(axis=0) for p in sets]
+    scales = [max(1e-300, float(np.max(np.abs(p)))) for p in sets]
+    shaped = [i for i, p in enumerate(sets) if p.shape[0] > d]
+    repaired: list[tuple[np.ndarray, bool] | None] = [None] * len(sets)
+    if shaped:
+        covs = np.stack([_covariance(sets[i], centres[i]).reshape(d, d) for i in shaped])
+        for i, r in zip(shaped, _repair(covs, max_condition, [scales[i] for i in shaped])):
+            repaired[i] = r
+    shapes, notes = [], []
+    for p, r in zip(sets, repaired):
+        if r is None:
+            if callable(fallback):
+                fallback = fallback()
+            if fallback is None:
+                raise ValueError(f"{p.shape[0]} points in {d} dimensions define no ellipsoid and no fallback was given")
+            if fallback.n_dim != d:
+                raise ValueError(f"fallback has {fallback.n_dim} dimensions, points have {d}")
+            shapes.append(fallback.matrix)
+            notes.append("fallback")
+        else:
+            shapes.append(r[0])
+            notes.append("repaired" if r[1] else "")
+    trials = from_matrices(centres, shapes, notes)
+    grown = []
+    for p, r, trial, shape in zip(sets, repaired, trials, shapes):
+        scale = float(np.max(mahalanobis2(trial, p)))
+        if r is None:
+            scale = max(1.0, scale)
+        elif not scale > 0.0:  # every point at the centre: keep the covariance shape as is
             scale = 1.0
-    return from_matrix(centre, shape * scale * (1.0 + 1e-10), note)
+        grown.append(shape * scale * (1.0 + 1e-10))
+    return from_matrices(centres, grown, notes)

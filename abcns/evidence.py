@@ -31,9 +31,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: death codes (``Evidence.death``): why a model is dead from the next population on
-ALIVE, NO_PARTICLES, IMPROBABLE, DEAD_BEFORE = 0, 1, 2, 3
-DEATH_RULES = {NO_PARTICLES: "no_particles", IMPROBABLE: "probability", DEAD_BEFORE: "dead"}
+#: death codes (``Evidence.death``): why a model is dead from the next population on;
+#: SIMULATIONS_FAILED: every one of its simulations in the population failed or diverged
+ALIVE, NO_PARTICLES, IMPROBABLE, DEAD_BEFORE, SIMULATIONS_FAILED = 0, 1, 2, 3, 4
+DEATH_RULES = {NO_PARTICLES: "no_particles", IMPROBABLE: "probability", DEAD_BEFORE: "dead",
+               SIMULATIONS_FAILED: "failed"}
 
 
 @dataclass(frozen=True, eq=False)

@@ -181,7 +181,18 @@ class Executor(Protocol):
 class BatchError(RuntimeError):
     """An unexpected exception while a batch was evaluated (a bug in a simulator, not a
     numerical failure, which is a counted rejection): the message names the batch
-    (population, index) and the exception's type."""
+    (population, index), the model (a :class:`SimulatorError`'s) and the exception's type."""
+
+
+#: what a simulator may raise for a particle it cannot simulate: a counted rejection (status
+#: FAILED) of that particle. ``numpy.linalg.LinAlgError`` subclasses ValueError, which is not
+#: numerical (a shape bug in a plugin or a distance raises it too), hence named on its own.
+NUMERICAL_ERRORS: tuple[type[Exception], ...] = (ArithmeticError, np.linalg.LinAlgError)
+
+
+class SimulatorError(RuntimeError):
+    """A model's simulator (or distance) raised an exception that is not numerical: a bug,
+    which fails the job. The message names the model and the exception."""
 
 
 def evaluate_batch(evaluate: Evaluate, batch: Batch) -> Evaluated:
@@ -189,7 +200,8 @@ def evaluate_batch(evaluate: Evaluate, batch: Batch) -> Evaluated:
     try:
         return evaluate(batch)
     except Exception as err:
-        raise BatchError(f"population {batch.population}, batch {batch.index}: {type(err).__name__}: {err}") from err
+        what = str(err) if isinstance(err, SimulatorError) else f"{type(err).__name__}: {err}"  # it names the exception
+        raise BatchError(f"population {batch.population}, batch {batch.index}: {what}") from err
 
 
 class SerialExecutor:
@@ -214,39 +226,72 @@ class SimulateDistanceEpsilon(Protocol):
 
 
 @overload
-def per_model(functions: Sequence[SimulateDistance], pass_epsilon: Literal[False] = False) -> Evaluate: ...
+def per_model(functions: Sequence[SimulateDistance], pass_epsilon: Literal[False] = False,
+              names: Sequence[str] | None = None) -> Evaluate: ...
 @overload
-def per_model(functions: Sequence[SimulateDistanceEpsilon], pass_epsilon: bool) -> Evaluate: ...
+def per_model(functions: Sequence[SimulateDistanceEpsilon], pass_epsilon: bool,
+              names: Sequence[str] | None = None) -> Evaluate: ...
 def per_model(functions: Sequence[SimulateDistance] | Sequence[SimulateDistanceEpsilon],
-              pass_epsilon: bool = False) -> Evaluate:
+              pass_epsilon: bool = False, names: Sequence[str] | None = None) -> Evaluate:
     """Make a batch evaluator from one function per model.
 
     ``functions[m](theta, rng) -> (distances, status)`` receives the rows of model ``m``
     without padding, shape (n_m, d_m); with ``pass_epsilon`` it is called as
     ``functions[m](theta, rng, epsilon=batch.epsilon)`` (for early rejection). One generator
-    seeded from ``batch.seed`` is used for
-    the models in index order. A numerical error raised by a function (``ArithmeticError``,
-    ``ValueError``, ``LinAlgError``) marks its rows FAILED; anything else is a bug and
-    propagates.
+    seeded from ``batch.seed`` is used for the models in index order.
+
+    A failure belongs to its row. When a function raises a numerical error
+    (:data:`NUMERICAL_ERRORS`: ``ArithmeticError``, i.e. ZeroDivisionError, OverflowError,
+    FloatingPointError, and ``numpy.linalg.LinAlgError``), its rows are evaluated again one
+    at a time, row ``r`` with a generator of its own (``SeedSequence(entropy, spawn_key=
+    batch.seed.spawn_key + (m, r))``), and only the rows that raise again are FAILED (distance
+    +inf): a row's fate never depends on its batch-mates. Any other exception is a bug (a
+    shape mistake in a plugin or a distance raises ValueError, for one) and raises
+    :class:`SimulatorError` naming the model (``names[m]``, default ``model m``) and the
+    exception. A status the function sets (DIVERGED, FAILED) is a rejection as well.
     """
+
+    def label(m: int) -> str:
+        return names[m] if names is not None else f"model {m}"
+
+    def call(m: int, theta: np.ndarray, rng: np.random.Generator, epsilon: float) -> tuple[np.ndarray, np.ndarray]:
+        try:
+            if pass_epsilon:
+                # only the second overload passes True: these functions take epsilon
+                f_eps = cast("SimulateDistanceEpsilon", functions[m])
+                return f_eps(theta, rng, epsilon=epsilon)
+            return functions[m](theta, rng)
+        except NUMERICAL_ERRORS:
+            raise
+        except Exception as err:
+            where = f" at {np.array2string(theta[0], precision=6)}" if theta.shape[0] == 1 else ""
+            raise SimulatorError(f"{label(m)}{where}: {type(err).__name__}: {err}") from err
+
+    def one_at_a_time(m: int, theta: np.ndarray, rows: np.ndarray, batch: Batch) -> tuple[np.ndarray, np.ndarray]:
+        d = np.full(rows.size, np.inf)
+        s = np.full(rows.size, FAILED, dtype=np.int8)
+        for i, r in enumerate(rows):
+            rng = np.random.default_rng(np.random.SeedSequence(batch.seed.entropy,
+                                                               spawn_key=(*batch.seed.spawn_key, m, int(r))))
+            try:
+                d_r, s_r = call(m, theta[i : i + 1], rng, batch.epsilon)
+            except NUMERICAL_ERRORS:
+                continue  # this row stays FAILED with distance +inf
+            d[i], s[i] = np.asarray(d_r).reshape(-1)[0], np.asarray(s_r).reshape(-1)[0]
+        return d, s
 
     def evaluate(batch: Batch) -> Evaluated:
         rng = np.random.default_rng(batch.seed)
         distances = np.full(len(batch), np.inf)
         status = np.full(len(batch), FAILED, dtype=np.int8)
-        for m in np.unique(batch.models):
+        for m in map(int, np.unique(batch.models)):
             rows = np.flatnonzero(batch.models == m)
             theta = batch.theta[rows]
             theta = theta[:, ~np.all(np.isnan(theta), axis=0)]
             try:
-                if pass_epsilon:
-                    # only the second overload passes True: these functions take epsilon
-                    f_eps = cast("SimulateDistanceEpsilon", functions[int(m)])
-                    d, s = f_eps(theta, rng, epsilon=batch.epsilon)
-                else:
-                    d, s = functions[int(m)](theta, rng)
-            except (ArithmeticError, ValueError, np.linalg.LinAlgError):
-                continue  # rows stay FAILED with distance +inf
+                d, s = call(m, theta, rng, batch.epsilon)
+            except NUMERICAL_ERRORS:
+                d, s = one_at_a_time(m, theta, rows, batch)
             distances[rows] = d
             status[rows] = s
         status[(status == OK) & ~np.isfinite(distances)] = FAILED

@@ -50,8 +50,9 @@ def draw_inside(
         draws = draw(chunk, rng)
         ok = np.flatnonzero(inside(draws))[: n - n_got]
         if ok.size:
-            gap = np.diff(ok, prepend=-1) - 1
-            gap[0] += since_last
+            gap = np.empty_like(ok)  # draws rejected before each accepted one
+            gap[0] = ok[0] + since_last
+            np.subtract(ok[1:], ok[:-1] + 1, out=gap[1:])
             gaps.append(gap)
             got.append(draws[ok])
             n_got += ok.size
@@ -65,7 +66,8 @@ def draw_inside(
 
 
 class Budget:
-    """Simulation, time and cancel budgets of a run, checked between batches."""
+    """Simulation, time and cancel budgets of a run, checked between batches (and by an
+    executor that runs ahead while it waits for a batch: ``service.run.dask_executor``)."""
 
     def __init__(
         self,
@@ -88,6 +90,11 @@ class Budget:
         if self.stop.max_simulations is None:
             return None
         return max(0, self.stop.max_simulations - self.n_simulations)
+
+    def seconds_left(self) -> float | None:
+        if self.stop.max_seconds is None:
+            return None
+        return max(0.0, self.stop.max_seconds - self.elapsed())
 
     def reason(self) -> StopReason | None:
         """Why the run must stop now (a budget spent, or cancelled), or None."""
@@ -117,11 +124,16 @@ class Filled:
     n_failed: int
     n_redraws: int
     simulated_models: np.ndarray  # (n_simulations,) the model of every simulation counted
+    failed_models: np.ndarray  # (n_failed,) the model of every simulation that failed or diverged
 
     def counts(self, n_models: int) -> tuple[np.ndarray, np.ndarray]:
         """(simulations, accepted particles) per model."""
         return (np.bincount(self.simulated_models, minlength=n_models),
                 np.bincount(self.models, minlength=n_models))
+
+    def failures(self, n_models: int) -> np.ndarray:
+        """Simulations that failed or diverged, per model."""
+        return np.bincount(self.failed_models, minlength=n_models)
 
 
 def draws(propose: Propose, *, seed: int, t: int, epsilon: float, batch_size: int,
@@ -139,7 +151,7 @@ class Filling:
 
     def __init__(self, propose: Propose, n_needed: int, epsilon: float, executor: Executor, *,
                  seed: int, t: int, batch_size: int, accept_all: bool = False):
-        self.n_needed, self.epsilon, self.accept_all = n_needed, epsilon, accept_all
+        self.n_needed, self.epsilon, self.accept_all, self.t = n_needed, epsilon, accept_all, t
         self.results = executor.map(draws(propose, seed=seed, t=t, epsilon=epsilon, batch_size=batch_size,
                                           keep_all=accept_all))
         self.expect = getattr(self.results, "expect", None)  # an executor that runs ahead takes hints:
@@ -162,6 +174,7 @@ class Filling:
         n_needed, epsilon = self.n_needed, self.epsilon
         kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         simulated: list[np.ndarray] = []
+        failed: list[np.ndarray] = []
         n_kept = n_sims = n_failed = n_redraws = n_batches = 0
         try:
             budget.check()
@@ -183,13 +196,15 @@ class Filling:
                 simulated.append(batch.models[rows])
                 n_kept += take.size
                 n_sims += n_rows
-                n_failed += int(np.count_nonzero(~ok[rows]))
+                failed.append(batch.models[rows][~ok[rows]])
+                n_failed += failed[-1].size
                 n_redraws += int(batch.redraws[rows].sum())
                 budget.n_simulations += n_rows
                 if n_kept >= n_needed:
                     break
                 if cut:
                     raise Stopped(StopReason.MAX_SIMULATIONS)
+                self._check_acceptance(n_kept, n_sims, budget.stop)
                 n_batches += 1
                 if self.expect is not None:  # batches still needed at this population's acceptance so far
                     self.expect((n_needed - n_kept) * n_batches / max(n_kept, 0.5))
@@ -197,7 +212,19 @@ class Filling:
         finally:
             self.close()
         models, theta, distances = (np.concatenate(parts) for parts in zip(*kept))
-        return Filled(models, theta, distances, n_sims, n_failed, n_redraws, np.concatenate(simulated))
+        return Filled(models, theta, distances, n_sims, n_failed, n_redraws, np.concatenate(simulated),
+                      np.concatenate(failed))
+
+    def _check_acceptance(self, n_kept: int, n_sims: int, stop: StopRules) -> None:
+        """Stop (NOTHING_ACCEPTED, with the sentence that says why) when this population has
+        run ``stop.max_simulations_without_acceptance`` simulations and kept none (checked
+        after each batch, so where it stops depends on the batch size alone)."""
+        limit = stop.max_simulations_without_acceptance
+        if limit is not None and n_kept == 0 and n_sims >= limit:
+            raise Stopped(StopReason.NOTHING_ACCEPTED, (
+                f"nothing accepted: population {self.t} ran {n_sims:,} simulations and none came below the tolerance "
+                f"{self.epsilon:.4g} (stop.max_simulations_without_acceptance: {limit:,}); the models, their priors "
+                "and the data cannot meet there: check the data's units and sampling rate, the masses and the priors"))
 
 
 def fill(

@@ -253,6 +253,7 @@ def finish_population(
         quotas = survivor_quotas(settings.n_survivors, counts, capacity)
         death[alive_now & (quotas == 0)] = ev.NO_PARTICLES
         alive_next = death == ev.ALIVE
+    death[(death != ev.ALIVE) & (n_proposed > 0) & (filled.failures(n_models) == n_proposed)] = ev.SIMULATIONS_FAILED
     for m in map(int, np.flatnonzero(alive_now & ~alive_next)):
         rule = ev.DEATH_RULES[int(death[m])]
         notes.append(f"population {t}: {models[m].name} dies ({rule}; p = {p_next[m]:.3g} at the next tolerance)")
@@ -325,7 +326,7 @@ def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, new: np.
             cover, n_cover = bd.coverage(points, bound, enlargement, geometry, new)
         else:
             cover, n_cover = float(np.mean(bd.n_inside(bound, points) > 0)), points.shape[0]
-        log_v, log_v_se = bd.union_volume(bound, frame.inside, VOLUME_DRAWS, geometry)
+        log_v, log_v_se = bd.union_volume(bound, frame.box, VOLUME_DRAWS, geometry)
         return log_v - frame.log_box_volume, log_v_se, cover, n_cover
 
     return measure
@@ -348,8 +349,8 @@ class BoundProposer:
         alive = [m for m, b in enumerate(self.bounds) if b]
         if self.allocation is None:
             which = np.asarray(alive, dtype=np.int16)[rng.integers(len(alive), size=n)]
-        else:
-            which = rng.choice(len(self.models), size=n, p=self.allocation).astype(np.int16)
+        else:  # rng.choice(len(models), size=n, p=allocation), by its own numbers
+            which = bd.choose(bd.cumulative(self.allocation), n, rng).astype(np.int16)
         theta = pad(self.models, n)
         redraws = np.zeros(n, dtype=np.int64)
         for m in alive:
@@ -361,7 +362,8 @@ class BoundProposer:
             def draw(k: int, g: np.random.Generator, b: bd.Union = bound, f: bd.Frame = frame) -> np.ndarray:
                 return f.from_frame(bd.sample_union(b, k, g))
 
-            theta[rows, : model.n_dim], redraws[rows] = draw_inside(draw, model.in_prior, rows.size, rng,
+            # the model's prior box (model.in_prior's test: the frame holds its low and high)
+            theta[rows, : model.n_dim], redraws[rows] = draw_inside(draw, frame.in_prior, rows.size, rng,
                                                                     self.max_redraws)
         return which, theta, redraws
 
@@ -483,6 +485,7 @@ def abc_ns(
             )
             yield pop
     except Stopped as stopped:
+        notes.extend(stopped.notes)
         return end(stopped.reason)
     finally:
         if pending is not None:

@@ -21,7 +21,8 @@ class SpecError(ValueError):
 
 @dataclass(frozen=True)
 class Uniform:
-    """Uniform prior U(low, high) on one parameter; finite bounds, low < high."""
+    """Uniform prior U(low, high) on one parameter; finite bounds, low < high, and a finite
+    width (``high - low``, which sampling and the prior volume use)."""
 
     low: float
     high: float
@@ -35,6 +36,8 @@ class Uniform:
                 raise SpecError(name, f"must be finite, got {value!r}")
         if not self.low < self.high:
             raise SpecError("low", f"must be below high, got low={self.low!r} >= high={self.high!r}")
+        if not math.isfinite(float(self.high) - float(self.low)):  # [-1e308, 1e308]: sampling would give inf
+            raise SpecError("high", f"the width high - low overflows a float, got [{self.low!r}, {self.high!r}]")
         object.__setattr__(self, "low", float(self.low))
         object.__setattr__(self, "high", float(self.high))
 

@@ -80,11 +80,13 @@ def population_from(
     distances: np.ndarray, weights: np.ndarray, filled: Filled, elapsed_s: float,
     model_probabilities: np.ndarray, **extra,
 ) -> Population:
+    n_models = np.shape(model_probabilities)[0]
     return Population(
         t=t, epsilon=epsilon, epsilon_next=epsilon_next, models=models, theta=theta,
         distances=distances, weights=weights, n_accepted=int(filled.models.shape[0]),
         n_simulations=filled.n_simulations, n_failed=filled.n_failed, n_redraws=filled.n_redraws,
-        elapsed_s=elapsed_s, model_probabilities=model_probabilities, **extra,
+        elapsed_s=elapsed_s, model_probabilities=model_probabilities,
+        n_simulations_by_model=filled.counts(n_models)[0], n_failed_by_model=filled.failures(n_models), **extra,
     )
 
 
@@ -111,7 +113,7 @@ def abc_rejection(
         filled = fill(prior_proposer(models), settings.particles, eps, executor, budget,
                       seed=seed, t=1, batch_size=settings.batch_size)
     except Stopped as stopped:
-        return RunEnd(stopped.reason, budget.n_simulations, n_pilot, source)
+        return RunEnd(stopped.reason, budget.n_simulations, n_pilot, source, stopped.notes)
     counts = np.bincount(filled.models, minlength=len(models))
     yield population_from(
         1, eps, eps, filled.models, filled.theta, filled.distances,

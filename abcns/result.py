@@ -14,6 +14,8 @@ from abcns.priors import Model
 from abcns.settings import StopReason
 
 QUANTILES = (0.025, 0.05, 0.5, 0.95, 0.975)
+#: the share of a model's simulations that may fail or diverge before the summary warns
+FAILURE_SHARE = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -30,8 +32,10 @@ class Population:
     ``ellipsoids[m]`` the enlarged ellipsoids whose union proposes model m's particles at
     t + 1 (one in the paper variant; empty for a dead model; the whole tuple is empty for the
     baselines), in model m's unit prior box for the evidence variant and in raw units for
-    the paper's. ``evidence`` is ABC-NS's per-model evidence bookkeeping
-    (:class:`abcns.evidence.Evidence`), None for the baselines. ``model_probabilities`` are
+    the paper's. ``n_simulations_by_model`` and ``n_failed_by_model`` (n_models,) split
+    ``n_simulations`` and ``n_failed`` by model (empty when not recorded). ``evidence`` is
+    ABC-NS's per-model evidence bookkeeping (:class:`abcns.evidence.Evidence`), None for the
+    baselines. ``model_probabilities`` are
     the evidence's for ABC-NS's default variant, particle shares (Eq. 12) for the paper's,
     importance-weight mass for ABC-SMC and shares for rejection. ``floor`` is the noise floor
     as estimated after this population (:class:`abcns.noise.Floor`; ABC-NS runs that know
@@ -54,6 +58,8 @@ class Population:
     ellipsoids: tuple[tuple[Ellipsoid, ...], ...] = ()
     model_probabilities: np.ndarray = field(default_factory=lambda: np.zeros(0))
     evidence: Evidence | None = None
+    n_simulations_by_model: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    n_failed_by_model: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     floor: Floor | None = None
 
     @property
@@ -199,6 +205,18 @@ class Result:
         _, se = probabilities(pop.evidence.log_z, pop.evidence.log_z_se)
         return {m.name: float(v) for m, v in zip(self.models, se)}
 
+    def failures(self) -> dict[str, dict[str, float]]:
+        """{model: {"failed", "simulations", "share"}}: simulations that failed or diverged
+        (counted rejections), over the complete populations ({} when not recorded)."""
+        pops = [p for p in self.populations if p.n_failed_by_model.shape[0] == len(self.models)]
+        if not pops:
+            return {}
+        failed = np.sum([p.n_failed_by_model for p in pops], axis=0)
+        simulated = np.sum([p.n_simulations_by_model for p in pops], axis=0)
+        return {m.name: {"failed": int(failed[i]), "simulations": int(simulated[i]),
+                         "share": float(failed[i] / simulated[i]) if simulated[i] else 0.0}
+                for i, m in enumerate(self.models)}
+
     def warnings(self) -> list[str]:
         """Why the answer may not be what it looks like.
 
@@ -208,9 +226,29 @@ class Result:
           stated noise larger than the data's misfit);
         - "undecided": the answer holds two or more models above 0.1 while the tolerance sits
           at one model's best fit (its best distance is above half the tolerance), so a lower
-          tolerance could still separate them but that model holds it up."""
+          tolerance could still separate them but that model holds it up;
+        - "failures": more than :data:`FAILURE_SHARE` of a model's simulations failed or
+          diverged (counted as rejections: the model's probability and posterior hold only
+          where its simulator works);
+        - "failed": a model died because every one of its simulations failed (death rule
+          ``failed``): the data did not reject it, its simulator never ran.
+        """
         if not self.populations:
             return []
+        out = self._floor_warnings() + self._undecided()
+        for name, f in self.failures().items():
+            if f["share"] > FAILURE_SHARE:
+                out.append(f"failures: {f['failed']} of {name}'s {f['simulations']} simulations "
+                           f"({100 * f['share']:.3g} %) failed or diverged; they count as rejections, so its "
+                           "probability and posterior hold only where its simulator works")
+        died = self.died_at()
+        for name, rule in self.death_rules().items():
+            if rule == "failed":
+                out.append(f"failed: every simulation of {name} failed in population {died.get(name, '?')}, so it died "
+                           "without being compared with the data (check its fixed values and priors)")
+        return out
+
+    def _floor_warnings(self) -> list[str]:
         out = []
         pop = self.decision_population()
         floor = self.floor
@@ -226,19 +264,22 @@ class Result:
                            f"at the decision tolerance {pop.epsilon:.4g} (population {pop.t}, above the noise floor "
                            f"{floor.floor if floor else float('nan'):.4g}) they are {named(pop.model_probabilities)}: "
                            "below the floor the model that fits the noise best wins; the answer is the latter")
+        return out
+
+    def _undecided(self) -> list[str]:
+        pop = self.decision_population()
         p = pop.model_probabilities
         contenders = [i for i in range(len(self.models)) if p[i] > 0.1]
         if len(contenders) < 2:
-            return out
+            return []
         for i in contenders:
             d = pop.distances[pop.models == i]
             if d.size and np.min(d) > 0.5 * pop.epsilon:
                 names = ", ".join(f"{self.models[j].name} (p = {p[j]:.2f})" for j in contenders)
-                out.append(f"undecided: {names} are all above 0.1 while the tolerance {pop.epsilon:.4g} sits at the "
-                           f"best fit of {self.models[i].name} (its best distance {np.min(d):.4g}); a tolerance below "
-                           "that would separate them")
-                break
-        return out
+                return [f"undecided: {names} are all above 0.1 while the tolerance {pop.epsilon:.4g} sits at the "
+                        f"best fit of {self.models[i].name} (its best distance {np.min(d):.4g}); a tolerance below "
+                        "that would separate them"]
+        return []
 
     def particles(self, model: int | str, t: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(theta (n, d_m), distances (n,), weights (n,)) of one model in population t."""
@@ -307,6 +348,7 @@ class Result:
             "acceptance_rate": [p.acceptance_rate for p in pops],
             "simulations": [p.n_simulations for p in pops],
             "failed_simulations": [p.n_failed for p in pops],
+            "failures_by_model": self.failures(),
             "redraws": [p.n_redraws for p in pops],
             "model_probabilities": self.model_probabilities(answer.t) if answer else {},
             "model_probability_se": self.model_probability_se(answer.t) if answer else {},

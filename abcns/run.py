@@ -6,6 +6,7 @@ import time
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import asdict
 
+from abcns.blas import limited
 from abcns.executor import Evaluate, Executor, SerialExecutor
 from abcns.nested import abc_ns
 from abcns.priors import Model, SpecError
@@ -39,18 +40,19 @@ def iterate(
     seed: int,
     **kwargs,
 ) -> Generator[Population, None, RunEnd]:
-    """The population iterator of the algorithm ``settings`` selects."""
+    """The population iterator of the algorithm ``settings`` selects, each of its steps run
+    with one BLAS thread (:func:`abcns.blas.limited`)."""
     from abcns.smc import abc_smc
 
     models = check_models(models)
     check_seed(seed)
     noise = kwargs.pop("noise", None)  # the noise floor is ABC-NS's (abcns.noise)
     if isinstance(settings, NSSettings):
-        return abc_ns(models, executor, settings, stop, seed, noise=noise, **kwargs)
+        return limited(abc_ns(models, executor, settings, stop, seed, noise=noise, **kwargs))
     if isinstance(settings, SMCSettings):
-        return abc_smc(models, executor, settings, stop, seed, **kwargs)
+        return limited(abc_smc(models, executor, settings, stop, seed, **kwargs))
     if isinstance(settings, RejectionSettings):
-        return abc_rejection(models, executor, settings, stop, seed, **kwargs)
+        return limited(abc_rejection(models, executor, settings, stop, seed, **kwargs))
     raise SpecError("sampler.algorithm", f"unknown settings type {type(settings).__name__}")
 
 

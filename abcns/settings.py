@@ -26,16 +26,23 @@ class StopReason(enum.StrEnum):
     PILOT_FAILED = "pilot_failed"  # every prior-predictive simulation of the pilot failed or diverged
     NOISE_FLOOR = "noise_floor"  # the decision tolerance was reached (abcns.noise)
     TIES = "ties"  # every particle has the same distance: no lower tolerance leaves a particle
-
+    # a population ran stop.max_simulations_without_acceptance simulations and accepted none
+    NOTHING_ACCEPTED = "nothing_accepted"
 
 
 class Stopped(Exception):
     """A stop rule ended a population before it was full (on a worker, ``run_draw`` turns it
-    into the draw's ``stop`` field; it does not cross processes)."""
+    into the draw's ``stop`` field; it does not cross processes). ``note``: the sentence
+    that says why, for the run's notes (None where the reason says it all)."""
 
-    def __init__(self, reason: StopReason):
+    def __init__(self, reason: StopReason, note: str | None = None):
         super().__init__(reason.value)
         self.reason = reason
+        self.note = note
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        return () if self.note is None else (self.note,)
 
 # The documented valid ranges of the numeric settings (README, "Spec"): what one process
 # can hold and a run can count, not admission limits (a service sets lower ones).
@@ -69,6 +76,11 @@ def check_seed(seed: object) -> None:
     _check(_is_int(seed, 0, MAX_SEED), "seed", f"must be an integer in [0, 2^63 - 1], got {seed!r}")
 
 
+#: stop rules that do not count as "a stop rule set": the safety net ends a run that cannot
+#: progress, never a healthy one, and the noise floor needs a noise model the run may not have
+SAFETY_NETS = ("max_simulations_without_acceptance", "noise_floor")
+
+
 @dataclass(frozen=True)
 class StopRules:
     """When to stop. Budgets (simulations, seconds) are checked inside a population too.
@@ -79,7 +91,11 @@ class StopRules:
     ``noise_floor``: the evidence variant stops at the decision tolerance, the lowest
     tolerance above the run's noise floor by its spread (``abcns.noise``), when the run knows
     its distance's noise model; the paper variant keeps its own rules (its summary still
-    shows the decision).
+    shows the decision);
+    ``max_simulations_without_acceptance``: stop (``NOTHING_ACCEPTED``) when a population has
+    run this many simulations without accepting one particle: the data, the priors and the
+    model cannot meet at this tolerance (docs/design.md, "Stop", on the default). A safety
+    net, not a rule that ends a healthy run: it does not count as "a stop rule set".
     """
 
     min_epsilon_decrease: float | None = 0.01
@@ -88,12 +104,13 @@ class StopRules:
     max_simulations: int | None = None
     max_seconds: float | None = None
     noise_floor: bool = True
+    max_simulations_without_acceptance: int | None = 1_000_000
 
     def __post_init__(self) -> None:
         for name in ("min_epsilon_decrease", "epsilon_target", "max_seconds"):
             v = getattr(self, name)
             _check(v is None or (_is_number(v) and v > 0), f"stop.{name}", f"must be a positive number or null, got {v!r}")
-        for name in ("max_populations", "max_simulations"):
+        for name in ("max_populations", "max_simulations", "max_simulations_without_acceptance"):
             v = getattr(self, name)
             _check(
                 v is None or _is_int(v, 1, MAX_COUNT),
@@ -101,8 +118,7 @@ class StopRules:
                 f"must be an integer in [1, 2^62] or null, got {v!r}",
             )
         _check(isinstance(self.noise_floor, bool), "stop.noise_floor", f"must be true or false, got {self.noise_floor!r}")
-        # the noise floor needs a noise model the run may not have: it is no rule on its own
-        rules = {k: v for k, v in asdict(self).items() if k != "noise_floor"}
+        rules = {k: v for k, v in asdict(self).items() if k not in SAFETY_NETS}
         _check(any(v is not None for v in rules.values()), "stop", "at least one stop rule must be set")
 
     def reason_after(self, epsilon: float, epsilon_next: float, t: int, decrease: bool = True) -> StopReason | None:

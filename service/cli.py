@@ -1,37 +1,52 @@
 """The ``abcns`` command line.
 
-    abcns run SPEC --out STORE [--scheduler tcp://HOST:PORT | --workers N] [--seed N] [--quiet] [--json]
+    abcns run SPEC --out STORE [--scheduler tcp://HOST:PORT | --workers N] [--seed N] [--quiet] [--json] [--dashboard]
     abcns summary STORE [--json]
     abcns plot STORE [STORE ...] --out DIR [--spec SPEC ...]
     abcns serve [...]
+    abcns submit SPEC [--url URL] [--token TOKEN] [--quiet] [--json]
     abcns --version
 
-``run`` prints a line per population (not with ``--quiet``) and ends with a short summary
-(the full JSON summary with ``--json``, or later with ``abcns summary STORE --json``). With
-the paper's NMSE (Eq. 7) the tolerances and distances are in percent and marked ``%``.
+``run`` and ``submit`` print a line per population (not with ``--quiet``) and end with a
+short summary (the full JSON summary with ``--json``, or later with ``abcns summary STORE
+--json``). With the paper's NMSE (Eq. 7) the tolerances and distances are in percent and
+marked ``%``. Errors are one line on stderr, with an exit code per kind (:data:`EXIT_CODES`).
 """
 
 from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import os
+import socket
 import sys
+import time
+from collections.abc import Callable, Mapping
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, NoReturn
 
 import typer
 
 from abcns import SpecError
 from abcns.executor import BatchError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help="ABC-NS inference for dynamical systems.")
+#: the exit codes of every command (README, Command line)
+BAD_INPUT, UNREACHABLE, JOB_FAILED, REFUSED = 2, 3, 4, 5
+EXIT_CODES = {0: "done", 1: "an unexpected error (a bug: please report it)",
+              BAD_INPUT: "the spec, its data or an option is wrong (here, or as the service says)",
+              UNREACHABLE: "the scheduler or the service cannot be reached",
+              JOB_FAILED: "the job failed or was cancelled", REFUSED: "the service refused the request (token, full queue)"}
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode=None,
+                  help="ABC-NS inference for dynamical systems. Exit codes: "
+                       + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items()) + ".")
 
 
-def _fail(message: str) -> None:
+def _fail(message: str, code: int = BAD_INPUT) -> NoReturn:
     typer.echo(f"error: {message}", err=True)
-    raise typer.Exit(2)
+    raise typer.Exit(code)
 
 
 def _version(value: bool) -> None:
@@ -50,7 +65,7 @@ def _version(value: bool) -> None:
 @app.callback()
 def _main(
     version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
-                                          help="print the version and exit")] = False,
+                                          help="Print the version and exit.")] = False,
 ) -> None:
     """ABC-NS inference for dynamical systems."""
 
@@ -79,9 +94,8 @@ def summary_lines(s: dict, distance: str = "nmse") -> list[str]:
         f"{k} {v:.3f}" + (f" ± {se[k]:.3f}" if se.get(k) is not None and se[k] == se[k] else "")
         for k, v in s.get("model_probabilities", {}).items()))
     if s.get("dead_models"):
-        rules = s.get("death_rules") or {}
-        lines.append("died (first population without particles): " + ", ".join(
-            f"{k} {v}" + (f" ({rules[k]})" if k in rules else "") for k, v in s["dead_models"].items()))
+        lines.append("models out: " + "; ".join(f"{k} from population {t} ({death_rule(s, k)})"
+                                                 for k, t in s["dead_models"].items()))
     lines += [f"warning: {w}" for w in s.get("warnings", [])]
     if s.get("error"):
         lines.append(f"error: {s['error']}")
@@ -90,6 +104,18 @@ def summary_lines(s: dict, distance: str = "nmse") -> list[str]:
         for name, q in params.items():
             lines.append(f"  {name:8s} mean {q['mean']:12.6g}  std {q['std']:10.4g}  95% [{q['q2_5']:.6g}, {q['q97_5']:.6g}]")
     return lines
+
+
+def death_rule(s: dict, model: str) -> str:
+    """Why a model is out, in words: the rule that ended it (``death_rules``; the evidence
+    variant), else it had no particle left (the paper's variant)."""
+    rule = (s.get("death_rules") or {}).get(model)
+    if rule == "probability":
+        floor = ((s.get("settings") or {}).get("sampler") or {}).get("min_model_probability") or 1e-3
+        return f"its probability + 3 standard errors fell below {floor:g}"
+    if rule == "no_particles":
+        return "no particle below the next tolerance"
+    return rule or "no particle left"
 
 
 def memory_warning(job) -> None:
@@ -105,19 +131,135 @@ def memory_warning(job) -> None:
                    f"this machine has {have / 2**30:.1f} GiB): fewer particles or stop.max_populations", err=True)
 
 
-@app.command()
+class ProgressLine:
+    """The line per population of ``run`` and ``submit``: the population, its tolerance and
+    acceptance, the simulations so far, the population's own rate (its simulations over the
+    wall time since the previous population ended; the first population's also counts the
+    pilot and compiling the kernels), the model probabilities and the workers now. On a
+    terminal one line is rewritten in place; otherwise a line per population."""
+
+    def __init__(self, unit: str, quiet: bool, workers: Callable[[], int],
+                 start: tuple[int, float] = (0, 0.0)):
+        self.unit, self.quiet = unit, quiet
+        self.live = sys.stdout.isatty() and not quiet
+        self.workers = workers
+        self.last = start  # (simulations, elapsed s) when the previous population ended
+        self.n_workers: int | None = None
+        self.asked = -math.inf
+        self.shown = False
+
+    def workers_now(self) -> int | None:
+        """The cluster's workers, asked at most once a second (a round trip to the scheduler)."""
+        now = time.monotonic()
+        if now - self.asked >= 1.0:
+            self.asked = now
+            try:
+                self.n_workers = self.workers()
+            except Exception:  # noqa: BLE001 - no answer now: the count is unknown, the run goes on
+                self.n_workers = None
+        return self.n_workers
+
+    def show(self, t: int, epsilon: float, acceptance: float, simulations: int, elapsed_s: float,
+             probabilities: Mapping[str, float | None]) -> None:
+        before, self.last = self.last, (simulations, elapsed_s)
+        if self.quiet:
+            return
+        wall = elapsed_s - before[1]
+        rate = f"{(simulations - before[0]) / wall:9.0f}" if wall > 0 else f"{'-':>9}"
+        probs = " ".join(f"{name}={'-' if p is None else format(p, '.2f')}" for name, p in probabilities.items())
+        workers = self.workers_now()
+        line = (f"population {t:4d}  eps {epsilon:11.5g}{self.unit}  acceptance {acceptance:5.2f}  "
+                f"sims {simulations:8d}  {rate} sims/s  {probs}  workers {'-' if workers is None else workers}")
+        if self.live:
+            sys.stdout.write(f"\r\x1b[2K{line}")
+            sys.stdout.flush()
+            self.shown = True
+        else:
+            typer.echo(line)
+
+    def end(self) -> None:
+        if self.shown:
+            sys.stdout.write("\n")
+
+
+def _unreachable(address: str, err: Exception) -> NoReturn:
+    reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err) or type(err).__name__
+    _fail(f"cannot reach the scheduler at {address}: {reason}", UNREACHABLE)
+
+
+def reach_scheduler(address: str, timeout: float = 5.0) -> None:
+    """One line and exit 3 unless a TCP connection to the scheduler's address opens: a refused
+    or unknown address fails at once, not after Dask's 30 s of retries and a traceback."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        if scheme in ("tcp", "tls"):
+            socket.create_connection(parse_host_port(location, 8786), timeout=timeout).close()
+    except (OSError, ValueError) as err:  # TimeoutError and socket.gaierror are OSErrors
+        _unreachable(address, err)
+
+
+def connect(address: str, timeout: float = 30.0):
+    """A Dask client of the scheduler at ``address`` (:func:`reach_scheduler` first)."""
+    from distributed import Client
+
+    reach_scheduler(address)
+    try:
+        return Client(address, timeout=timeout)
+    except (OSError, ValueError) as err:
+        _unreachable(address, err)
+
+
+def dashboard_link(client) -> str | None:
+    """The scheduler's dashboard link when it serves a dashboard. A scheduler always has an
+    HTTP server: started with --no-dashboard its link answers 404, and without bokeh it
+    answers with distributed's page "Dask needs bokeh ... for the dashboard"."""
+    import urllib.request
+
+    try:
+        link = client.dashboard_link
+        opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # straight to it, never a proxy
+        with opener.open(link, timeout=5) as answer:
+            return link if answer.status == 200 and b"needs bokeh" not in answer.read(4096) else None
+    except Exception:  # noqa: BLE001 - no link, an error page or no answer: no dashboard to show
+        return None
+
+
+def resume_point(out: Path) -> tuple[int, float]:
+    """(simulations, elapsed s) of the store's last complete population, (0, 0) for a new store:
+    where the first population's rate starts."""
+    from service.run.store import Store
+
+    try:
+        state = Store.open(out).run_state()
+        return int(state["n_simulations_total"]), float(state["elapsed_s"])
+    except Exception:  # noqa: BLE001 - no store (yet), or not one: run_job says what is wrong with it
+        return 0, 0.0
+
+
+SIMS_HELP = ("The line per population shows the tolerance (eps; the NMSE in %), the acceptance rate, the simulations "
+             "so far, sims/s (this population's simulations over the wall time since the previous one ended; the "
+             "first also counts the pilot and compiling the kernels), the model probabilities and the workers now. "
+             "stop.min_epsilon_decrease is an absolute difference in the tolerance's unit: with the NMSE, 0.01 "
+             "stops when eps falls by less than 0.01 percentage points.")
+
+
+@app.command(help="Run (or resume) a job and print its summary. On a terminal one progress line is rewritten in "
+                  "place; otherwise a line per population. " + SIMS_HELP)
 def run(
-    spec: Annotated[Path, typer.Argument(help="job spec, YAML or JSON")],
-    out: Annotated[Path, typer.Option("--out", help="the job's zarr store (created, or resumed if unfinished)")],
-    scheduler: Annotated[str | None, typer.Option(help="address of a running Dask scheduler")] = None,
-    workers: Annotated[int | None, typer.Option(help="worker processes of the embedded cluster (default: one per core)")] = None,
-    seed: Annotated[int | None, typer.Option(help="override the spec's seed")] = None,
-    quiet: Annotated[bool, typer.Option(help="no line per population (the summary is still printed)")] = False,
-    as_json: Annotated[bool, typer.Option("--json", help="end with the full JSON summary instead of the short one")] = False,
-    dashboard: Annotated[bool, typer.Option(help="serve the embedded cluster's Dask dashboard (its link is printed)")] = False,
+    spec: Annotated[Path, typer.Argument(metavar="SPEC", help="The job spec, YAML or JSON.")],
+    out: Annotated[Path, typer.Option("--out", help="The job's zarr store (created, or resumed if unfinished).")],
+    scheduler: Annotated[str | None, typer.Option(help="The address of a running Dask scheduler "
+                                                       "(tcp://HOST:PORT).")] = None,
+    workers: Annotated[int | None, typer.Option(help="Worker processes of the embedded cluster "
+                                                     "(default: one per core).")] = None,
+    seed: Annotated[int | None, typer.Option(help="Override the spec's seed.")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", help="No line per population (the summary is still printed).")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="End with the full JSON summary instead of the short one.")] = False,
+    dashboard: Annotated[bool, typer.Option("--dashboard", help="Serve the embedded cluster's Dask dashboard and print "
+                                                                "its link (needs bokeh).")] = False,
 ) -> None:
-    """Run (or resume) a job and print its summary. On a terminal one progress line is
-    rewritten in place; otherwise a line per population."""
     from service.run.runner import Progress, run_job, summary
     from service.run.store import Store
     from service.spec import build, load
@@ -132,23 +274,6 @@ def run(
         _fail(str(err))
     memory_warning(built)
     names = [m.name for m in job_spec.models]
-    unit = percent(job_spec.distance.name)
-
-    live = sys.stdout.isatty() and not quiet  # a terminal: one line rewritten in place
-    workers_seen = [0]
-
-    def progress(p: Progress) -> None:
-        if quiet:
-            return
-        pop = p.population
-        probs = " ".join(f"{n}={v:.2f}" for n, v in zip(names, pop.model_probabilities))
-        line = (f"population {pop.t:4d}  eps {pop.epsilon:11.5g}{unit}  acceptance {pop.acceptance_rate:5.2f}  "
-                f"sims {p.n_simulations_total:8d}  {p.simulations_per_s:9.0f} sims/s  {probs}")
-        if live:
-            sys.stdout.write(f"\r\x1b[2K{line}  workers {workers_seen[0]}")
-            sys.stdout.flush()
-        else:
-            typer.echo(line)
 
     from distributed import Client
 
@@ -159,29 +284,35 @@ def run(
         dashboard = False
     with ExitStack() as stack:
         if scheduler:
-            client = stack.enter_context(Client(scheduler))
+            client = stack.enter_context(connect(scheduler))
         else:
-            n = workers or os.cpu_count() or 1
-            cluster = stack.enter_context(local_cluster(n, dashboard))
+            cluster = stack.enter_context(local_cluster(workers or os.cpu_count() or 1, dashboard))
             client = stack.enter_context(Client(cluster))
-        if client.dashboard_link and (dashboard or scheduler):
-            typer.echo(f"Dask dashboard: {client.dashboard_link}", err=True)
-        workers_seen[0] = len(client.scheduler_info(n_workers=-1).get("workers", {}))
+        if dashboard or scheduler:
+            link = dashboard_link(client)
+            if link:
+                typer.echo(f"Dask dashboard: {link}", err=True)
+        line = ProgressLine(percent(job_spec.distance.name), quiet, lambda: len(client.nthreads()), resume_point(out))
+
+        def progress(p: Progress) -> None:
+            pop = p.population
+            line.show(pop.t, pop.epsilon, pop.acceptance_rate, p.n_simulations_total, p.elapsed_s,
+                      dict(zip(names, pop.model_probabilities.tolist())))
+
         try:
             run_job(job_spec, base, out, client, seed=seed, on_population=progress, allow_import=True)
         except SpecError as err:
             _fail(str(err))
         except BatchError as err:  # a bug in a simulator: which batch, which exception; the store keeps the rest
-            _fail(f"the job failed in {err}; the populations before it are in {out} (abcns summary {out})")
-    if live:
-        sys.stdout.write("\n")
+            _fail(f"the job failed in {err}; the populations before it are in {out} (abcns summary {out})", JOB_FAILED)
+    line.end()
     s = summary(Store.open(out))
     if as_json:
         typer.echo(json.dumps(s, indent=2))
         return
     typer.echo("")
-    for line in summary_lines(s, job_spec.distance.name):
-        typer.echo(line)
+    for text in summary_lines(s, job_spec.distance.name):
+        typer.echo(text)
     typer.echo(f"store: {out}  (full JSON summary: abcns summary {out} --json)")
 
 
@@ -240,14 +371,149 @@ def serve(
              "max_models": max_models, "max_memory_mb": max_memory_mb, "max_job_seconds": max_job_seconds,
              "max_job_simulations": max_job_simulations,
              "max_request_bytes": None if max_request_mb is None else int(max_request_mb * 1024 * 1024)}
-    try:  # only what was given: the rest from ABCNS_* variables (README, HTTP service) or the defaults
+    try:  # only what was given: the rest from ABCNS_* variables (README, The HTTP API) or the defaults
         settings = Settings(**{k: v for k, v in given.items() if v is not None})
     except ValidationError as err:
         _fail("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors()))
+    if settings.scheduler:
+        reach_scheduler(settings.scheduler)
     typer.echo(f"abcns: serving http://{host}:{port}/ (API docs at /docs), jobs in {settings.store_dir.resolve()}, "
                f"{'scheduler ' + settings.scheduler if settings.scheduler else 'an embedded cluster'}"
                f"{', token required' if settings.token else ''}; limits at /limits", err=True)
     run_server(settings, host, port, access_log)
+
+
+def _service_error(answer) -> tuple[str, int]:
+    """A refusal of the service as one line and its exit code: a bad spec or data (400, 413,
+    415, 422: the field and the message), the token (401, 403), a full queue (429), else the
+    status and its text."""
+    try:
+        detail = answer.json().get("detail")
+    except ValueError:
+        detail = answer.text[:300]
+    if isinstance(detail, list) and detail and isinstance(detail[0], dict):
+        text = "; ".join(f"{d.get('field') or '.'.join(map(str, d.get('loc', [])))}: {d.get('msg')}"
+                         + (f" (got {d['input']})" if d.get("input") else "") for d in detail[:5])
+    else:
+        text = str(detail)
+    status = answer.status_code
+    if status in (401, 403):
+        return f"the service refused the token ({status}: {text}); give --token or ABCNS_TOKEN", REFUSED
+    if status == 429:
+        return f"the service's queue is full ({text}); try again in {answer.headers.get('retry-after', '?')} s", REFUSED
+    if status in (400, 413, 415, 422):
+        return f"the service refused the job: {text}", BAD_INPUT
+    return f"the service answered {status}: {text}", REFUSED
+
+
+def events(http, url: str, job_id: str, after: int = 0):
+    """The job's server-sent events as (id, event, data), from after ``after`` to its terminal
+    event; a dropped stream is resumed with Last-Event-ID (the service restarted, ...), and
+    after 60 s without the service it is an error (exit 3)."""
+    import httpx
+
+    last, lost = after, None
+    while True:
+        try:
+            headers = {"Accept": "text/event-stream", **({"Last-Event-ID": str(last)} if last else {})}
+            with http.stream("GET", f"/jobs/{job_id}/events", headers=headers,
+                             timeout=httpx.Timeout(30, read=60)) as answer:  # a keep-alive every 15 s
+                if answer.status_code != 200:
+                    answer.read()
+                    _fail(*_service_error(answer))
+                lost = None
+                block: dict[str, str] = {}
+                for text in answer.iter_lines():
+                    if text:
+                        field, _, value = text.partition(":")
+                        block[field] = block.get(field, "") + value.removeprefix(" ")
+                        continue
+                    if "event" in block:
+                        last = int(block.get("id") or last)
+                        yield last, block["event"], json.loads(block.get("data") or "{}")
+                        if block["event"] in ("finished", "failed", "cancelled"):
+                            return
+                    block = {}
+        except httpx.TransportError as err:
+            lost = lost or time.monotonic()
+            if time.monotonic() - lost > 60:
+                _fail(f"lost the service at {url} ({err}); the job goes on there: {url}/jobs/{job_id}/view", UNREACHABLE)
+        time.sleep(1)
+
+
+@app.command(help="Send a job to a running service (abcns serve) and follow it like run: the spec (YAML or JSON) "
+                  "is checked here, its data files are read and uploaded with it (POST /jobs/upload), then a line "
+                  "per population and the summary at the end. Stopping submit (Ctrl-C) leaves the job running "
+                  "on the service. " + SIMS_HELP)
+def submit(
+    spec: Annotated[Path, typer.Argument(metavar="SPEC", help="The job spec, YAML or JSON; its data files relative "
+                                                              "to it.")],
+    url: Annotated[str, typer.Option(envvar="ABCNS_URL", help="The service.")] = "http://127.0.0.1:8000",
+    token: Annotated[str | None, typer.Option(envvar="ABCNS_TOKEN", help="The service's token, if it has one.")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", help="No line per population (the summary is still printed).")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="End with the full JSON summary instead of the short one.")] = False,
+) -> None:
+    import io
+
+    import httpx
+    import numpy as np
+
+    from service.spec import build, load, load_array
+
+    try:
+        job_spec, base = load(spec)
+        build(job_spec, base, allow_import=False)  # what the service checks too (registry simulators only)
+        arrays = {key: load_array(value, base, f"data.{key}") for key in ("input", "observed")
+                  if (value := getattr(job_spec.data, key)) is not None}
+    except SpecError as err:
+        _fail(str(err))
+    data = job_spec.data.model_copy(update={key: f"npz:{key}" for key in arrays})  # the arrays go in the upload
+    body = json.dumps(job_spec.model_copy(update={"data": data}).model_dump(mode="json"))
+    npz = io.BytesIO()
+    np.savez(npz, **arrays)
+    names = [m.name for m in job_spec.models]
+    url = url.rstrip("/")
+    with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"} if token else {},
+                      timeout=httpx.Timeout(60, connect=10)) as http:
+        try:
+            answer = http.post("/jobs/upload", files={"spec": ("spec.json", body, "application/json"),
+                                                      "data": ("data.npz", npz.getvalue(), "application/octet-stream")})
+        except httpx.TransportError as err:
+            _fail(f"cannot reach the service at {url}: {err}", UNREACHABLE)
+        if answer.status_code != 201:
+            _fail(*_service_error(answer))
+        job_id = answer.json()["id"]
+        typer.echo(f"job {job_id}: {url}/jobs/{job_id}/view", err=True)
+
+        def workers() -> int:
+            return int(http.get("/health", timeout=5).json()["workers"])
+
+        line = ProgressLine(percent(job_spec.distance.name), quiet, workers)
+        end, error = "", None
+        try:
+            for _, event, info in events(http, url, job_id):
+                if event == "population":
+                    probs = info["model_probabilities"]
+                    line.show(info["population"], info["epsilon"], info["acceptance_rate"], info["simulations"],
+                              info["elapsed_s"], probs if isinstance(probs, dict) else dict(zip(names, probs)))
+                elif event in ("finished", "failed", "cancelled"):
+                    end, error = event, info.get("error")
+        except KeyboardInterrupt:
+            line.end()
+            typer.echo(f"the job goes on: {url}/jobs/{job_id}/view", err=True)
+            raise typer.Exit(130) from None
+        line.end()
+        result = http.get(f"/jobs/{job_id}/result")
+        s = result.json() if result.status_code == 200 else {"status": end, "n_populations": 0}
+    if as_json:
+        typer.echo(json.dumps(s, indent=2))
+    else:
+        typer.echo("")
+        for text in summary_lines(s, job_spec.distance.name):
+            typer.echo(text)
+        typer.echo(f"job: {url}/jobs/{job_id}  (full JSON summary: {url}/jobs/{job_id}/result)")
+    if end != "finished":
+        _fail(f"the job {end}" + (f": {error}" if error else ""), JOB_FAILED)
 
 
 def main() -> None:
@@ -294,7 +560,8 @@ def plot_cmd(
         if not result.populations:
             _fail(f"{path} has no complete population")
         target = out if len(stores) == 1 else out / path.stem
-        files = plot_result(result, target, known or None, data, draws)
+        files = plot_result(result, target, known or None, data, draws,
+                            unit=percent(distance_of(store.attrs.get("spec"))).strip())
         results.append(result)
         datas.append(data)
         for f in files.values():

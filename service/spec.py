@@ -9,7 +9,10 @@ settings) and returns a :class:`Job` ready for ``abcns.run``. Every error is an
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
+import math
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_args, get_type_hints
@@ -32,6 +35,7 @@ from abcns import Model, NSSettings, RejectionSettings, SMCSettings, SpecError, 
 from abcns.distances import NMSE, check_window
 from abcns.executor import Evaluate
 from abcns.noise import Noise
+from abcns.run import check_models
 from worker.evaluate import evaluator, job_parts
 from worker.simulators import Simulator
 
@@ -53,9 +57,14 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+def _normal(x: float) -> bool:
+    """A finite float that is not subnormal (an interval below ~2.2e-308 loses its digits)."""
+    return math.isfinite(x) and abs(x) >= sys.float_info.min
+
+
 class DataSpec(_Strict):
-    dt: Annotated[float, Field(gt=0)] | None = None
-    fs: Annotated[float, Field(gt=0)] | None = None
+    dt: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    fs: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
     input: str | list[float] | None = None
     observed: str | list[float]
     fit: Window | None = None
@@ -64,12 +73,27 @@ class DataSpec(_Strict):
     # the measurement noise's standard deviation in the observed record's units (after decimation),
     # when known: it sets the noise floor (abcns.noise) instead of the estimate from the best fit
     noise_std: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    # the input between samples: held (zero-order hold, as the paper's data were made) or
+    # linearly interpolated (first-order hold, for a measured continuous input); docs/design.md
+    input_interpolation: Literal["hold", "linear"] = "hold"
 
     @model_validator(mode="after")
     def _one_rate(self) -> DataSpec:
         if (self.dt is None) == (self.fs is None) and self.input is not None:
             raise ValueError("give exactly one of dt and fs")
+        if self.dt is not None or self.fs is not None:
+            # a sampling rate of physical sense: its sample interval, decimated, is a normal positive float
+            rate = "dt" if self.dt is not None else "fs"
+            base = self.dt if self.dt is not None else 1.0 / self.fs  # type: ignore[operator]
+            if not (_normal(base) and _normal(self.sample_interval)):
+                what = "dt" if rate == "dt" else "1/fs"
+                note = f" x decimate ({self.decimate})" if self.decimate > 1 and _normal(base) else ""
+                message = (f"the sample interval {what}{note} is {base * self.decimate:.3g} s: it must be a finite "
+                           "positive number of at least 2.2e-308")
+                raise ValidationError.from_exception_data("data", [{
+                    "type": PydanticCustomError("sample_interval", message), "loc": (rate,), "input": getattr(self, rate)}])
         return self
+
 
     @property
     def sample_interval(self) -> float:
@@ -230,12 +254,44 @@ def _field(loc: tuple) -> str:
 
 
 def parse(raw: dict) -> JobSpec:
-    """Validate the structure; pydantic errors become one SpecError naming every field."""
+    """Validate the structure; pydantic errors become one SpecError naming every field (the
+    first as its ``field``, each once). An unknown field gets the closest allowed name
+    there ("did you mean `priors`?"), and a required field it misspells is not reported
+    missing besides."""
     try:
         return JobSpec.model_validate(raw)
     except ValidationError as err:
-        problems = [(_field(e["loc"]), e["msg"]) for e in err.errors()]
-        raise SpecError(problems[0][0], "; ".join(f"{f}: {m}" for f, m in problems)) from None
+        errors = err.errors()
+
+    def allowed(loc: tuple) -> list[str]:  # the field names of the section at ``loc``
+        kind: Any = JobSpec
+        for part in loc:
+            if isinstance(part, int):  # an item of list[ModelSpec]
+                kind = (get_args(kind) or (None,))[0]
+                continue
+            options = [a for a in get_args(kind) if a is not type(None)] or [kind]  # X | None, unions
+            if len(options) > 1:  # the sampler's union, tagged by its algorithm
+                options = [a for a in options if part in get_args(a.model_fields["algorithm"].annotation)]
+                kind = options[0] if options else None
+            elif isinstance(options[0], type) and issubclass(options[0], BaseModel) and part in options[0].model_fields:
+                kind = options[0].model_fields[part].annotation
+            else:
+                return []
+        return list(kind.model_fields) if isinstance(kind, type) and issubclass(kind, BaseModel) else []
+
+    missing = {tuple(e["loc"]) for e in errors if e["type"] == "missing"}
+    problems, explained = [], set()
+    for e in errors:
+        loc, message = tuple(e["loc"]), e["msg"]
+        if e["type"] == "extra_forbidden" and isinstance(loc[-1], str):
+            close = difflib.get_close_matches(loc[-1], allowed(loc[:-1]), n=1, cutoff=0.6)
+            if close:
+                message += f"; did you mean `{close[0]}`?"
+                explained.add(loc[:-1] + (close[0],))
+        problems.append((loc, _field(loc), message))
+    problems = [p for p in problems if p[0] not in explained or p[0] not in missing] or problems
+    first, *rest = problems
+    raise SpecError(first[1], "; ".join([first[2], *(f"{f}: {m}" for _, f, m in rest)])) from None
 
 
 def load(path: str | Path) -> tuple[JobSpec, Path]:
@@ -302,7 +358,8 @@ def description(spec: JobSpec) -> dict:
         "models": [m.model_dump() for m in spec.models],
         "distance": spec.distance.model_dump(),
         "data": {"dt": spec.data.sample_interval if spec.data.input is not None else None,
-                 "fit": list(spec.data.fit) if spec.data.fit else None},
+                 "fit": list(spec.data.fit) if spec.data.fit else None,
+                 "input_interpolation": spec.data.input_interpolation},
     }
 
 
@@ -334,14 +391,72 @@ def check_applicable(spec: JobSpec) -> None:
         raise SpecError("distance.summaries", f"applies to distance 'summary_euclidean' only, not {spec.distance.name!r}")
 
 
+#: the largest magnitude of an input or observed sample: the squared error of any trajectory
+#: the divergence guard lets through (1000 x the observed scale) over the most samples a job
+#: may hold stays finite, (2 x 1e3 x 1e100)^2 x 2^25 ~ 1e214 < 1.8e308, and so do the
+#: observed record's variance and a force over any mass of 1e-100 or more
+MAX_MAGNITUDE = 1e100
+#: kept samples either side of one that scipy's decimation filter reads (``decimate(x, q,
+#: ftype="fir", zero_phase=True)``: 20 q + 1 taps, centred), plus one
+DECIMATION_REACH = 11
+
+
+def samples_read(spec: JobSpec) -> int | None:
+    """The leading samples of the data records (before decimation) that the job reads; None
+    for all. With the NMSE and a fit window: up to the end of the fit or the test window,
+    whichever is later, and with decimation the filter's reach beyond it (the samples after
+    that change no simulation, distance or held-out check). The summary distances and an
+    NMSE without a window read the whole record."""
+    data = spec.data
+    if spec.distance.name != "nmse" or data.fit is None:
+        return None
+    kept = max(data.fit[1], data.test[1] if data.test is not None else 0)
+    return kept if data.decimate == 1 else (kept + DECIMATION_REACH) * data.decimate
+
+
+def cut_to_read(spec: JobSpec, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The 1-d records of ``arrays`` cut to :func:`samples_read`; unchanged when the records
+    differ in length (an error :func:`build` reports as it is)."""
+    n = samples_read(spec)
+    if n is None or len({a.shape for a in arrays.values()}) != 1 or any(a.ndim != 1 for a in arrays.values()):
+        return arrays
+    return {k: a[:n] for k, a in arrays.items()}
+
+
+def check_records(force: np.ndarray | None, observed: np.ndarray) -> None:
+    """Input and observed samples finite and within ``MAX_MAGNITUDE`` (before a distance
+    computes anything of them). SpecError naming the record."""
+    for field, record in (("data.input", force), ("data.observed", observed)):
+        if record is not None and record.size and not (-MAX_MAGNITUDE <= record.min() and record.max() <= MAX_MAGNITUDE):
+            big = np.flatnonzero(~(np.abs(record) <= MAX_MAGNITUDE))  # (min and max: no copy of a long record)
+            if big.size:
+                raise SpecError(field, f"sample {big[0]} is {record[big[0]]:.6g}: samples must be finite and at most "
+                                       f"{MAX_MAGNITUDE:.0e} in magnitude (so no squared error or variance overflows); "
+                                       "rescale the record (its units)")
+
+
+def check_physical(spec: JobSpec, simulators: list[Simulator], distance: object) -> None:
+    """What makes physical and numerical sense beyond the schema, once the job's parts are
+    built: an NMSE scale that is a finite number (each parameter's valid range, a positive
+    mass among them, is the simulator's: ``Simulator.valid``). SpecError naming the field."""
+    scale = getattr(distance, "scale", 1.0)
+    if not (math.isfinite(scale) and scale > 0):
+        raise SpecError("data.observed", f"its variance on the fit window is too small for the NMSE in floating point "
+                                         f"(scale {scale:.3g}); rescale the record (its units)")
+
+
 def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = False) -> Job:
     """Everything checkable before a simulation: raise SpecError or return a Job."""
     check_applicable(spec)
     data = spec.data
     force, observed = load_data(spec, base_dir)
+    check_records(force, observed)  # before a distance computes anything of them
+    models, simulators, distance = job_parts(description(spec), {"force": force, "observed": observed}, allow_import)
+    evaluate = evaluator(models, simulators, distance)  # checks the records' lengths: before a window that misses
     if data.test is not None:
         check_window(data.test, observed.size, "data.test")
-    models, simulators, distance = job_parts(description(spec), {"force": force, "observed": observed}, allow_import)
+    check_models(models)  # duplicate names
+    check_physical(spec, simulators, distance)
     settings = spec.sampler.settings()
     settings.check_particles(models)
     stop = StopRules(**spec.stop.model_dump())
@@ -351,5 +466,4 @@ def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = Fals
         raise SpecError("data.noise_std", f"applies to distance 'nmse' only, not {spec.distance.name!r}")
     else:
         noise = None
-    return Job(spec, models, evaluator(models, simulators, distance), settings, stop, spec.seed, force, observed,
-               simulators, noise)
+    return Job(spec, models, evaluate, settings, stop, spec.seed, force, observed, simulators, noise)

@@ -5,6 +5,7 @@ the seed stated and the tolerance from the Monte Carlo standard error."""
 
 import numpy as np
 import pytest
+from scipy.special import logsumexp
 
 from abcns import bounds as bd
 from abcns import ellipsoid as ell
@@ -62,7 +63,7 @@ def test_union_volume_of_two_overlapping_discs_inside_the_box(seed):
     discs = tuple(ell.from_matrix(np.array(c), r**2 * np.eye(2)) for c in ((0.4, 0.5), (0.6, 0.5)))
     lens = 2 * r**2 * np.arccos(dist / (2 * r)) - 0.5 * dist * np.sqrt(4 * r**2 - dist**2)
     exact = np.log(2 * np.pi * r**2 - lens)
-    log_v, se = bd.union_volume(discs, bd.in_unit_box, 20_000, np.random.default_rng(seed))
+    log_v, se = bd.union_volume(discs, (0.0, 1.0), 20_000, np.random.default_rng(seed))
     assert abs(log_v - exact) < 4 * se, (log_v, exact, se)
 
 
@@ -70,7 +71,7 @@ def test_union_volume_counts_only_the_box():
     """A disc centred on the box's corner: a quarter of it is inside."""
     r = 0.3
     disc = (ell.from_matrix(np.zeros(2), r**2 * np.eye(2)),)
-    log_v, se = bd.union_volume(disc, bd.in_unit_box, 20_000, np.random.default_rng(6))
+    log_v, se = bd.union_volume(disc, (0.0, 1.0), 20_000, np.random.default_rng(6))
     assert abs(log_v - np.log(np.pi * r**2 / 4)) < 4 * se
 
 
@@ -158,3 +159,45 @@ def test_the_chi2_quantile_is_scipy_stats_own_to_the_bit():
         for n in (2, 5, 13, 100, 999, 20_000, 10**6):
             q = 1.0 - bd.OUTLIER_TAIL / n
             assert bd._chi2_quantile(q, d) == chi2.ppf(q, d), (d, n)
+
+
+def random_bound(rng, d, k):
+    """k random ellipsoids in d dimensions, some straddling the unit box's faces."""
+    bound = []
+    for _ in range(k):
+        a = rng.standard_normal((d, d)) * 10.0 ** rng.uniform(-2, -0.5, size=(1, d))
+        bound.append(ell.from_matrix(rng.choice([0.0, 0.3, 1.0], d) + 0.05 * rng.standard_normal(d),
+                                     a @ a.T + 1e-6 * np.eye(d)))
+    return tuple(bound)
+
+
+@pytest.mark.parametrize("seed", [12, 13])
+def test_union_volume_weighs_the_points_the_mixture_makes(monkeypatch, seed):
+    """The volume's weights come from a compiled loop that never makes numpy's points; when
+    it cannot decide a point it says so and the points are made and tested in numpy. Both
+    ways give the same bits, on bounds that straddle the box's faces (d 1-5, 1-6
+    ellipsoids, a few thousand draws each)."""
+    from abcns import compiled
+
+    rng = np.random.default_rng(seed)
+    cases = [(random_bound(rng, int(rng.integers(1, 6)), int(rng.integers(1, 7))), int(rng.integers(1, 3000)))
+             for _ in range(40)]
+    fast = [bd.union_volume(b, (0.0, 1.0), n, np.random.default_rng(i)) for i, (b, n) in enumerate(cases)]
+    weights = compiled.mixture_weights
+    monkeypatch.setattr(compiled, "mixture_weights", lambda *a: (weights(*a)[0] * np.nan, False))
+    slow = [bd.union_volume(b, (0.0, 1.0), n, np.random.default_rng(i)) for i, (b, n) in enumerate(cases)]
+    assert fast == slow
+
+
+def test_mixture_picks_ellipsoids_as_generator_choice_does():
+    """The mixture's labels are ``rng.choice(k, size=n, p=volume shares)``'s, by its own
+    numbers (a uniform per draw searched in the cumulative shares), drawn in one call: the
+    random stream, and so every proposal, is the one that call gives."""
+    rng = np.random.default_rng(14)
+    for _ in range(50):
+        bound = random_bound(rng, int(rng.integers(1, 5)), int(rng.integers(1, 9)))
+        n, seed = int(rng.integers(1, 5000)), int(rng.integers(2**31))
+        which, _, _ = bd._mixture_draws(bound, n, np.random.default_rng(seed))
+        logv = np.array([e.log_volume for e in bound])
+        expected = np.random.default_rng(seed).choice(len(bound), size=n, p=np.exp(logv - logsumexp(logv)))
+        assert np.array_equal(which, expected)

@@ -1,9 +1,12 @@
 """The live page in headless Chromium (Debian's package, driven by Playwright): a running
-job's populations appear on the page, and its numbers are the API's."""
+job's populations appear on the page, its numbers are the API's, and what a person sees is
+drawn: the marginals' bars (with heights), the charts' axes with their labels and units,
+each model in its `abcns plot` colour, the workers now."""
 
 from __future__ import annotations
 
 import os
+import re
 import shutil
 
 import httpx
@@ -31,129 +34,157 @@ def browser():
         b.close()
 
 
-def test_live_page_follows_a_running_job(browser, tmp_path):
-    cluster = StockCluster(tmp_path / "dask")
-    service = Service(tmp_path / "jobs", cluster.address)
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    """One stock cluster (2 workers) and one service for the module: each test runs its own
+    jobs on it, one at a time."""
+    tmp = tmp_path_factory.mktemp("browser")
+    cluster = StockCluster(tmp / "dask")
+    service = Service(tmp / "jobs", cluster.address)
+    yield service
+    service.close()
+    cluster.close()
+
+
+def drawn_bars(page) -> int:
+    """The marginals' bars a person sees: <rect> elements drawn with a height on screen."""
+    heights = page.eval_on_selector_all("#hists svg rect", "rs => rs.map(r => r.getBoundingClientRect().height)")
+    return sum(h > 0 for h in heights)
+
+
+def rgb(hex_colour: str) -> str:
+    return "rgb({}, {}, {})".format(*(int(hex_colour[i:i + 2], 16) for i in (1, 3, 5)))
+
+
+def test_live_page_follows_a_running_job(browser, service, tmp_path):
+    """A job far longer than the checks (400 populations), cancelled once the running page
+    has been checked, so it is running while it is looked at on any machine."""
+    spec = duffing_spec(max_populations=400, particles=500)
+    job_id = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60).json()["id"]
     try:
-        spec = duffing_spec(max_populations=25, particles=1000)
-        job_id = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60).json()["id"]
         page = browser.new_page(viewport={"width": 1200, "height": 900})
         page.goto(f"{service.url}/jobs/{job_id}/view#token={TOKEN}")
-        # populations appear while the job runs
+        # populations appear while the job runs, and so do the marginals' bars
         seen = set()
 
         def appearing():
             text = page.inner_text("#population")
             if text.isdigit():
                 seen.add(int(text))
-            return len(seen) >= 3 and page.inner_text("#status") == "running"
+            return len(seen) >= 3 and page.inner_text("#status") == "running" and drawn_bars(page) > 0
 
-        wait_until(appearing, 120, "three populations on the live page")
+        wait_until(appearing, 120, "three populations and the marginals' bars on the live page")
         page.screenshot(path=str(tmp_path / "running.png"))
-        wait_until(lambda: page.inner_text("#status") == "finished", 300, "the job to finish on the page", 0.2)
-        wait_until(lambda: page.inner_text("#population") == "25", 10, "the last population on the page")
-        wait_until(lambda: "population 25" in page.inner_text("#hists"), 10, "the histograms of the last population")
-        page.screenshot(path=str(tmp_path / "finished.png"), full_page=True)
+        n_params = page.locator("#hists svg").count()
+        assert page.locator("#hists svg rect").count() == 20 * n_params and drawn_bars(page) >= 2 * n_params
+        # the charts are labelled along their axes: titles, and tick values on both axes
+        for chart, ylabel in (("#eps", "tolerance \u03b5 (%)"), ("#acc", "acceptance rate"), ("#probs", "model probability")):
+            titles = page.locator(f"{chart} text.axis-title").all_text_contents()
+            assert titles == ["population", ylabel], (chart, titles)
+            assert page.locator(f"{chart} text.lbl").count() >= 4, chart
+        assert page.inner_text("#eps-unit").strip() == "%"
+        # each model in its abcns plot colour, and the cluster's workers
+        from service.report.colours import model_colour
+
+        colours = page.eval_on_selector_all("#legend .model", "ss => ss.map(s => getComputedStyle(s).color)")
+        assert colours == [rgb(model_colour(i)) for i in range(len(spec["models"]))]
+        wait_until(lambda: page.inner_text("#workers") == "2", 10, "the workers on the page")
+        # ended: the page shows the last population, its numbers are the API's
+        assert httpx.delete(f"{service.url}/jobs/{job_id}", headers=AUTH, timeout=60).status_code == 202
+        wait_until(lambda: page.inner_text("#status") == "cancelled", 300, "the job to end on the page", 0.2)
         info = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()
-        api = info["progress"]
+        api, last = info["progress"], str(info["progress"]["population"])
+        wait_until(lambda: page.inner_text("#population") == last, 10, "the last population on the page")
+        wait_until(lambda: re.search(rf"population {last}\b", page.inner_text("#hists")), 10,
+                   "the histograms of the last population")
+        page.screenshot(path=str(tmp_path / "ended.png"), full_page=True)
+        assert drawn_bars(page) >= 2 * page.locator("#hists svg").count()
         assert int(page.inner_text("#simulations")) == api["simulations"]
         assert float(page.inner_text("#acceptance")) == pytest.approx(api["acceptance_rate"], abs=5e-4)
         assert float(page.inner_text("#epsilon")) == pytest.approx(api["epsilon"], rel=1e-3)
         probs = api["model_probabilities"]
+        probs = [probs[m] for m in info["models"]] if isinstance(probs, dict) else probs  # a list, or name -> value
         leader = info["models"][probs.index(max(probs))]
         assert page.inner_text("#leader").startswith(leader)
         assert page.locator("#eps path").count() == 1 and page.locator("#probs path").count() == 2
-        assert page.locator("#hists svg").count() == len(spec["models"][0 if leader == "cubic" else 1]["priors"])
+        lead = spec["models"][[m["name"] for m in spec["models"]].index(leader)]
+        assert page.locator(".hist text.axis-title").all_text_contents() == list(lead["priors"])  # each bar chart's parameter
         index = browser.new_page()
         index.goto(f"{service.url}/#token={TOKEN}")
         wait_until(lambda: job_id[:8] in index.inner_text("#jobs"), 10, "the job on the index page")
         if os.environ.get("ABCNS_SCREENSHOTS"):
-            shutil.copy(tmp_path / "finished.png", os.environ["ABCNS_SCREENSHOTS"])
-    finally:
-        service.close()
-        cluster.close()
+            shutil.copy(tmp_path / "running.png", os.environ["ABCNS_SCREENSHOTS"])
+    finally:  # the service runs one job at a time: never leave this one running for the next test
+        httpx.delete(f"{service.url}/jobs/{job_id}", headers=AUTH, timeout=60)
 
 
-def test_the_page_says_when_a_run_is_undecided(browser, tmp_path):
+def test_the_page_says_when_a_run_is_undecided(browser, service):
     """Paper §4.1 with the paper's variant, seed 2: the run stops at the cubic model's best
     fit (eps 7.874) with both models above 0.1 (measured: benchmarks.model_selection
     --variant paper). The summary warns, and the page shows the same warning once it ends."""
-    cluster = StockCluster(tmp_path / "dask")
-    service = Service(tmp_path / "jobs", cluster.address)
-    try:
-        spec = duffing_spec(max_populations=120, particles=1000)
-        spec["sampler"]["variant"] = "paper"
-        spec["sampler"].pop("batch_size")  # the example's own random stream, as the benchmark ran it
-        spec["stop"] = {"min_epsilon_decrease": 1e-7, "max_populations": 120}
-        spec["seed"] = 2
-        job_id = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60).json()["id"]
-        page = browser.new_page(viewport={"width": 1200, "height": 900})
-        page.goto(f"{service.url}/jobs/{job_id}/view#token={TOKEN}")
-        wait_until(lambda: page.inner_text("#status") == "finished", 600, "the job to finish on the page", 0.5)
-        result = httpx.get(f"{service.url}/jobs/{job_id}/result", headers=AUTH, timeout=60).json()
-        assert result["warnings"] and result["warnings"][0].startswith("undecided"), result["warnings"]
-        assert result["epsilon"][-1] == pytest.approx(7.874, abs=1e-3)
-        wait_until(lambda: "warning: undecided" in page.inner_text("#warnings"), 30, "the warning on the page")
-    finally:
-        service.close()
-        cluster.close()
+    spec = duffing_spec(max_populations=120, particles=1000)
+    spec["sampler"]["variant"] = "paper"
+    spec["sampler"].pop("batch_size")  # the example's own random stream, as the benchmark ran it
+    spec["stop"] = {"min_epsilon_decrease": 1e-7, "max_populations": 120}
+    spec["seed"] = 2
+    job_id = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60).json()["id"]
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    page.goto(f"{service.url}/jobs/{job_id}/view#token={TOKEN}")
+    wait_until(lambda: page.inner_text("#status") == "finished", 600, "the job to finish on the page", 0.5)
+    result = httpx.get(f"{service.url}/jobs/{job_id}/result", headers=AUTH, timeout=60).json()
+    assert result["warnings"] and result["warnings"][0].startswith("undecided"), result["warnings"]
+    assert result["epsilon"][-1] == pytest.approx(7.874, abs=1e-3)
+    wait_until(lambda: "warning: undecided" in page.inner_text("#warnings"), 30, "the warning on the page")
+    # a finished job's page draws the last population's marginals
+    last = str(len(result["epsilon"]))
+    wait_until(lambda: re.search(rf"population {last}\b", page.inner_text("#hists")), 10,
+               "the histograms of the last population")
+    assert drawn_bars(page) >= 2 * page.locator("#hists svg").count() > 0
 
 
 XSS = '<img src=x onerror="document.title=\'pwned:\'+sessionStorage.getItem(\'abcns-token\')">'
 
 
-def test_markup_in_names_is_shown_as_text_and_never_runs(browser, tmp_path):
+def test_markup_in_names_is_shown_as_text_and_never_runs(browser, service):
     """N.1: a job and a model named with a script-carrying <img> are listed and viewed in
     Chromium: the names appear as text, no <img> element exists, nothing ran (the title is
     untouched, the token not read), and the pages carry the Content-Security-Policy."""
-    cluster = StockCluster(tmp_path / "dask")
-    service = Service(tmp_path / "jobs", cluster.address)
-    try:
-        spec = duffing_spec(max_populations=2, particles=200)
-        spec["name"] = XSS
-        spec["models"][0]["name"] = XSS
-        r = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60)
-        assert r.status_code == 201, r.text
-        job_id = r.json()["id"]
-        for path in ("/", f"/jobs/{job_id}/view"):
-            response = httpx.get(f"{service.url}{path}", timeout=30)
-            assert "script-src" in response.headers.get("content-security-policy", "")
-            page = browser.new_page()
-            ran: list[str] = []
-            page.on("dialog", lambda d: (ran.append(d.message), d.dismiss()))
-            page.goto(f"{service.url}{path}#token={TOKEN}")
-            where = "#jobs" if path == "/" else "#name"
-            wait_until(lambda: XSS in page.inner_text(where), 60, f"the name as text on {path}")
-            if path != "/":
-                wait_until(lambda: page.inner_text("#status") == "finished", 120, "the job to finish on the page")
-            page.wait_for_timeout(500)
-            assert page.locator("img").count() == 0
-            assert "pwned" not in page.title() and not ran
-    finally:
-        service.close()
-        cluster.close()
+    spec = duffing_spec(max_populations=2, particles=200)
+    spec["name"] = XSS
+    spec["models"][0]["name"] = XSS
+    r = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60)
+    assert r.status_code == 201, r.text
+    job_id = r.json()["id"]
+    for path in ("/", f"/jobs/{job_id}/view"):
+        response = httpx.get(f"{service.url}{path}", timeout=30)
+        assert "script-src" in response.headers.get("content-security-policy", "")
+        page = browser.new_page()
+        ran: list[str] = []
+        page.on("dialog", lambda d: (ran.append(d.message), d.dismiss()))
+        page.goto(f"{service.url}{path}#token={TOKEN}")
+        where = "#jobs" if path == "/" else "#name"
+        wait_until(lambda: XSS in page.inner_text(where), 60, f"the name as text on {path}")
+        if path != "/":
+            wait_until(lambda: page.inner_text("#status") == "finished", 120, "the job to finish on the page")
+        page.wait_for_timeout(500)
+        assert page.locator("img").count() == 0
+        assert "pwned" not in page.title() and not ran
 
 
-def test_api_docs_render_offline(browser, tmp_path):
+def test_api_docs_render_offline(browser, service):
     """I.4: /docs draws Swagger UI from the service's own files; every request that would
     leave the service is aborted, and the page still lists the API's routes."""
-    cluster = StockCluster(tmp_path / "dask")
-    service = Service(tmp_path / "jobs", cluster.address)
-    try:
-        page = browser.new_page()
-        outside: list[str] = []
+    page = browser.new_page()
+    outside: list[str] = []
 
-        def only_local(route):
-            if route.request.url.startswith(service.url):
-                route.continue_()
-            else:
-                outside.append(route.request.url)
-                route.abort()
+    def only_local(route):
+        if route.request.url.startswith(service.url):
+            route.continue_()
+        else:
+            outside.append(route.request.url)
+            route.abort()
 
-        page.route("**/*", only_local)
-        page.goto(f"{service.url}/docs")
-        wait_until(lambda: "/jobs/{job_id}/events" in page.inner_text("body"), 60, "the routes on /docs")
-        assert outside == []
-    finally:
-        service.close()
-        cluster.close()
+    page.route("**/*", only_local)
+    page.goto(f"{service.url}/docs")
+    wait_until(lambda: "/jobs/{job_id}/events" in page.inner_text("body"), 60, "the routes on /docs")
+    assert outside == []

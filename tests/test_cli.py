@@ -1,6 +1,8 @@
-"""What a user sees from the `abcns` command: `--version`, `run` ending with a short human
-summary (with or without the per-population lines), `--json`, `summary`, and the NMSE
-marked as a percentage (Eq. 7: 100 / (n s^2) ...)."""
+"""What a user sees from the `abcns` command: `--version` and `--help`, `run` ending with a
+short human summary (with or without the per-population lines), `--json`, `summary`, the
+NMSE marked as a percentage (Eq. 7: 100 / (n s^2) ...), each population's own rate, the
+workers as they are now, and one line with its own exit code for a scheduler that cannot
+be reached."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ import importlib.util
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 from importlib.metadata import version
@@ -16,7 +19,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from benchmarks.harness import StockCluster
+from benchmarks.harness import StockCluster, free_port
 
 pytestmark = pytest.mark.distributed
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,6 +65,40 @@ def test_version():
     assert done.stdout.strip() == f"abcns {version('abcns')}"
 
 
+def test_help_shows_flags_as_flags_and_what_the_numbers_mean():
+    """Q.14: --version is a flag (no ``<bool>``); Q.8 and Q.17: run's help says what sims/s
+    is and that stop.min_epsilon_decrease is an absolute difference in % NMSE."""
+    env = {**os.environ, "COLUMNS": "100"}
+    top = subprocess.run([BIN / "abcns", "--help"], capture_output=True, text=True, timeout=60, env=env).stdout
+    assert re.search(r"^\s+--version\s+Print the version and exit\.$", top, re.M), top
+    assert "<bool>" not in top and "submit" in top
+    help_run = subprocess.run([BIN / "abcns", "run", "--help"], capture_output=True, text=True, timeout=60, env=env).stdout
+    text = " ".join(help_run.split())  # as one paragraph, whatever the width
+    assert "<bool>" not in help_run and "--quiet " in help_run and "--no-quiet" not in help_run
+    assert "sims/s (this population's simulations over the wall time since the previous one ended" in text
+    assert "stop.min_epsilon_decrease is an absolute difference in the tolerance's unit" in text
+
+
+def test_the_rate_is_each_population_s_own():
+    """Q.8: sims/s is a population's simulations over the wall time since the previous one
+    ended, not the average since the start (compilation included)."""
+    from service.cli import ProgressLine
+
+    shown: list[str] = []
+    line = ProgressLine(" %", quiet=False, workers=lambda: 2)
+    line.live = False
+    import typer
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(typer, "echo", shown.append)
+        line.show(1, 100.0, 0.5, 1000, 10.0, {"linear": 0.5, "cubic": 0.5})  # 100/s: the first, compiling
+        line.show(2, 50.0, 0.4, 3000, 11.0, {"linear": 0.3, "cubic": 0.7})  # 2000/s (the average: 273/s)
+        line.show(3, 20.0, 0.3, 3000, 11.0, {"linear": 0.1, "cubic": None})  # no time passed: no rate
+    rates = [re.search(r"sims\s+\d+\s+(\S+) sims/s", s).group(1) for s in shown]  # type: ignore[union-attr]
+    assert rates == ["100", "2000", "-"], shown
+    assert shown[1].endswith("linear=0.30 cubic=0.70  workers 2") and "cubic=-" in shown[2]
+
+
 def test_run_prints_populations_then_a_short_summary(spec, cluster, tmp_path):
     lines = abcns("run", spec, "--out", tmp_path / "a.zarr", "--scheduler", cluster).stdout.splitlines()
     pops = [line for line in lines if line.startswith("population ")]
@@ -74,10 +111,61 @@ def test_run_prints_populations_then_a_short_summary(spec, cluster, tmp_path):
 
 
 def test_run_quiet_still_prints_the_summary(spec, cluster, tmp_path):
-    lines = abcns("run", spec, "--out", tmp_path / "q.zarr", "--scheduler", cluster, "--quiet").stdout.splitlines()
+    done = abcns("run", spec, "--out", tmp_path / "q.zarr", "--scheduler", cluster, "--quiet")
+    lines = done.stdout.splitlines()
     assert not any(line.startswith("population ") for line in lines)
     assert lines[0] == ""
     assert_human_summary(lines[1:])
+    # Q.7: this scheduler serves no dashboard (no bokeh here): no link that would answer 404
+    if importlib.util.find_spec("bokeh") is None:
+        assert "Dask dashboard" not in done.stderr, done.stderr
+
+
+def test_a_scheduler_that_cannot_be_reached_is_one_line_and_exit_3(spec, tmp_path):
+    """Q.6: a wrong --scheduler address: one line naming it, exit code 3, no traceback (and
+    at once for a refused connection, not after Dask's 30 s of retries)."""
+    address = f"tcp://127.0.0.1:{free_port()}"  # nothing listens there
+    done = subprocess.run([BIN / "abcns", "run", spec, "--out", tmp_path / "x.zarr", "--scheduler", address],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 3, done.stderr[-2000:]
+    assert done.stderr.strip().splitlines() == [f"error: cannot reach the scheduler at {address}: Connection refused"]
+    assert not (tmp_path / "x.zarr").exists()
+    serve = subprocess.run([BIN / "abcns", "serve", "--scheduler", address, "--store-dir", tmp_path / "jobs"],
+                           capture_output=True, text=True, timeout=120)
+    assert serve.returncode == 3 and serve.stderr.strip().splitlines() == done.stderr.strip().splitlines(), serve.stderr
+
+
+def test_the_worker_count_is_the_cluster_s_now(tmp_path):
+    """Q.5: one of two workers dies after population 2: the later lines say "workers 1". The
+    populations are slowed by the sleepy plugin (2 ms per simulation), so the job runs for
+    seconds after the kill while the count is asked again (at most once a second)."""
+    from benchmarks import sleepy
+
+    raw = yaml.safe_load((ROOT / "examples" / "authors_demo" / "spec.yaml").read_text())
+    raw["data"].update(input=f"{DEMO}:force", observed=f"{DEMO}:displacement")
+    raw["models"] = raw["models"][1:]  # the cubic model alone
+    raw["models"][0]["simulator"] = sleepy.NAME
+    raw["sampler"].update(particles=200, batch_size=25)
+    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": 10}
+    path = tmp_path / "sleepy.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    cluster = StockCluster(tmp_path / "dask", n_workers=2)
+    try:
+        env = {**os.environ, "PYTHONPATH": str(ROOT), "ABCNS_STORE_INTERVAL_S": "0"}
+        lines = []
+        with (tmp_path / "stderr").open("w") as err, \
+                subprocess.Popen([BIN / "abcns", "run", path, "--out", tmp_path / "s.zarr", "--scheduler",
+                                  cluster.address], stdout=subprocess.PIPE, stderr=err, text=True, env=env) as run:
+            for line in run.stdout:  # type: ignore[union-attr]
+                lines.append(line.rstrip("\n"))
+                if line.startswith("population    2 "):
+                    os.killpg(cluster.procs[-1].pid, signal.SIGKILL)  # a worker and its nanny
+        assert run.returncode == 0, (tmp_path / "stderr").read_text()[-2000:]
+    finally:
+        cluster.close()
+    pops = [line for line in lines if line.startswith("population ")]
+    assert len(pops) == 10, lines
+    assert pops[0].endswith("workers 2") and pops[-1].endswith("workers 1"), "\n".join(pops)
 
 
 def test_run_json_and_summary_of_the_store(spec, cluster, tmp_path):
@@ -102,16 +190,35 @@ def test_summary_lines_show_the_uncertainty_the_death_rule_and_every_warning():
          "warnings": ["undecided: cubic (p = 0.55), cubic-quintic (p = 0.45) are all above 0.1"], "posterior": {}}
     lines = summary_lines(s)
     assert "model probabilities: cubic 0.550 ± 0.040, cubic-quintic 0.450 ± 0.040" in lines
-    assert any(line.endswith("linear 2 (probability)") for line in lines)
+    # Q.9: the rule that ended the model, in words (not "first population without particles")
+    assert "models out: linear from population 2 (its probability + 3 standard errors fell below 0.001)" in lines
+    s["death_rules"] = {"linear": "no_particles"}
+    assert "models out: linear from population 2 (no particle below the next tolerance)" in summary_lines(s)
     assert "warning: undecided: cubic (p = 0.55), cubic-quintic (p = 0.45) are all above 0.1" in lines
     assert any("7.87 %" in line for line in lines)  # the NMSE is in percent
 
 
+def test_an_impossible_fixed_value_is_refused_before_the_run_with_exit_2(tmp_path):
+    """P.3: ``bouc_wen`` with ``fixed: {n: 1.5}`` ran (exit 0) and every simulation failed;
+    it is now refused naming the field, with the CLI's error exit, and no store is made."""
+    raw = yaml.safe_load((ROOT / "examples" / "boucwen" / "spec.yaml").read_text())
+    raw["data"].update(input=str(ROOT / "examples" / "boucwen" / "force.npy"),
+                       observed=str(ROOT / "examples" / "boucwen" / "displacement.npy"))
+    raw["models"][1]["fixed"]["n"] = 1.5
+    path = tmp_path / "n.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    done = subprocess.run([BIN / "abcns", "run", path, "--out", tmp_path / "n.zarr", "--workers", "1"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith("error: models[1].fixed.n: must be an integer in 1..4"), done.stderr
+    assert not (tmp_path / "n.zarr").exists()
+
+
 def test_a_bug_in_a_simulator_names_the_batch_and_the_exception(spec, tmp_path):
     """Issue M: an unexpected exception inside a worker (tests/faulty_plugin.py raises a
-    RuntimeError in population 1) fails the run with the batch and the exception's type, in
-    the CLI's message, the store's status and the summary; numerical failures stay counted
-    rejections."""
+    RuntimeError in population 1) fails the run with the batch, the model (P.1) and the
+    exception's type, in the CLI's message, the store's status and the summary; numerical
+    failures stay counted rejections."""
     raw = yaml.safe_load(spec.read_text())
     for model in raw["models"]:
         model["simulator"] = "tests.faulty_plugin:Faulty"
@@ -120,8 +227,9 @@ def test_a_bug_in_a_simulator_names_the_batch_and_the_exception(spec, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}  # the plugin is importable on the workers
     done = subprocess.run([BIN / "abcns", "run", path, "--out", tmp_path / "f.zarr", "--workers", "1"],
                           capture_output=True, text=True, timeout=300, env=env)
-    assert done.returncode == 2, done.stderr  # the CLI's error exit
-    assert re.search(r"error: the job failed in population 1, batch \d+: RuntimeError: a bug in the user's simulator",
+    assert done.returncode == 4, done.stderr  # the job failed
+    assert re.search(r"error: the job failed in population 1, batch \d+: model '(linear|cubic)' \(simulator "
+                     r"'tests\.faulty_plugin:Faulty'\): RuntimeError: a bug in the user's simulator",
                      done.stderr), done.stderr[-2000:]
     assert "Traceback (most recent call last)" not in done.stderr  # a message, not a Python traceback
     s = json.loads(abcns("summary", tmp_path / "f.zarr", "--json").stdout)

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 import xarray as xr
 import yaml
-from distributed import Client, LocalCluster
+from distributed import Client
 
+from service.run.dask_executor import local_cluster
 from service.run.runner import run_job
 from service.run.store import Store, StoreError
 from service.spec import parse
@@ -40,7 +41,7 @@ def small_spec(tmp_path: Path, **stop) -> Path:
 
 
 def run_local(spec_path: Path, out: Path, n_workers: int, on_population=None):
-    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+    with local_cluster(n_workers) as cluster, \
             Client(cluster) as client:
         return run_on(client, spec_path, out, on_population)
 
@@ -108,7 +109,7 @@ def test_eight_workers_give_the_one_worker_result_also_when_stopped_and_resumed(
         checks[0] += 1
         return False
 
-    with LocalCluster(n_workers=8, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+    with local_cluster(8) as cluster, \
             Client(cluster) as client:
         client.wait_for_workers(8, timeout=120)
         run_on(client, spec, tmp_path / "eight.zarr", cancel=count)
@@ -133,7 +134,7 @@ def run_killing_workers(spec, out, n_victims: int, n_workers: int = 2) -> list[i
     population 3; the nannies start new ones. Returns the killed pids."""
     killed = []
     with pytest.MonkeyPatch.context() as mp, \
-            LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            local_cluster(n_workers) as cluster, \
             Client(cluster) as client:
         client.wait_for_workers(n_workers, timeout=120)
         pids = client.run(os.getpid)

@@ -23,7 +23,7 @@ from abcns import (
     run,
 )
 from abcns.evidence import IMPROBABLE, probabilities
-from abcns.executor import run_draw
+from abcns.executor import BatchError, SimulatorError, run_draw
 from abcns.nested import apportion, survivor_quotas
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -194,23 +194,121 @@ def test_failed_simulations_are_counted_rejections():
     assert first.n_simulations == first.n_accepted + first.n_failed  # eps = 10 accepts every OK one
 
 
+def one_batch(n: int = 8, low: float = 0.0, high: float = 1.0):
+    from abcns.filling import draws
+    from abcns.rejection import prior_proposer
+
+    return next(draws(prior_proposer([Model("m", {"x": (low, high)})]), seed=0, t=1, epsilon=1.0,
+                      batch_size=n)).batch()
+
+
 def test_raising_simulator_marks_rows_failed_but_bugs_propagate():
     def overflow(theta, rng):
         raise FloatingPointError("overflow")
 
     ev = per_model([overflow])
-    from abcns.filling import draws
-    from abcns.rejection import prior_proposer
-
-    b = next(draws(prior_proposer([Model("m", {"x": (0, 1)})]), seed=0, t=1, epsilon=1.0, batch_size=4)).batch()
+    b = one_batch(4)
     out = ev(b)
     assert np.all(out.status == FAILED) and np.all(np.isinf(out.distances))
 
     def bug(theta, rng):
         raise KeyError("a bug")
 
-    with pytest.raises(KeyError):
-        per_model([bug])(b)
+    with pytest.raises(SimulatorError, match=r"^model 'm': KeyError: 'a bug'") as err:
+        per_model([bug], names=["model 'm'"])(b)
+    assert isinstance(err.value.__cause__, KeyError)
+
+
+@pytest.mark.parametrize("numerical", [ZeroDivisionError, OverflowError, FloatingPointError, np.linalg.LinAlgError])
+def test_a_failure_belongs_to_its_row(numerical):
+    """P.1: a function that raises a numerical error for a batch holding any x > 0.5: the
+    batch is evaluated again one row at a time, and only the rows with x > 0.5 fail."""
+
+    def fragile(theta, rng):
+        if np.any(theta[:, 0] > 0.5):
+            raise numerical("cannot simulate x > 0.5")
+        return theta[:, 0], np.full(theta.shape[0], OK, np.int8)
+
+    b = one_batch(16)
+    out = per_model([fragile])(b)
+    bad = b.theta[:, 0] > 0.5
+    assert bad.any() and (~bad).any()
+    np.testing.assert_array_equal(out.status, np.where(bad, FAILED, OK))
+    np.testing.assert_array_equal(out.distances[~bad], b.theta[~bad, 0])
+    assert np.all(np.isinf(out.distances[bad]))
+
+
+@pytest.mark.parametrize("bug", [ValueError, TypeError, IndexError])
+def test_an_exception_that_is_not_numerical_fails_the_job_naming_the_model(bug):
+    """P.1: a ValueError (a shape mistake in a plugin or a distance; LinAlgError, which
+    subclasses it, is the numerical one), a TypeError, ...: not a rejection but a bug."""
+
+    def buggy(theta, rng):
+        if np.any(theta[:, 0] > 0.5):
+            raise bug("operands could not be broadcast together")
+        return theta[:, 0], np.full(theta.shape[0], OK, np.int8)
+
+    with pytest.raises(SimulatorError, match=rf"model 'B' \(simulator 'x'\).*{bug.__name__}: operands could not"):
+        per_model([buggy], names=["model 'B' (simulator 'x')"])(one_batch(16))
+
+
+def half_failing(error: type[Exception]):
+    """Two identical models on |x - 0.25|, x ~ U(0, 1) (exact p = 0.5 at any eps <= 0.25);
+    the second raises ``error`` for a batch holding any x > 0.5 (half of its prior, outside
+    every tolerance of the run)."""
+
+    def good(theta, rng):
+        return np.abs(theta[:, 0] - 0.25), np.full(theta.shape[0], OK, np.int8)
+
+    def fragile(theta, rng):
+        if np.any(theta[:, 0] > 0.5):
+            raise error("x > 0.5")
+        return good(theta, rng)
+
+    models = [Model("A", {"x": (0, 1)}), Model("B", {"x": (0, 1)})]
+    return models, per_model([good, fragile], names=["model 'A'", "model 'B'"])
+
+
+def test_the_issues_two_models_one_failing_on_half_its_prior():
+    """P.1, as reproduced: with a ValueError (a bug) the run used to give p = (1, 0) and no
+    warning; it now fails naming model B. With a numerical error the failing rows are
+    counted rejections of their own: p(B) is 0.5 (within 4 of the run's own standard
+    errors), the failures are counted per model and population, and the summary warns."""
+    settings = NSSettings(particles=400, epsilon_initial=0.5, batch_size=50)
+    stop = StopRules(min_epsilon_decrease=None, epsilon_target=0.05)
+    with pytest.raises(BatchError, match=r"model 'B': ValueError: x > 0\.5"):
+        run(*half_failing(ValueError), settings, stop, seed=1)
+    r = run(*half_failing(FloatingPointError), settings, stop, seed=1)
+    p, se = r.model_probabilities()["B"], r.model_probability_se()["B"]
+    assert abs(p - 0.5) < 4 * se, (p, se)
+    pop = r.populations[0]  # rejection from the priors: B fails on half of its proposals
+    assert pop.n_failed_by_model[0] == 0 and pop.n_failed == pop.n_failed_by_model[1] > 0
+    assert pop.n_simulations_by_model.sum() == pop.n_simulations
+    failures = r.summary()["failures_by_model"]
+    assert failures["A"]["failed"] == 0 and 0.2 < failures["B"]["share"] < 0.5, failures
+    assert any(w.startswith("failures: ") and "of B's" in w for w in r.warnings()), r.warnings()
+
+
+@pytest.mark.parametrize("variant", ["evidence", "paper"])
+def test_a_model_whose_every_simulation_failed_dies_by_the_rule_failed(variant):
+    """P.3: a model whose simulator fails everywhere (an impossible fixed value in a plugin,
+    say) used to die at population 1 with no death rule and no warning, as if the data had
+    rejected it; it now dies by the rule ``failed``, and the summary says so."""
+
+    def broken(theta, rng):
+        return np.zeros(theta.shape[0]), np.full(theta.shape[0], FAILED, np.int8)
+
+    def fine(theta, rng):
+        return np.abs(theta[:, 0] - 0.25), np.full(theta.shape[0], OK, np.int8)
+
+    models = [Model("broken", {"x": (0, 1)}), Model("fine", {"x": (0, 1)})]
+    r = run(models, per_model([broken, fine]), NSSettings(particles=200, epsilon_initial=0.5, batch_size=50,
+                                                          variant=variant),
+            StopRules(min_epsilon_decrease=None, max_populations=3), seed=1)
+    s = r.summary()
+    assert s["dead_models"] == {"broken": 1} and s["death_rules"] == {"broken": "failed"}, s["death_rules"]
+    assert any(w.startswith("failed: every simulation of broken failed in population 1") for w in s["warnings"])
+    assert s["failures_by_model"]["broken"]["share"] == 1.0
 
 
 def test_dead_model_stays_dead_and_is_reported():

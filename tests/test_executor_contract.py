@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from distributed import Client, LocalCluster
+from distributed import Client
 
 import abcns
 from abcns import ellipsoid as ell
@@ -32,7 +32,7 @@ from abcns.rejection import prior_proposer
 from abcns.settings import StopReason
 from benchmarks.harness import wait_until
 from service.run import dask_executor
-from service.run.dask_executor import DaskExecutor
+from service.run.dask_executor import DaskExecutor, local_cluster
 from service.spec import build, description, parse
 
 pytestmark = pytest.mark.distributed
@@ -52,9 +52,19 @@ def job():
 
 @pytest.fixture(scope="module")
 def client():
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+    with local_cluster(2) as cluster, \
             Client(cluster) as c:
         yield c
+
+
+def test_the_embedded_cluster_asks_for_no_fixed_port(client):
+    """Q.1: the embedded cluster's scheduler and its HTTP server (started even without a
+    dashboard) are on free ports: Dask's default 8787 is often a user's own dashboard, and
+    asking for it failed every test here ("Port 8787 is already in use", a warning made an
+    error) and warned on every `abcns run` beside a Dask user's cluster."""
+    scheduler = client.cluster.scheduler
+    assert scheduler.http_server.port != 8787 and scheduler.port != 8786
+    assert scheduler.http_server.address == "127.0.0.1"  # no dashboard asked: not served to the network
 
 
 @pytest.fixture(params=["serial", "dask"])

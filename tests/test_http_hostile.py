@@ -192,9 +192,10 @@ def test_an_upload_bomb_is_refused_from_its_header(service, bomb):
 
 # ---------------------------------------------------------------------------- N.5
 def test_data_stay_out_of_memory_and_an_ended_job_can_be_purged(service, tmp_path):
-    """N.5: an upload of 2e7 samples is kept in the job's data.npz, not in job.json; a
-    restarted service does not hold it (resident memory about that of an empty service);
-    DELETE ?purge=true removes an ended job and its folder, and refuses a running one."""
+    """N.5: an upload of 2e7 samples is kept in the job's data.npz (cut to the 1,000 samples
+    its windows read, R.4), not in job.json; a restarted service does not hold it (resident
+    memory about that of an empty service); DELETE ?purge=true removes an ended job and its
+    folder, and refuses a running one."""
     rss_empty = service.rss_mb()
     folder = ROOT / "examples" / "duffing_41"
     force, x = np.load(folder / "force.npy"), np.load(folder / "displacement.npy")
@@ -208,7 +209,7 @@ def test_data_stay_out_of_memory_and_an_ended_job_can_be_purged(service, tmp_pat
     job_dir = service.job_dir(big)
     assert (job_dir / "job.json").stat().st_size < 4096 and (job_dir / "spec.json").stat().st_size < 4096
     with np.load(job_dir / "data.npz") as d:
-        assert d["observed"].size == 20_000_000
+        assert d["observed"].size == 1000
     service.close()
     service.start()
     assert get(service, f"/jobs/{big}").json()["status"] == "finished"
@@ -356,21 +357,22 @@ def test_structural_errors_name_the_field_and_statuses_are_right(service):
     assert r.status_code == 400
 
 
-# ---------------------------------------------------------------------------- N.11
-def test_events_do_not_repeat_the_names(service):
-    """N.11: a model name of the longest allowed length is written once, in the queued event;
-    population events carry the model probabilities as a list in model order."""
+# ---------------------------------------------------------------------------- N.11, Q.12
+def test_events_give_the_model_probabilities_by_name(service):
+    """N.11, Q.12: with a model name of the longest allowed length, the queued event names
+    the models, and population events and the job's progress give the model probabilities
+    by name ({model name: value}, in the job's model order), not as a positional list."""
     spec = duffing_spec(max_populations=3, particles=200)
     long_name = "m" * NAME_MAX_CHARS
     spec["models"][0]["name"] = long_name
     job_id = post(service, spec).json()["id"]
     events = follow(service.url, job_id)
-    assert events[0]["event"] == "queued" and events[0]["data"]["models"] == [long_name, "cubic-quintic"]
+    names = [long_name, "cubic-quintic"]
+    assert events[0]["event"] == "queued" and events[0]["data"]["models"] == names
     pops = [e for e in events if e["event"] == "population"]
-    assert len(pops) == 3 and all(len(e["data"]["model_probabilities"]) == 2 for e in pops)
-    assert (service.job_dir(job_id) / "events.jsonl").read_text().count(long_name) == 1
+    assert len(pops) == 3 and all(list(e["data"]["model_probabilities"]) == names for e in pops)
     info = get(service, f"/jobs/{job_id}").json()
-    assert info["models"] == [long_name, "cubic-quintic"] and len(info["progress"]["model_probabilities"]) == 2
+    assert info["models"] == names and list(info["progress"]["model_probabilities"]) == names
 
 
 # ---------------------------------------------------------------------------- N.12
@@ -557,6 +559,11 @@ def test_specs_that_would_fail_at_run_time_are_refused_at_submission(service):
         (lambda s: s.update(distance={"name": "nmse", "summaries": "gk"}), "distance.summaries"),
         (lambda s: s["sampler"].update(quantile=0.3), "sampler.quantile"),  # abc-smc's, not abc-ns's
         (lambda s: s["stop"].update(epsilon_target=0), "stop.epsilon_target"),
+        # P.3: values outside a simulator's valid range (every simulation failed, and the model "died")
+        (lambda s: s["models"][0]["fixed"].update(m=0), "models[0].fixed.m"),
+        (lambda s: s["models"][1].update(simulator="bouc_wen", fixed={"m": 1, "n": 1.5},
+                                         priors={"c": [1, 2], "A": [1, 2], "alpha": [0, 1], "beta": [0, 1]}),
+         "models[1].fixed.n"),
     )
     for change, field in cases:
         spec = duffing_spec(max_populations=1)
@@ -605,10 +612,10 @@ def test_admission_limits_name_the_field_and_the_limit_and_come_from_the_environ
         over(lambda s: s["models"][0]["integrator"].update(substeps=10**9), "models[0].integrator.substeps", "100")
         over(lambda s: s["models"][1]["integrator"].pop("substeps") and s["models"][1]["priors"].update(k=[5, 5e9]),
              "models[1].integrator.substeps", "100")  # chosen from the priors
-        over(lambda s: s.update(models=s["models"] * 2) or [m.update(name=f"m{i}") for i, m in enumerate(s["models"])],
-             "models", "3")
-        over(lambda s: s["data"].update(input=duffing_spec()["data"]["input"], observed=duffing_spec()["data"]["observed"]),
-             "data.observed", "999")
+        over(lambda s: s.update(models=[dict(m) for m in s["models"] * 2])  # copies: each renamed once
+             or [m.update(name=f"m{i}") for i, m in enumerate(s["models"])], "models", "3")
+        over(lambda s: s["data"].update(input=duffing_spec()["data"]["input"], observed=duffing_spec()["data"]["observed"])
+             or s["data"].pop("fit"), "data.observed", "999")  # read whole (with a fit window: cut to it, R.4)
         over(lambda s: s["sampler"].update(particles=4000) or s.update(stop={"epsilon_target": 0.01}),
              "stop.max_populations", "40")  # 4000 x 9 x 8 B x 200 populations assumed: 55 MB
         over(lambda s: s["stop"].update(max_seconds=601), "stop.max_seconds", "600")
@@ -676,7 +683,7 @@ def test_a_failing_store_disk_fails_that_job_only_and_keeps_what_was_written(clu
             jobs = {}
             for name in ("full-disk", "fine"):
                 raw = {**duffing_spec(max_populations=5, particles=200), "name": name}
-                jobs[name] = manager.submit(parse(raw), arrays)
+                jobs[name] = manager.submit(parse(raw), dict(arrays))  # (submit empties the dict)
             wait_until(lambda: all(j.status in ("finished", "failed") for j in jobs.values()), 300, "both jobs to end")
             bad, good = jobs["full-disk"], jobs["fine"]
             assert bad.status == "failed" and "No space left on device" in bad.error, bad.error

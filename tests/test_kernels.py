@@ -48,14 +48,17 @@ def rel_l2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.linalg.norm(a - b, axis=-1) / np.linalg.norm(b, axis=-1)
 
 
-def reference(rhs, n_state: int, force: np.ndarray, dt: float, observe) -> np.ndarray:
-    """DOP853 restarted at every sample, so the held force is exact."""
+def reference(rhs, n_state: int, force: np.ndarray, dt: float, observe, interpolation: str = "hold") -> np.ndarray:
+    """DOP853 restarted at every sample, so the held force (or the straight line to the next
+    sample, ``interpolation="linear"``) is exact."""
     state = np.zeros(n_state)
     out = np.empty(force.size)
     out[0] = observe(state, force[0])
     for i in range(force.size - 1):
         f = force[i]
-        sol = solve_ivp(lambda t, s, f=f: rhs(s, f), (0.0, dt), state, method="DOP853", rtol=1e-11, atol=1e-13)
+        slope = (force[i + 1] - f) / dt if interpolation == "linear" else 0.0
+        sol = solve_ivp(lambda t, s, f=f, g=slope: rhs(s, f + g * t), (0.0, dt), state, method="DOP853", rtol=1e-11,
+                        atol=1e-13)
         assert sol.success
         state = sol.y[:, -1]
         out[i + 1] = observe(state, force[i + 1])
@@ -104,22 +107,24 @@ def test_choose_substeps():
 
 
 @pytest.mark.slow
-def test_duffing_against_reference():
+@pytest.mark.parametrize("interpolation", ["hold", "linear"])
+def test_duffing_against_reference(interpolation):
     rng = np.random.default_rng(11)
     dt, ns = 0.01, 120
     force = rng.standard_normal(ns)
     substeps = choose_substeps(omega_max(DUFFING_PRIOR), dt, 1e-4, n_samples=ns)
     params = draw(DUFFING_PRIOR, 3, rng)
     for output, obs_index in (("displacement", 0), ("velocity", 1)):
-        sim = Duffing(force, dt, substeps=substeps, output=output).simulate(params)
+        sim = Duffing(force, dt, substeps=substeps, output=output, input_interpolation=interpolation).simulate(params)
         assert np.all(sim.status == OK)
         for p, got in zip(params, sim.values, strict=True):
-            ref = reference(duffing_rhs(p), 2, force, dt, lambda s, f, j=obs_index: s[j])
+            ref = reference(duffing_rhs(p), 2, force, dt, lambda s, f, j=obs_index: s[j], interpolation)
             assert rel_l2(got, ref) <= 1e-4
 
 
 @pytest.mark.slow
-def test_bouc_wen_against_reference():
+@pytest.mark.parametrize("interpolation", ["hold", "linear"])
+def test_bouc_wen_against_reference(interpolation):
     rng = np.random.default_rng(12)
     dt, ns = 1.0 / 4096, 150
     force = 0.1 * rng.standard_normal(ns)
@@ -129,32 +134,33 @@ def test_bouc_wen_against_reference():
     # stay finite and with the hysteretic rate n (|alpha| + |beta|) |v| |z|^(n-1) below
     # omega_max along the path (z recovered from the acceleration output)
     params = bouc_wen_draw(40, rng)
-    outs = {o: BoucWen(force, dt, substeps=substeps, output=o).simulate(params) for o in
-            ("displacement", "velocity", "acceleration")}
+    outs = {o: BoucWen(force, dt, substeps=substeps, output=o, input_interpolation=interpolation).simulate(params)
+            for o in ("displacement", "velocity", "acceleration")}
     y, v, a = (outs[o].values for o in ("displacement", "velocity", "acceleration"))
     m, c, k, alpha, beta, n = (params[:, j : j + 1] for j in (0, 1, 2, 3, 4, 6))
     with np.errstate(all="ignore"):
-        z = force - m * a - c * v - k * y
+        z = force - m * a - c * v - k * y  # the acceleration output is at the sample times, where both holds agree
         rate = np.max(n * (np.abs(alpha) + np.abs(beta)) * np.abs(v) * np.abs(z) ** (n - 1), axis=1)
     keep = np.flatnonzero((outs["displacement"].status == OK) & (rate <= om)
                           & (np.max(np.abs(y), axis=1) < 1.0))[:3]
     assert keep.size == 3
     for j in keep:
-        ref = reference(bouc_wen_rhs(params[j]), 3, force, dt, lambda s, f: s[0])
+        ref = reference(bouc_wen_rhs(params[j]), 3, force, dt, lambda s, f: s[0], interpolation)
         assert rel_l2(y[j], ref) <= 1e-4
 
 
 @pytest.mark.slow
-def test_linear_against_reference():
+@pytest.mark.parametrize("interpolation", ["hold", "linear"])
+def test_linear_against_reference(interpolation):
     rng = np.random.default_rng(13)
     dt, ns = 0.01, 120
     force = rng.standard_normal(ns)
     params = draw(LINEAR_PRIOR, 3, rng)
     for output, observe in (("displacement", lambda s, f: s[0]), ("velocity", lambda s, f: s[1])):
-        sim = Linear(force, dt, output=output).simulate(params)
+        sim = Linear(force, dt, output=output, input_interpolation=interpolation).simulate(params)
         assert np.all(sim.status == OK)
         for p, got in zip(params, sim.values, strict=True):
-            ref = reference(linear_rhs(p), 2, force, dt, observe)
+            ref = reference(linear_rhs(p), 2, force, dt, observe, interpolation)
             assert rel_l2(got, ref) <= 1e-8  # exact discretisation: only rounding
 
 
@@ -173,10 +179,15 @@ def cases():
 CASES = list(cases())
 
 
+INTERPOLATIONS = ["hold", "linear"]
+
+
+@pytest.mark.parametrize("interpolation", INTERPOLATIONS)
 @pytest.mark.parametrize("output", ["displacement", "velocity", "acceleration"])
 @pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
-def test_numba_equals_numpy(case, output):
+def test_numba_equals_numpy(case, output, interpolation):
     _, cls, kwargs, params = case
+    kwargs = {**kwargs, "input_interpolation": interpolation}
     for bound in (np.inf, 0.05):
         fast = cls(**kwargs, output=output, state_bound=bound, backend="numba").simulate(params)
         slow = cls(**kwargs, output=output, state_bound=bound, backend="numpy").simulate(params)
@@ -189,10 +200,12 @@ def test_numba_equals_numpy(case, output):
         assert np.all(np.isfinite(fast.values))
 
 
+@pytest.mark.parametrize("interpolation", INTERPOLATIONS)
 @pytest.mark.parametrize("output", ["displacement", "acceleration"])
 @pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
-def test_kernel_nmse_equals_trajectory_nmse(case, output):
+def test_kernel_nmse_equals_trajectory_nmse(case, output, interpolation):
     _, cls, kwargs, params = case
+    kwargs = {**kwargs, "input_interpolation": interpolation}
     sim = cls(**kwargs, output=output, state_bound=10.0)
     out = sim.simulate(params)
     ok = out.status == OK
@@ -214,10 +227,11 @@ def test_kernel_nmse_equals_trajectory_nmse(case, output):
         np.testing.assert_allclose(d_ref[ok], d[ok], rtol=1e-9)
 
 
+@pytest.mark.parametrize("interpolation", INTERPOLATIONS)
 @pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
-def test_early_rejection_same_decisions(case):
+def test_early_rejection_same_decisions(case, interpolation):
     _, cls, kwargs, params = case
-    sim = cls(**kwargs)
+    sim = cls(**kwargs, input_interpolation=interpolation)
     out = sim.simulate(params)
     observed = out.values[np.flatnonzero(out.status == OK)[0]] * 1.1
     full, status_full = sim.distance_nmse(params, observed, 0, observed.size)
@@ -319,7 +333,7 @@ def test_evaluator_uses_in_kernel_nmse_with_early_rejection():
 def test_kernels_are_cached_and_serial():
     from worker import kernels
 
-    for name in ("duffing_run", "bouc_wen_run", "linear_run", "zoh_coefficients", "_duffing_steps",
+    for name in ("duffing_run", "bouc_wen_run", "linear_run", "hold_coefficients", "_duffing_steps",
                  "_bouc_wen_steps_2", "_account"):
         dispatcher = getattr(kernels, name)
         assert not dispatcher.targetoptions.get("parallel", False)

@@ -205,3 +205,39 @@ def test_pairs_figure_axes_labels_and_ticks():
         for a in range(len(boxes)):
             for b in range(a + 1, len(boxes)):
                 assert not boxes[a].overlaps(boxes[b]), (a, b)
+
+
+def test_cli_plot_with_the_spec_of_a_gandk_store(tmp_path):
+    """P.8: ``abcns plot STORE --spec`` on a g-and-k store crashed (the analysis simulated
+    with no generator). It now simulates with a seeded one and compares order statistics:
+    the observed record sorted, each simulated record sorted, so the predictive band holds
+    the observed quantiles where the posterior is right."""
+    import yaml
+
+    from worker.simulators import GAndK
+
+    truth = np.array([[3.0, 1.0, 2.0, 0.5, 0.8]])
+    observed = GAndK(400).simulate(truth, np.random.default_rng(5)).values[0]
+    np.save(tmp_path / "observed.npy", observed)
+    spec = {"name": "gk", "data": {"observed": "observed.npy"},
+            "models": [{"name": "gandk", "simulator": "gandk", "fixed": {"c": 0.8},
+                        "priors": {"A": [0, 10], "B": [0, 10], "g": [0, 10], "k": [0, 10]}}],
+            "distance": {"name": "summary_euclidean", "summaries": "gk"},
+            "sampler": {"particles": 100, "epsilon_initial": 100, "batch_size": 100},
+            "stop": {"max_populations": 3}, "seed": 1}
+    (tmp_path / "spec.yaml").write_text(yaml.safe_dump(spec))
+    loaded, base = load(tmp_path / "spec.yaml")
+    run_to_store(loaded, base, tmp_path / "gk.zarr")
+    done = CliRunner().invoke(app, ["plot", str(tmp_path / "gk.zarr"), "--out", str(tmp_path / "fig"),
+                                    "--spec", str(tmp_path / "spec.yaml")])
+    assert done.exit_code == 0, done.output
+    assert png_ok(tmp_path / "fig" / "predictive_gandk.png")
+    store = Store.open(tmp_path / "gk.zarr")
+    data = store_job_data(store, tmp_path)
+    assert data.sorted_samples and np.array_equal(data.observed, np.sort(observed))
+    values, status = data.simulate("gandk")(truth[:, :4])
+    assert status[0] == 0 and np.all(np.diff(values[0]) >= 0)
+    # at the truth the sorted records agree: NMSE 0.9-10.8 % over 20 pairs of seeds (heavy
+    # tails move the extreme order statistics), where two unsorted records of independent
+    # draws give about 200 %
+    assert nmse(values[0], data.observed) < 20.0

@@ -84,7 +84,7 @@ def test_builtins_follow_the_protocols():
     assert [cls.needs_input for cls in (Duffing, BoucWen, Linear, GAndK)] == [True, True, True, False]
     # config() keeps its keys (provenance): substeps for RK4, the method for the exact ZOH
     assert list(Duffing(f, 0.01, substeps=3).config()) == [
-        "simulator", "substeps", "output", "dt", "n_samples", "state_bound", "backend"]
+        "simulator", "substeps", "output", "dt", "n_samples", "state_bound", "backend", "input_interpolation"]
     assert Linear(f, 0.01).config()["method"] == "exact-zoh" and "substeps" not in Linear(f, 0.01).config()
 
 
@@ -125,6 +125,39 @@ def test_plugins_without_needs_input_are_called_as_before(monkeypatch):
     with pytest.raises(SpecError) as err:
         simulator_for({**desc, "simulator": "needs"}, None, None, obs, "models[0]")
     assert err.value.field == "data.input"
+
+
+def test_the_input_interpolation_reaches_the_simulators_that_take_it(monkeypatch):
+    """P.4: ``data.input_interpolation`` goes to every oscillator (default ``hold``, the
+    behaviour before the option); a factory that does not take it gets ``hold`` only, and the
+    option needs an input record."""
+    for interpolation in ("hold", "linear"):
+        desc = description()
+        desc["data"]["input_interpolation"] = interpolation
+        built = built_simulators(monkeypatch)
+        job_evaluator(desc, ARRAYS)
+        assert [sim.input_interpolation for sim in built] == [interpolation]
+        assert built[0].config()["input_interpolation"] == interpolation
+        monkeypatch.undo()
+    built = built_simulators(monkeypatch)
+    job_evaluator(description(), ARRAYS)  # a description without the field: hold
+    assert built[0].input_interpolation == "hold"
+
+    def needs(force, dt, output):  # a plugin that holds its input its own way
+        return Duffing(force, dt, output=output)
+
+    needs.needs_input = True
+    monkeypatch.setattr(registry, "plugins", lambda: {"needs": EPOf(needs)})
+    desc = {"name": "m", "simulator": "needs", "priors": {"c": [0.1, 1.0]}}
+    simulator_for(desc, ARRAYS["force"], 0.01, ARRAYS["observed"], "models[0]")
+    with pytest.raises(SpecError, match="does not take input_interpolation") as err:
+        simulator_for(desc, ARRAYS["force"], 0.01, ARRAYS["observed"], "models[0]", input_interpolation="linear")
+    assert err.value.field == "data.input_interpolation"
+    gk = {"models": [{"name": "g", "simulator": "gandk", "priors": {"A": [0, 1]}}], "distance": {"name": "nmse"},
+          "data": {"input_interpolation": "linear"}}
+    with pytest.raises(SpecError, match="applies to an input record") as err:
+        job_evaluator(gk, {"force": None, "observed": ARRAYS["observed"]})
+    assert err.value.field == "data.input_interpolation"
 
 
 class EPOf:

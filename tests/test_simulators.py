@@ -1,7 +1,8 @@
 """Reference simulators against a slow, exact-as-possible integration.
 
 The reference is scipy's DOP853 (rtol 1e-11, atol 1e-13) restarted at every sample so the
-held force is exact; restarted N times its own error is at most about N x 1e-11 (relative,
+held force (or, for ``input_interpolation="linear"``, the straight line to the next sample)
+is exact; restarted N times its own error is at most about N x 1e-11 (relative,
 errors of the restarts adding up in the worst case). RK4 with step h has global error
 E(h) ~ C h^4, so halving the step estimates it (Richardson): y_h - y_(h/2) = (15/16) C h^4,
 E(h) ~ (16/15) |y_h - y_(h/2)|; for a right-hand side that is not smooth (|v| in Bouc-Wen)
@@ -21,11 +22,12 @@ SEED = 1234
 RTOL_REF = 1e-11  # DOP853's rtol in reference()
 
 
-def reference(rhs, force, dt, n_state, observe=lambda s, f: s[0]):
+def reference(rhs, force, dt, n_state, observe=lambda s, f: s[0], interpolation="hold"):
     state = np.zeros(n_state)
     out = [observe(state, force[0])]
     for i in range(force.size - 1):
-        sol = solve_ivp(lambda t, s: rhs(s, force[i]), (0, dt), state, method="DOP853", rtol=1e-11, atol=1e-13)
+        f0, slope = force[i], (force[i + 1] - force[i]) / dt if interpolation == "linear" else 0.0
+        sol = solve_ivp(lambda t, s: rhs(s, f0 + slope * t), (0, dt), state, method="DOP853", rtol=1e-11, atol=1e-13)
         state = sol.y[:, -1]
         out.append(observe(state, force[i + 1]))
     return np.array(out)
@@ -47,8 +49,9 @@ def test_duffing_reproduces_the_authors_data_exactly():
     np.testing.assert_allclose(out.values[0], x, rtol=0, atol=x.size * np.finfo(float).eps * np.max(np.abs(x)))
 
 
+@pytest.mark.parametrize("interpolation", ["hold", "linear"])
 @pytest.mark.parametrize("output", ["displacement", "velocity", "acceleration"])
-def test_duffing_against_dop853(output):
+def test_duffing_against_dop853(output, interpolation):
     rng = np.random.default_rng(SEED)
     force = 10 * rng.standard_normal(120)
     dt = 0.01
@@ -62,10 +65,11 @@ def test_duffing_against_dop853(output):
             return [s[1], f - c * s[1] - k * s[0] - k3 * s[0] ** 3 - k5 * s[0] ** 5]
 
         obs = (lambda s, f: rhs(s, f)[1]) if output == "acceleration" else (lambda s, f, j=idx.get(output): s[j])
-        ref = reference(rhs, force, dt, 2, obs)
-        out = Duffing(force, dt, substeps=16, output=output).simulate(p)
+        ref = reference(rhs, force, dt, 2, obs, interpolation)
+        out = Duffing(force, dt, substeps=16, output=output, input_interpolation=interpolation).simulate(p)
         assert out.status[0] == OK
-        y32, y64 = (Duffing(force, dt, substeps=s, output=output).simulate(p).values[0] for s in (32, 64))
+        y32, y64 = (Duffing(force, dt, substeps=s, output=output, input_interpolation=interpolation).simulate(p).values[0]
+                    for s in (32, 64))
         # fourth order: halving the step divides the change by 2^4 = 16 (measured 15.9-16.1)
         assert 14 < rel_l2(out.values[0], y32) / rel_l2(y32, y64) < 18
         # the error is the step-halving estimate (16/15) |y_16 - y_32| (measured 1.5e-10 to
@@ -74,19 +78,25 @@ def test_duffing_against_dop853(output):
         assert rel_l2(out.values[0], ref) < 2 * estimate + force.size * RTOL_REF
 
 
-def test_linear_exact_zoh_against_dop853():
+@pytest.mark.parametrize("interpolation", ["hold", "linear"])
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_linear_exact_recursion_against_dop853(interpolation, backend):
     rng = np.random.default_rng(SEED)
     force = 10 * rng.standard_normal(200)
     for c, k in [(20.0, 1e4), (10.0, 5000.0), (50.0, 15000.0), (-1.0, 100.0), (3.0, -50.0)]:
-        ref = reference(lambda s, f, c=c, k=k: [s[1], f - c * s[1] - k * s[0]], force, 0.01, 2)
-        out = Linear(force, 0.01).simulate(np.array([[1.0, c, k]]))
-        # the zero-order hold is exact: what differs is the reference's own error, at most
-        # 200 restarts x rtol 1e-11 = 2e-9 (measured 7e-15 to 7e-12)
+        ref = reference(lambda s, f, c=c, k=k: [s[1], f - c * s[1] - k * s[0]], force, 0.01, 2,
+                        interpolation=interpolation)
+        out = Linear(force, 0.01, input_interpolation=interpolation, backend=backend).simulate(np.array([[1.0, c, k]]))
+        # either recursion is exact for its interpolation (the first-order hold's ramp
+        # coefficients come from the same matrix exponential): what differs is the
+        # reference's own error, at most 200 restarts x rtol 1e-11 = 2e-9 (measured 7e-15
+        # to 7e-12)
         assert rel_l2(out.values[0], ref) < force.size * RTOL_REF, (c, k)
 
 
+@pytest.mark.parametrize("interpolation", ["hold", "linear"])
 @pytest.mark.parametrize("n", [1, 2, 3, 4])
-def test_bouc_wen_against_dop853(n):
+def test_bouc_wen_against_dop853(n, interpolation):
     rng = np.random.default_rng(SEED + n)
     dt = 1 / 4096
     force = 50 * rng.standard_normal(200)
@@ -100,15 +110,15 @@ def test_bouc_wen_against_dop853(n):
         zdot = A * v - alpha * abs(v) * abs(z) ** (n - 1) * z - beta * v * abs(z) ** n
         return [v, (f - c * v - k * y - z) / m, zdot]
 
-    ref = reference(rhs, force, dt, 3)
+    ref = reference(rhs, force, dt, 3, interpolation=interpolation)
     p = np.array([[m, c, k, alpha, beta, A, n]])
-    out = BoucWen(force, dt, substeps=8).simulate(p)
+    out = BoucWen(force, dt, substeps=8, input_interpolation=interpolation).simulate(p)
     assert out.status[0] == OK
     # |v| and |z|^n are not smooth at 0, so the order is not 4 (halving the step divides the
     # error by 2 to 22, measured): the order-1 step-halving bound 2 |y_8 - y_16| (measured
     # 1.7 to 2.8 times the error, 1.2e-9 for n = 4 to 5.4e-7 for n = 1), plus the reference's
     # own error (200 restarts x 1e-11)
-    half = BoucWen(force, dt, substeps=16).simulate(p).values[0]
+    half = BoucWen(force, dt, substeps=16, input_interpolation=interpolation).simulate(p).values[0]
     assert rel_l2(out.values[0], ref) < 2 * rel_l2(out.values[0], half) + force.size * RTOL_REF
 
 

@@ -82,7 +82,7 @@ def test_observed_with_nan_and_length_mismatch(raw, tmp_path):
     np.save(tmp_path / "short.npy", d["displacement"][:400])
     np.save(tmp_path / "force.npy", d["force"])
     raw["data"].update(input="force.npy", observed="obs.npy")
-    refuse(raw, tmp_path, "data.observed", match="index 7")
+    refuse(raw, tmp_path, "data.observed", match="sample 7 is nan")
     raw["data"].update(observed="short.npy")
     refuse(raw, tmp_path, "data.observed", match="same length")
 
@@ -273,3 +273,60 @@ def test_stop_rules_come_from_the_dataclass(raw):
     assert parse(spec.model_dump(mode="json")).stop == spec.stop
     raw["stop"] = {"max_populations": 2.5}
     refuse(raw, SPEC.parent, "stop.max_populations")
+
+
+# ---------------------------------------------------------------- P.3: the simulators' valid ranges
+BOUC_WEN = ROOT / "examples" / "boucwen" / "spec.yaml"
+
+
+@pytest.fixture
+def bouc_wen_raw():
+    raw = yaml.safe_load(BOUC_WEN.read_text())
+    raw["models"] = raw["models"][:2]  # linear, bw-n1
+    return raw
+
+
+@pytest.mark.parametrize("mutate, field, match", [
+    (lambda m: m["fixed"].update(n=1.5), "models[1].fixed.n", r"must be an integer in 1\.\.4 for simulator bouc_wen"),
+    (lambda m: m["fixed"].update(n=5), "models[1].fixed.n", r"integer in 1\.\.4"),
+    (lambda m: m["fixed"].update(n=0), "models[1].fixed.n", r"integer in 1\.\.4"),
+    (lambda m: (m["fixed"].pop("n"), m["priors"].update(n=[1, 4])), "models[1].priors.n",
+     r"is an integer in 1\.\.4: fix it"),
+    (lambda m: m["priors"].update(m=[-1, 5]), "models[1].priors.m", r"\[-1, 5\] leaves the valid range of m .*> 0"),
+    (lambda m: (m["priors"].pop("m"), m["fixed"].update(m=0)), "models[1].fixed.m", r"must be a number > 0"),
+])
+def test_a_value_outside_the_simulators_range_is_refused_naming_the_field(bouc_wen_raw, mutate, field, match):
+    """P.3: Bouc-Wen's n is an integer the kernels have (1..4), a mass is positive; a fixed
+    value outside, or a prior leaving the range, is refused before anything runs (it used
+    to be accepted, and every simulation failed)."""
+    mutate(bouc_wen_raw["models"][1])
+    refuse(bouc_wen_raw, BOUC_WEN.parent, field, match)
+
+
+def test_the_ranges_hold_every_example_and_the_gandk_bounds(bouc_wen_raw):
+    """The ranges refuse nothing the examples use (n 1..4, the paper's g-and-k priors
+    U(0, 10), which touch B > 0 and k > -1/2 only at a bound); the g-and-k's B and k
+    are checked too."""
+    for n in (1, 4):
+        bouc_wen_raw["models"][1]["fixed"]["n"] = n
+        build(parse(bouc_wen_raw), BOUC_WEN.parent)
+    for path in sorted((ROOT / "examples").glob("*/spec.yaml")):
+        spec, base = load(path)
+        build(spec, base)
+    gk = yaml.safe_load((ROOT / "examples" / "gandk_32" / "spec.yaml").read_text())
+    base = ROOT / "examples" / "gandk_32"
+    for name, prior in (("B", [-1, 10]), ("k", [-1, 10])):
+        bad = copy.deepcopy(gk)
+        bad["models"][0]["priors"][name] = prior
+        refuse(bad, base, f"models[0].priors.{name}", "leaves the valid range")
+
+
+def test_the_input_interpolation_is_a_data_option(raw):
+    """P.4: ``data.input_interpolation``: ``hold`` (the default, as before) or ``linear``; the
+    job's simulators get it; anything else is refused naming the field."""
+    base = SPEC.parent
+    assert {sim.input_interpolation for sim in build(parse(raw), base).simulators} == {"hold"}
+    raw["data"]["input_interpolation"] = "linear"
+    assert {sim.input_interpolation for sim in build(parse(raw), base).simulators} == {"linear"}
+    raw["data"]["input_interpolation"] = "cubic"
+    refuse(raw, base, "data.input_interpolation")

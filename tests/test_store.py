@@ -20,13 +20,23 @@ import abcns
 from abcns import NSSettings, Population, SerialExecutor, StopReason, StopRules
 from abcns import ellipsoid as ell
 from abcns.filling import Budget
-from service.run.store import FORMAT_VERSION, NOTE_CODES, PARTIAL_WARNING, Store, StoreError, StoreNotFound, data_hash
-from tests.closed_form import two_models
+from service.run.store import (
+    FORMAT_VERSION,
+    NOTE_CODES,
+    PARTIAL_WARNING,
+    Store,
+    StoreError,
+    StoreNotFound,
+    data_hash,
+    model_view,
+)
+from tests.closed_form import line_and_disc, two_models
 
 SETTINGS = NSSettings(particles=200, epsilon_initial=2.0, batch_size=50)
 SEED = 3
 SPEC = {"name": "two-models", "sampler": {"particles": 200, "epsilon_initial": 2.0, "batch_size": 50}, "seed": SEED}
-ARRAYS = ("models", "theta", "distances", "weights", "survivors", "model_probabilities")
+ARRAYS = ("models", "theta", "distances", "weights", "survivors", "model_probabilities", "n_simulations_by_model",
+          "n_failed_by_model")
 SCALARS = ("t", "epsilon", "epsilon_next", "n_accepted", "n_simulations", "n_failed", "n_redraws")
 
 
@@ -562,3 +572,93 @@ def test_zarrs_warning_about_a_half_written_metadata_file_is_ignored_by_dataset_
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                           cwd=Path(__file__).resolve().parents[1])
     assert done.stdout.strip() == "False", done.stdout + done.stderr
+
+
+# ---------------------------------------------------------------- P.7, Q.13: geometry, xarray, per-model views
+def line_and_disc_store(path: Path, variant: str, n_populations: int = 4) -> Store:
+    """A real run of tests.closed_form.line_and_disc (models of 1 and 2 parameters on the unit
+    box, shifted and scaled so the unit prior box and the parameters differ), appended
+    population by population, with the spec the runner stores (its models and sampler)."""
+    models, evaluate = line_and_disc()
+    low, width = np.array([2.0, -30.0]), np.array([5.0, 60.0])  # prior boxes [2, 7] and [-30, 30]
+    models = [abcns.Model(m.name, {p: (low[j], low[j] + width[j]) for j, p in enumerate(m.parameter_names)})
+              for m in models]
+    inner = evaluate
+
+    def evaluate_raw(batch):  # the closed-form distances on the unit box
+        unit = (batch.theta - low[: batch.theta.shape[1]]) / width[: batch.theta.shape[1]]
+        return inner(replace(batch, theta=unit))
+
+    settings = NSSettings(particles=300, epsilon_initial=0.5, batch_size=100, variant=variant)
+    spec = {"models": [m.config_dict() for m in models], "sampler": {"variant": variant, "particles": 300}}
+    store = Store.create(path, spec=spec, seed=1, model_names=[m.name for m in models],
+                         parameter_names=[list(m.parameter_names) for m in models], n_particles=300, data_hash="",
+                         algorithm="abc-ns", max_ellipsoids=settings.n_ellipsoids)
+    abcns.run(models, evaluate_raw, settings, stop_after(n_populations), seed=1,
+              on_population=lambda pop: store.append(pop, n_simulations_total=0))
+    return store
+
+
+@pytest.mark.parametrize("variant", ["evidence", "paper"])
+def test_the_ellipsoids_are_what_their_description_says(tmp_path, variant):
+    """P.7: the store said ``{x : (x - c)^T A (x - c) <= 1}`` while it stores the scaled
+    covariance (the inverse convention), and in the default variant centre and matrix are in
+    each model's unit prior box with nothing saying so. Read the descriptions, map the
+    particles as they say, and the survivors of each population lie in its ellipsoids (the
+    paper variant's one ellipsoid holds every survivor by construction; the evidence
+    variant's union holds every point but far outliers: at least 95 %)."""
+    store = line_and_disc_store(tmp_path / "g.zarr", variant)
+    ds = xr.open_zarr(store.path)
+    convention = "{x : (x - c)^T M^-1 (x - c) <= 1}"
+    assert convention in ds["ellipsoid_matrix"].attrs["description"]
+    assert convention in ds["ellipsoid_centre"].attrs["description"]
+    frame = ds.attrs["ellipsoid_frame"]
+    assert frame == {"evidence": "unit prior box", "paper": "parameters"}[variant]
+    unit = "x = (theta - prior_low) / prior_width"
+    assert (unit in ds["ellipsoid_matrix"].attrs["description"]) == (frame == "unit prior box")
+    assert ds["prior_low"].sel(model="disc").values.tolist() == [2.0, -30.0]
+    assert float(ds["prior_width"].sel(model="line", parameter="a")) == 5.0
+    for name in ("line", "disc"):
+        view = model_view(ds, name)
+        for t in ds["population"].values[:-1]:
+            row = view.sel(population=t)
+            theta = row["theta"].values[row["survivor"].values]
+            x = (theta - row["prior_low"].values) / row["prior_width"].values if frame == "unit prior box" else theta
+            inside = np.zeros(x.shape[0], bool)
+            for e in range(ds.sizes["ellipsoid"]):
+                c, m = row["ellipsoid_centre"].values[e], row["ellipsoid_matrix"].values[e]
+                if np.isnan(c).any():
+                    continue
+                diff = x - c
+                inside |= np.einsum("ij,ij->i", diff, np.linalg.solve(m, diff.T).T) <= 1 + 1e-9
+            share = inside.mean()
+            assert share == 1.0 if variant == "paper" else share >= 0.95, (name, t, share)
+
+
+def test_plain_xarray_opens_the_store_and_one_model_is_one_call(tmp_path):
+    """Q.13: plain ``xr.open_zarr(path)`` warned about consolidated metadata (an error here:
+    filterwarnings = error), between appends too; one model's particles needed
+    ``where(model_index == 1)``. The store keeps consolidated metadata as of its last complete
+    population, ``model_view`` / ``Store.model`` give one model's part, and theta says what
+    its units are. The per-model failure counters are stored (P.1)."""
+    store = line_and_disc_store(tmp_path / "v.zarr", "evidence", n_populations=3)
+    ds = xr.open_zarr(store.path)
+    assert ds.sizes["population"] == 3 and store.dataset().identical(ds)
+    disc = store.model("disc")
+    assert disc["parameter"].values.tolist() == ["a", "b"] and disc.attrs["model"] == "disc"
+    mine = ds["model_index"].values == 1
+    assert same_bits(disc["theta"].values[mine], ds["theta"].values[mine])
+    assert np.isnan(disc["theta"].values[~mine]).all() and not disc["survivor"].values[~mine].any()
+    assert same_bits(disc["model_probability"].values, ds["model_probability"].sel(model="disc").values)
+    line = model_view(ds, "line")
+    assert line["parameter"].values.tolist() == ["a"] and line["ellipsoid_matrix"].shape[-2:] == (1, 1)
+    with pytest.raises(KeyError, match="no model 'cubic'"):
+        model_view(ds, "cubic")
+    assert "those of the simulator's equations" in ds["theta"].attrs["description"]
+    pops = store.populations()
+    assert ds["n_failed_by_model"].values.tolist() == [p.n_failed_by_model.tolist() for p in pops] == [[0, 0]] * 3
+    assert (ds["n_simulations_by_model"].values.sum(axis=1) == ds["n_simulations"].values).all()
+    # between appends a plain reader sees whole populations only, without a warning
+    pop = pops[-1]
+    store.append(replace(pop, t=4), n_simulations_total=0)
+    assert xr.open_zarr(store.path).sizes["population"] == 4

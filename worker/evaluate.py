@@ -3,7 +3,9 @@
 ``evaluator(models, simulators, distance)`` returns ``evaluate(batch) -> Evaluated``:
 each model's rows are expanded to the simulator's full parameter vector (free values,
 then fixed values, then the simulator's defaults), simulated as one batch, and scored
-by the distance; rows that are not OK get distance +inf.
+by the distance; rows that are not OK get distance +inf. A simulator that raises a numerical
+error fails only the rows that raise it; any other exception fails the job with a message
+naming the model and its simulator (:func:`abcns.executor.per_model`).
 
 ``job_evaluator(description, arrays)`` builds the same from a JSON-able job description
 (the spec's models, distance and data settings) and the data arrays; it is what a Dask
@@ -29,7 +31,7 @@ from abcns.distances import NMSE, Distance, SummaryEuclidean
 from abcns.executor import OK, Evaluate, SimulateDistanceEpsilon, pack_results, per_model, run_draw, unpack_draws
 from abcns.priors import Model, SpecError
 from worker import registry
-from worker.simulators import NMSECapable, Simulator
+from worker.simulators import NMSECapable, Range, Simulator
 
 
 def check_model(model: Model, simulator: Simulator, where: str) -> None:
@@ -44,6 +46,26 @@ def check_model(model: Model, simulator: Simulator, where: str) -> None:
     missing = [p for p in names if p not in model.priors and p not in model.fixed and p not in simulator.defaults]
     if missing:
         raise SpecError(f"{where}.priors", f"parameters {missing} of {simulator.name} need a prior or a fixed value")
+
+
+def check_ranges(model: Model, simulator: Simulator, where: str) -> None:
+    """The model's fixed values and priors lie in the valid ranges its simulator states
+    (``simulator.ranges``, :class:`worker.simulators.Range`); a SpecError naming the field
+    (``models[1].fixed.n``) otherwise. A simulator without ``ranges`` states none."""
+    ranges: dict[str, Range] = getattr(simulator, "ranges", None) or {}
+    for key, value in model.fixed.items():
+        valid = ranges.get(key)
+        if valid is not None and not valid.holds(float(value)):
+            raise SpecError(f"{where}.fixed.{key}", f"must be {valid} for simulator {simulator.name}, got {value!r}")
+    for key, prior in model.priors.items():
+        valid = ranges.get(key)
+        if valid is None or valid.holds_prior(prior.low, prior.high):
+            continue
+        if valid.integer:
+            raise SpecError(f"{where}.priors.{key}", f"{key} of simulator {simulator.name} is {valid}: fix it "
+                            f"(fixed: {{{key}: ...}}), it cannot have a uniform prior")
+        raise SpecError(f"{where}.priors.{key}", f"[{prior.low:g}, {prior.high:g}] leaves the valid range of {key} "
+                        f"for simulator {simulator.name}: {valid}")
 
 
 def full_parameters(model: Model, simulator: Simulator) -> Callable[[np.ndarray], np.ndarray]:
@@ -97,13 +119,16 @@ def evaluator(models: Sequence[Model], simulators: Sequence[Simulator], distance
     n_observed = int(np.size(distance.observed))
     for i, (model, sim) in enumerate(zip(models, simulators)):
         check_model(model, sim, f"models[{i}]")
+        check_ranges(model, sim, f"models[{i}]")
         if sim.n_samples != n_observed:
             raise SpecError(
                 "data.observed",
                 f"has {n_observed} samples but model {model.name!r} simulates {sim.n_samples} "
                 "(input and observed records must have the same length)",
             )
-    return per_model([model_function(m, s, distance) for m, s in zip(models, simulators)], pass_epsilon=early_rejection)
+    return per_model([model_function(m, s, distance) for m, s in zip(models, simulators)], pass_epsilon=early_rejection,
+                     names=[f"model {m.name!r} (simulator {m.config.get('simulator', s.name)!r})"
+                            for m, s in zip(models, simulators)])
 
 
 def model_of(desc: dict, where: str = "models") -> Model:
@@ -122,7 +147,7 @@ def _bounds(desc: dict, factory) -> dict[str, tuple[float, float]]:
 
 
 #: the keywords :func:`simulator_for` offers a factory driven by the input record
-INPUT_KEYWORDS = ("force", "dt", "n_samples", "substeps", "output", "state_bound")
+INPUT_KEYWORDS = ("force", "dt", "n_samples", "substeps", "output", "state_bound", "input_interpolation")
 
 
 def _accepted(factory: Callable, offered: dict) -> dict:
@@ -139,7 +164,7 @@ def _accepted(factory: Callable, offered: dict) -> dict:
 
 
 def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observed: np.ndarray, where: str,
-                  allow_import: bool = False) -> Simulator:
+                  allow_import: bool = False, input_interpolation: str = "hold") -> Simulator:
     """The simulator a job builds for one model description, over the record given (the
     evaluator passes the record up to the fit end; the analysis the whole record).
 
@@ -148,8 +173,10 @@ def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observ
     - False (g-and-k): ``factory(n_samples=observed.size)``;
     - True (the oscillators): the input is required (a SpecError on ``data.input`` without
       it) and the factory gets those of :data:`INPUT_KEYWORDS` (``force``, ``dt``,
-      ``n_samples``, ``substeps``, ``output``, ``state_bound``) its signature names, e.g.
-      ``Linear`` (exact, no substeps) gets no ``substeps``;
+      ``n_samples``, ``substeps``, ``output``, ``state_bound``, ``input_interpolation``) its
+      signature names, e.g. ``Linear`` (exact, no substeps) gets no ``substeps``; a factory
+      that does not take ``input_interpolation`` cannot be asked for anything but ``hold``
+      (a SpecError on ``data.input_interpolation``);
     - absent (a plugin written before ``needs_input``): as True, except that the input may
       be missing (``force=None``), as plugins have always been called.
     """
@@ -168,13 +195,17 @@ def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observ
 
                 try:
                     integ["substeps"] = choose_substeps(factory.omega_max(_bounds(desc, factory)), dt)
-                except (KeyError, ValueError) as err:
+                except (KeyError, ValueError, OverflowError) as err:  # Overflow: dt x omega past any int
                     raise SpecError("integrator.substeps", f"cannot be chosen from the priors ({err}); give it") from None
         # the divergence guard: 1000 x the observed scale (for a displacement output)
         bound = 1e3 * float(np.max(np.abs(observed))) if integ["output"] == "displacement" else np.inf
-        offered = dict(zip(INPUT_KEYWORDS, (force, dt, int(observed.size), integ["substeps"], integ["output"], bound),
-                           strict=True))
-        return factory(**_accepted(factory, offered))
+        offered = dict(zip(INPUT_KEYWORDS, (force, dt, int(observed.size), integ["substeps"], integ["output"], bound,
+                                            input_interpolation), strict=True))
+        accepted = _accepted(factory, offered)
+        if input_interpolation != "hold" and "input_interpolation" not in accepted:
+            raise SpecError("data.input_interpolation", f"simulator {desc['simulator']!r} does not take "
+                            f"input_interpolation; only 'hold' (the default) is possible with it")
+        return factory(**accepted)
     except SpecError as err:
         field = err.field if err.field.startswith("data") else f"{where}.{err.field}"
         raise SpecError(field, err.message) from None
@@ -191,7 +222,8 @@ def job_parts(description: dict, arrays: dict,
     """(models, simulators, distance) of a job description and its data.
 
     ``description``: ``{"models": [{name, simulator, priors, fixed, integrator}], "distance":
-    {name: nmse | summary_euclidean, summaries}, "data": {"dt": float | None, "fit": [a, b] | None}}``;
+    {name: nmse | summary_euclidean, summaries}, "data": {"dt": float | None, "fit": [a, b] | None,
+    "input_interpolation": "hold" | "linear" (default hold)}}``;
     ``arrays``: ``{"force": array | None, "observed": array}``. ``allow_import`` lets a
     model name a ``package.module:factory`` simulator (the CLI; never HTTP). Without
     ``integrator.substeps`` a simulator with ``omega_max`` gets substeps from
@@ -219,10 +251,14 @@ def job_parts(description: dict, arrays: dict,
         distance = SummaryEuclidean(observed, dist.get("summaries") or "gk")
     else:
         raise SpecError("distance.name", f"unknown distance {dist['name']!r}")
+    interpolation = data.get("input_interpolation", "hold")
+    if force is None and interpolation != "hold":
+        raise SpecError("data.input_interpolation", f"{interpolation!r} applies to an input record (data.input) only")
     models, simulators = [], []
     for i, desc in enumerate(description["models"]):
         models.append(model_of(desc, f"models[{i}]"))
-        simulators.append(simulator_for(desc, force, data.get("dt"), observed, f"models[{i}]", allow_import))
+        simulators.append(simulator_for(desc, force, data.get("dt"), observed, f"models[{i}]", allow_import,
+                                        interpolation))
     return models, simulators, distance
 
 

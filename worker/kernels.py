@@ -4,10 +4,15 @@ Layout. A batch of ``n`` particles lives in one C-ordered work array ``w`` of sh
 ``(rows, n)``: the state components first (one contiguous ``(n,)`` row each), then the
 NMSE accumulator, then the per-particle coefficients (already divided by the mass). Every
 loop has the particles innermost, so each RK4 step is one loop over the batch that LLVM
-vectorises; the force is one array shared by the batch (zero-order hold: ``force[i]`` is
-held over step i). Kernels are ``@njit(cache=True)`` with ``fastmath={"contract"}`` only
-(FMA contraction, no reassociation, NaN/inf semantics kept) and ``error_model="numpy"``
-(no Python exception branches in the loops); none is parallel.
+vectorises; the force is one array shared by the batch. Between samples it is held
+(``hold`` 0, zero-order: ``force[i]`` over step i) or interpolated linearly (``hold`` 1,
+first-order: ``force[i] + (force[i+1] - force[i]) tau``, tau the fraction of step i gone):
+the RK4 stages of a substep then see the force at the substep's start, middle and end, and
+the linear model's exact recursion takes the ramp's own coefficients
+(:func:`hold_coefficients`). With ``hold`` 0 every loop is the zero-order-hold loop it
+always was, to the bit. Kernels are ``@njit(cache=True)`` with ``fastmath={"contract"}``
+only (FMA contraction, no reassociation, NaN/inf semantics kept) and
+``error_model="numpy"`` (no Python exception branches in the loops); none is parallel.
 
 Drivers take a block of particles (``w`` holds only them; a few hundred keep the work
 array in L1) and ``cols``, their columns in the caller's ``dist``, ``status`` and
@@ -181,8 +186,42 @@ def _finish(w, acc_row, n_act, scale, idx, dist, status):
 DUFFING_ROWS = 9
 
 
+@njit(inline="always", **_JIT)
+def _ramp(f0, f1, s, substeps):
+    """The linearly interpolated force at the start, middle and end of substep ``s`` of a
+    sample step from ``f0`` to ``f1``."""
+    df = f1 - f0
+    return (f0 + df * (s / substeps), f0 + df * ((s + 0.5) / substeps), f0 + df * ((s + 1.0) / substeps))
+
+
+@njit(inline="always", **_JIT)
+def _duffing_rk4(x0, v0, fa, fm, fb, c, a, b, d, e, h):
+    """One classical RK4 step of x' = v, v' = acc(t, x, v) for one particle, the x stages
+    written out; ``fa``, ``fm``, ``fb``: force / m at the step's start, middle and end."""
+    hh = 0.5 * h
+    hq = 0.25 * h * h
+    hhh = 0.5 * h * h
+    h26 = h * h / 6.0
+    h6 = h / 6.0
+    a1 = fa - c * v0 - x0 * (a + x0 * (b + x0 * (d + e * (x0 * x0))))
+    xs = x0 + hh * v0
+    vs = v0 + hh * a1
+    a2 = fm - c * vs - xs * (a + xs * (b + xs * (d + e * (xs * xs))))
+    xs = xs + hq * a1
+    vs = v0 + hh * a2
+    a3 = fm - c * vs - xs * (a + xs * (b + xs * (d + e * (xs * xs))))
+    xh = x0 + h * v0
+    xs = xh + hhh * a2
+    vs = v0 + h * a3
+    a4 = fb - c * vs - xs * (a + xs * (b + xs * (d + e * (xs * xs))))
+    a23 = a2 + a3
+    return xh + h26 * (a1 + a23), v0 + h6 * ((a1 + a4) + 2.0 * a23)
+
+
 @njit(**_JIT)
-def _duffing_steps(w, n_act, f, h, substeps):
+def _duffing_steps(w, n_act, f0, f1, h, substeps, hold):
+    """Advance over one sample step: ``substeps`` RK4 steps, the force held at ``f0``
+    (``hold`` 0) or ramped from ``f0`` to ``f1`` (``hold`` 1)."""
     x = w[0]
     v = w[1]
     im = w[3]
@@ -191,36 +230,16 @@ def _duffing_steps(w, n_act, f, h, substeps):
     k2m = w[6]
     k3m = w[7]
     k5m = w[8]
-    hh = 0.5 * h
-    hq = 0.25 * h * h
-    hhh = 0.5 * h * h
-    h26 = h * h / 6.0
-    h6 = h / 6.0
-    for _ in range(substeps):
-        for j in range(n_act):
-            x0 = x[j]
-            v0 = v[j]
-            fj = f * im[j]
-            c = cm[j]
-            a = k1m[j]
-            b = k2m[j]
-            d = k3m[j]
-            e = k5m[j]
-            # classical RK4 for x' = v, v' = acc(x, v), with the x stages written out
-            a1 = fj - c * v0 - x0 * (a + x0 * (b + x0 * (d + e * (x0 * x0))))
-            xs = x0 + hh * v0
-            vs = v0 + hh * a1
-            a2 = fj - c * vs - xs * (a + xs * (b + xs * (d + e * (xs * xs))))
-            xs = xs + hq * a1
-            vs = v0 + hh * a2
-            a3 = fj - c * vs - xs * (a + xs * (b + xs * (d + e * (xs * xs))))
-            xh = x0 + h * v0
-            xs = xh + hhh * a2
-            vs = v0 + h * a3
-            a4 = fj - c * vs - xs * (a + xs * (b + xs * (d + e * (xs * xs))))
-            a23 = a2 + a3
-            x[j] = xh + h26 * (a1 + a23)
-            v[j] = v0 + h6 * ((a1 + a4) + 2.0 * a23)
+    for s in range(substeps):
+        if hold == 0:
+            for j in range(n_act):
+                fj = f0 * im[j]
+                x[j], v[j] = _duffing_rk4(x[j], v[j], fj, fj, fj, cm[j], k1m[j], k2m[j], k3m[j], k5m[j], h)
+        else:
+            fa, fm, fb = _ramp(f0, f1, s, substeps)
+            for j in range(n_act):
+                x[j], v[j] = _duffing_rk4(x[j], v[j], fa * im[j], fm * im[j], fb * im[j], cm[j], k1m[j], k2m[j],
+                                          k3m[j], k5m[j], h)
 
 
 @njit(**_JIT)
@@ -246,7 +265,8 @@ def _duffing_output(w, n_act, f, kind, y):
 
 
 @njit(**_JIT)
-def duffing_run(w, force, h, substeps, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist, status):
+def duffing_run(w, force, h, substeps, hold, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist,
+                status):
     """Run a Duffing batch in place; see the module docstring. ``w`` is ``(DUFFING_ROWS, n)``."""
     n = w.shape[1]
     idx = cols.copy()
@@ -262,7 +282,7 @@ def duffing_run(w, force, h, substeps, kind, bound, obs, start, stop, scale, eps
             if n_act == 0:
                 return
         if i + 1 < ns:
-            _duffing_steps(w, n_act, force[i], h, substeps)
+            _duffing_steps(w, n_act, force[i], force[i + 1], h, substeps, hold)
     _finish(w, 2, n_act, scale, idx, dist, status)
 
 
@@ -292,8 +312,45 @@ def _zdot(v, z, A, alpha, beta, n):
     return v * (A - _zpow(az, n) * (beta * az + (alpha * math.copysign(1.0, v)) * z))
 
 
+@njit(inline="always", **_JIT)
+def _bouc_wen_rk4(y0, v0, z0, fa, fm, fb, c, k, mi, alpha, beta, A, h, n_exp):
+    """One classical RK4 step of the Bouc-Wen state (y, v, z) for one particle; ``fa``,
+    ``fm``, ``fb``: force / m at the step's start, middle and end."""
+    hh = 0.5 * h
+    hq = 0.25 * h * h
+    hhh = 0.5 * h * h
+    h26 = h * h / 6.0
+    h6 = h / 6.0
+    # stage 1
+    a1 = fa - c * v0 - k * y0 - mi * z0
+    q1 = _zdot(v0, z0, A, alpha, beta, n_exp)
+    # stage 2
+    ys = y0 + hh * v0
+    vs = v0 + hh * a1
+    zs = z0 + hh * q1
+    a2 = fm - c * vs - k * ys - mi * zs
+    q2 = _zdot(vs, zs, A, alpha, beta, n_exp)
+    # stage 3
+    ys = ys + hq * a1
+    vs = v0 + hh * a2
+    zs = z0 + hh * q2
+    a3 = fm - c * vs - k * ys - mi * zs
+    q3 = _zdot(vs, zs, A, alpha, beta, n_exp)
+    # stage 4
+    yh = y0 + h * v0
+    ys = yh + hhh * a2
+    vs = v0 + h * a3
+    zs = z0 + h * q3
+    a4 = fb - c * vs - k * ys - mi * zs
+    q4 = _zdot(vs, zs, A, alpha, beta, n_exp)
+    a23 = a2 + a3
+    return (yh + h26 * (a1 + a23), v0 + h6 * ((a1 + a4) + 2.0 * a23),
+            z0 + h6 * ((q1 + q4) + 2.0 * (q2 + q3)))
+
+
 @njit(**_JIT)
-def _bouc_wen_steps(w, n_act, f, h, substeps, n_exp):
+def _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, n_exp):
+    """Advance over one sample step (as :func:`_duffing_steps`)."""
     y = w[0]
     v = w[1]
     z = w[2]
@@ -303,70 +360,40 @@ def _bouc_wen_steps(w, n_act, f, h, substeps, n_exp):
     al = w[7]
     be = w[8]
     Am = w[9]
-    hh = 0.5 * h
-    hq = 0.25 * h * h
-    hhh = 0.5 * h * h
-    h26 = h * h / 6.0
-    h6 = h / 6.0
-    for _ in range(substeps):
-        for j in range(n_act):
-            y0 = y[j]
-            v0 = v[j]
-            z0 = z[j]
-            fj = f * im[j]
-            c = cm[j]
-            k = km[j]
-            mi = im[j]
-            alpha = al[j]
-            beta = be[j]
-            A = Am[j]
-            # stage 1
-            a1 = fj - c * v0 - k * y0 - mi * z0
-            q1 = _zdot(v0, z0, A, alpha, beta, n_exp)
-            # stage 2
-            ys = y0 + hh * v0
-            vs = v0 + hh * a1
-            zs = z0 + hh * q1
-            a2 = fj - c * vs - k * ys - mi * zs
-            q2 = _zdot(vs, zs, A, alpha, beta, n_exp)
-            # stage 3
-            ys = ys + hq * a1
-            vs = v0 + hh * a2
-            zs = z0 + hh * q2
-            a3 = fj - c * vs - k * ys - mi * zs
-            q3 = _zdot(vs, zs, A, alpha, beta, n_exp)
-            # stage 4
-            yh = y0 + h * v0
-            ys = yh + hhh * a2
-            vs = v0 + h * a3
-            zs = z0 + h * q3
-            a4 = fj - c * vs - k * ys - mi * zs
-            q4 = _zdot(vs, zs, A, alpha, beta, n_exp)
-            a23 = a2 + a3
-            y[j] = yh + h26 * (a1 + a23)
-            v[j] = v0 + h6 * ((a1 + a4) + 2.0 * a23)
-            z[j] = z0 + h6 * ((q1 + q4) + 2.0 * (q2 + q3))
+    for s in range(substeps):
+        if hold == 0:
+            for j in range(n_act):
+                fj = f0 * im[j]
+                y[j], v[j], z[j] = _bouc_wen_rk4(y[j], v[j], z[j], fj, fj, fj, cm[j], km[j], im[j], al[j], be[j],
+                                                 Am[j], h, n_exp)
+        else:
+            fa, fm, fb = _ramp(f0, f1, s, substeps)
+            for j in range(n_act):
+                mi = im[j]
+                y[j], v[j], z[j] = _bouc_wen_rk4(y[j], v[j], z[j], fa * mi, fm * mi, fb * mi, cm[j], km[j], mi,
+                                                 al[j], be[j], Am[j], h, n_exp)
 
 
-# one specialisation per exponent, so the exponent is a compile-time constant in the loop
+# one specialisation per exponent (BOUC_WEN_EXPONENTS in worker/simulators.py), so the
+# exponent is a compile-time constant in the loop
 @njit(**_JIT)
-def _bouc_wen_steps_1(w, n_act, f, h, substeps):
-    _bouc_wen_steps(w, n_act, f, h, substeps, 1)
+def _bouc_wen_steps_1(w, n_act, f0, f1, h, substeps, hold):
+    _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, 1)
 
 
 @njit(**_JIT)
-def _bouc_wen_steps_2(w, n_act, f, h, substeps):
-    _bouc_wen_steps(w, n_act, f, h, substeps, 2)
+def _bouc_wen_steps_2(w, n_act, f0, f1, h, substeps, hold):
+    _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, 2)
 
 
 @njit(**_JIT)
-def _bouc_wen_steps_3(w, n_act, f, h, substeps):
-    _bouc_wen_steps(w, n_act, f, h, substeps, 3)
+def _bouc_wen_steps_3(w, n_act, f0, f1, h, substeps, hold):
+    _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, 3)
 
 
 @njit(**_JIT)
-def _bouc_wen_steps_4(w, n_act, f, h, substeps):
-    _bouc_wen_steps(w, n_act, f, h, substeps, 4)
+def _bouc_wen_steps_4(w, n_act, f0, f1, h, substeps, hold):
+    _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, 4)
 
 
 @njit(**_JIT)
@@ -389,7 +416,7 @@ def _bouc_wen_output(w, n_act, f, kind, out):
 
 
 @njit(**_JIT)
-def bouc_wen_run(w, n_exp, force, h, substeps, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj,
+def bouc_wen_run(w, n_exp, force, h, substeps, hold, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj,
                  dist, status):
     """Run a Bouc-Wen batch (one exponent ``n_exp`` in 1..4) in place. ``w`` is ``(BOUC_WEN_ROWS, n)``."""
     n = w.shape[1]
@@ -411,36 +438,42 @@ def bouc_wen_run(w, n_exp, force, h, substeps, kind, bound, obs, start, stop, sc
             if n_act == 0:
                 return
         if i + 1 < ns:
-            f = force[i]
+            f0 = force[i]
+            f1 = force[i + 1]
             if n_exp == 1:
-                _bouc_wen_steps_1(w, n_act, f, h, substeps)
+                _bouc_wen_steps_1(w, n_act, f0, f1, h, substeps, hold)
             elif n_exp == 2:
-                _bouc_wen_steps_2(w, n_act, f, h, substeps)
+                _bouc_wen_steps_2(w, n_act, f0, f1, h, substeps, hold)
             elif n_exp == 3:
-                _bouc_wen_steps_3(w, n_act, f, h, substeps)
+                _bouc_wen_steps_3(w, n_act, f0, f1, h, substeps, hold)
             else:
-                _bouc_wen_steps_4(w, n_act, f, h, substeps)
+                _bouc_wen_steps_4(w, n_act, f0, f1, h, substeps, hold)
     _finish(w, 3, n_act, scale, idx, dist, status)
 
 
-# --------------------------------------------------------------------------- linear, exact ZOH
+# --------------------------------------------------------------------------- linear, exact
 
-# rows: 0 x, 1 v, 2 acc, 3 p11, 4 p12, 5 p21, 6 p22, 7 g1, 8 g2, 9 1/m, 10 c/m, 11 k/m
-LINEAR_ROWS = 12
+# rows: 0 x, 1 v, 2 acc, 3 p11, 4 p12, 5 p21, 6 p22, 7 g1, 8 g2, 9 1/m, 10 c/m, 11 k/m, 12 r1, 13 r2
+LINEAR_ROWS = 14
 _TAYLOR_TERMS = 14  # with the scaled norm <= 1/2 the first omitted term is < 3e-17
 
 
 @njit(cache=True, error_model="numpy")
-def zoh_coefficients(m, c, k, dt, w):
-    """Fill rows 3..11 of ``w`` with the exact zero-order-hold transition of
-    ``m x'' + c x' + k x = f``: ``[[Phi, Gamma], [0, 1]] = expm(dt [[A, B], [0, 0]])``,
-    ``A = [[0, 1], [-k/m, -c/m]]``, ``B = [0, 1/m]``.
+def hold_coefficients(m, c, k, dt, w):
+    """Fill rows 3..13 of ``w`` with the exact transition of ``m x'' + c x' + k x = f`` over
+    one sample for a held force and for a linear ramp: ``s_{i+1} = Phi s_i + Gamma f_i``
+    (zero-order hold) and ``s_{i+1} = Phi s_i + Gamma f_i + R (f_{i+1} - f_i)`` (first-order
+    hold), with ``[[Phi, Gamma, R], [0, 1, 1], [0, 0, 1]] = expm(dt [[A, B, 0], [0, 0, 1/dt],
+    [0, 0, 0]])``, ``A = [[0, 1], [-k/m, -c/m]]``, ``B = [0, 1/m]`` (the force and its slope
+    appended to the state).
 
     Per particle: scale the augmented matrix by ``2**-s`` so that the inf-norm of its
     ``A`` block is at most 1/2, sum the Taylor series of ``expm(M) - I`` by Horner (14
     terms), square ``s`` times as ``F <- 2 F + F F`` (no cancellation against the
-    identity). The bottom row stays ``[0, 0, 1]``, so only ``(Phi, Gamma)`` is carried:
-    ``(P, g) (Q, q) = (P Q, P q + g)``. A non-finite or absurdly large matrix gives NaN
+    identity). The bottom rows stay ``[0, 1, sigma]``, ``[0, 0, 1]`` (sigma the scaled
+    1), so only ``(Phi, Gamma, R, sigma)`` is carried: squaring gives ``(P P, P g + g, P r
+    + sigma g + r, 2 sigma)``. ``(Phi, Gamma)`` are computed exactly as the zero-order hold
+    alone would be (R rides along). A non-finite or absurdly large matrix gives NaN
     coefficients (the particle is then flagged DIVERGED by the recursion)."""
     n = m.shape[0]
     for j in range(n):
@@ -453,7 +486,7 @@ def zoh_coefficients(m, c, k, dt, w):
         b2 = im * dt
         norm = max(dt, abs(a21) + abs(a22))
         if not (norm <= 1e300 and abs(b2) <= 1e300):
-            for row in range(3, 9):
+            for row in (3, 4, 5, 6, 7, 8, 12, 13):
                 w[row, j] = np.nan
             continue
         s = 0
@@ -468,6 +501,7 @@ def zoh_coefficients(m, c, k, dt, w):
         # phi_1(M) = I + M/2! + M^2/3! + ... by Horner, Y <- I + (M Y) / q, then F = M Y =
         # expm(M) - I: carrying F instead of expm(M) keeps the squaring free of cancellation
         p11, p12, p21, p22, g1, g2 = 1.0, 0.0, 0.0, 1.0, 0.0, 0.0
+        r1, r2, y34 = 0.0, 0.0, 0.0  # the ramp's column and the (f, slope) entry of Y
         for q in range(_TAYLOR_TERMS, 1, -1):
             r = 1.0 / q
             n11 = 1.0 + (m12 * p21) * r
@@ -476,14 +510,21 @@ def zoh_coefficients(m, c, k, dt, w):
             n22 = 1.0 + (m21 * p12 + m22 * p22) * r
             ng1 = (m12 * g2) * r
             ng2 = (m21 * g1 + m22 * g2 + mb) * r
+            nr1 = (m12 * r2) * r
+            nr2 = (m21 * r1 + m22 * r2 + mb * y34) * r
             p11, p12, p21, p22, g1, g2 = n11, n12, n21, n22, ng1, ng2
+            r1, r2, y34 = nr1, nr2, sc * r
         f11 = m12 * p21
         f12 = m12 * p22
         f21 = m21 * p11 + m22 * p21
         f22 = m21 * p12 + m22 * p22
         fg1 = m12 * g2
         fg2 = m21 * g1 + m22 * g2 + mb
-        # (I + F)^2 = I + (2 F + F F); the Gamma part: (I + F) g + g = 2 g + F g
+        fr1 = m12 * r2
+        fr2 = m21 * r1 + m22 * r2 + mb * y34
+        sigma = sc
+        # (I + F)^2 = I + (2 F + F F); the Gamma part: (I + F) g + g = 2 g + F g; the ramp's:
+        # (I + F) r + sigma g + r = 2 r + F r + sigma g
         for _ in range(s):
             n11 = 2.0 * f11 + (f11 * f11 + f12 * f21)
             n12 = 2.0 * f12 + (f11 * f12 + f12 * f22)
@@ -491,7 +532,10 @@ def zoh_coefficients(m, c, k, dt, w):
             n22 = 2.0 * f22 + (f21 * f12 + f22 * f22)
             ng1 = 2.0 * fg1 + (f11 * fg1 + f12 * fg2)
             ng2 = 2.0 * fg2 + (f21 * fg1 + f22 * fg2)
+            nr1 = 2.0 * fr1 + (f11 * fr1 + f12 * fr2) + sigma * fg1
+            nr2 = 2.0 * fr2 + (f21 * fr1 + f22 * fr2) + sigma * fg2
             f11, f12, f21, f22, fg1, fg2 = n11, n12, n21, n22, ng1, ng2
+            fr1, fr2, sigma = nr1, nr2, 2.0 * sigma
         p11 = 1.0 + f11
         p12 = f12
         p21 = f21
@@ -504,6 +548,8 @@ def zoh_coefficients(m, c, k, dt, w):
         w[6, j] = p22
         w[7, j] = g1
         w[8, j] = g2
+        w[12, j] = fr1
+        w[13, j] = fr2
 
 
 @njit(**_JIT)
@@ -525,7 +571,9 @@ def _linear_output(w, n_act, f, kind, y):
 
 
 @njit(**_JIT)
-def _linear_step(w, n_act, f):
+def _linear_step(w, n_act, f0, f1, hold):
+    """One sample step: ``Phi s + Gamma f0`` (``hold`` 0), plus the ramp's ``R (f1 - f0)``
+    (``hold`` 1)."""
     x = w[0]
     v = w[1]
     p11 = w[3]
@@ -534,11 +582,21 @@ def _linear_step(w, n_act, f):
     p22 = w[6]
     g1 = w[7]
     g2 = w[8]
-    for j in range(n_act):
-        x0 = x[j]
-        v0 = v[j]
-        x[j] = p11[j] * x0 + p12[j] * v0 + g1[j] * f
-        v[j] = p21[j] * x0 + p22[j] * v0 + g2[j] * f
+    if hold == 0:
+        for j in range(n_act):
+            x0 = x[j]
+            v0 = v[j]
+            x[j] = p11[j] * x0 + p12[j] * v0 + g1[j] * f0
+            v[j] = p21[j] * x0 + p22[j] * v0 + g2[j] * f0
+    else:
+        r1 = w[12]
+        r2 = w[13]
+        df = f1 - f0
+        for j in range(n_act):
+            x0 = x[j]
+            v0 = v[j]
+            x[j] = p11[j] * x0 + p12[j] * v0 + g1[j] * f0 + r1[j] * df
+            v[j] = p21[j] * x0 + p22[j] * v0 + g2[j] * f0 + r2[j] * df
 
 
 @njit(**_JIT)
@@ -571,9 +629,10 @@ def _linear_disp_nmse(w, n_act, f, o, bound, scale, eps, flag):
 
 
 @njit(**_JIT)
-def linear_run(w, force, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist, status):
-    """Run the exact-ZOH recursion for a batch in place; rows 3..11 of ``w`` come from
-    :func:`zoh_coefficients`. ``w`` is ``(LINEAR_ROWS, n)``."""
+def linear_run(w, force, hold, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist, status):
+    """Run the exact recursion for a batch in place, for a held (``hold`` 0) or linearly
+    interpolated (1) force; rows 3..13 of ``w`` come from :func:`hold_coefficients`.
+    ``w`` is ``(LINEAR_ROWS, n)``."""
     n = w.shape[1]
     idx = cols.copy()
     y = np.empty(n)
@@ -582,7 +641,7 @@ def linear_run(w, force, kind, bound, obs, start, stop, scale, eps, cols, want_t
     ns = force.shape[0]
     i = 0
     while i < ns:
-        if (not want_traj) and kind == 0 and start <= i < stop and i + 1 < ns:
+        if (not want_traj) and hold == 0 and kind == 0 and start <= i < stop and i + 1 < ns:
             # fused: score the current displacement and advance in one pass
             n_flag = _linear_disp_nmse(w, n_act, force[i], obs[i], bound, scale, eps, flag)
             if n_flag:
@@ -599,7 +658,7 @@ def linear_run(w, force, kind, bound, obs, start, stop, scale, eps, cols, want_t
             if n_act == 0:
                 return
         if i + 1 < ns:
-            _linear_step(w, n_act, force[i])
+            _linear_step(w, n_act, force[i], force[i + 1], hold)
         i += 1
     _finish(w, 2, n_act, scale, idx, dist, status)
 

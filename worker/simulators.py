@@ -7,14 +7,18 @@ path, :mod:`worker.evaluate`). A factory (the class, or a plugin's callable) may
 (g-and-k) when it only needs the observed record's length; see
 :func:`worker.evaluate.simulator_for` for the keywords each kind is called with.
 
-Forced oscillators (:class:`Oscillator`) take the excitation sampled every ``dt`` and hold
-``force[i]`` constant over step i (zero-order hold); the state starts at rest and the
-output has one value per force sample (output[0] is the initial state, output[i + 1] the
-state after step i). ``Duffing`` and ``BoucWen`` integrate with classical fixed-step RK4
-with ``substeps`` steps per sample (the authors' demo uses 1); ``Linear`` uses the exact
-zero-order-hold recursion. A row whose state leaves ``state_bound`` or stops being finite
-is flagged DIVERGED and frozen at zero, so no overflow spreads and nothing garbage is
-returned.
+Forced oscillators (:class:`Oscillator`) take the excitation sampled every ``dt``; between
+samples it is held (``input_interpolation="hold"``, the default: ``force[i]`` constant over
+step i, a zero-order hold, as the paper's data were made) or interpolated linearly
+(``"linear"``: ``force[i] + (force[i+1] - force[i]) (t - t_i) / dt`` over step i, a
+first-order hold, for a measured continuous input; see :data:`INTERPOLATIONS`). The state
+starts at rest and the output has one value per force sample (output[0] is the initial
+state, output[i + 1] the state after step i). ``Duffing`` and ``BoucWen`` integrate with
+classical fixed-step RK4 with ``substeps`` steps per sample (the authors' demo uses 1),
+each RK4 stage seeing the force at its own time; ``Linear`` uses the exact recursion for
+either hold (the ramp's coefficients come from the same matrix exponential). A row whose
+state leaves ``state_bound`` or stops being finite is flagged DIVERGED and frozen at zero,
+so no overflow spreads and nothing garbage is returned.
 
 Backends. ``backend="numba"`` (the default) runs the compiled kernels of
 :mod:`worker.kernels`; ``backend="numpy"`` keeps the vectorised numpy code below as the
@@ -45,6 +49,54 @@ from abcns.priors import SpecError
 OUTPUTS = ("displacement", "velocity", "acceleration")
 BACKENDS = ("numba", "numpy")
 _BIG = float(np.finfo(float).max)
+#: how the input is interpolated between samples: "hold" (zero-order: the sample's value over
+#: the step, the default) or "linear" (first-order: a straight line to the next sample)
+INTERPOLATIONS = ("hold", "linear")
+#: the Bouc-Wen exponents n the kernels are specialised for (worker/kernels.py, bouc_wen_run)
+#: and the numpy reference computes
+BOUC_WEN_EXPONENTS = (1, 2, 3, 4)
+
+
+@dataclass(frozen=True)
+class Range:
+    """The valid values of one simulator parameter: between ``low`` and ``high`` (each end
+    open or closed), integers only with ``integer``. A simulator states them in its
+    ``ranges`` ({parameter: Range}); a parameter it does not name takes any finite value.
+    A fixed value must lie in the range; a uniform prior [a, b] in its closure (an open end
+    has probability zero under the prior), and an integer parameter cannot have a prior."""
+
+    low: float = -math.inf
+    high: float = math.inf
+    low_open: bool = False
+    high_open: bool = False
+    integer: bool = False
+
+    def holds(self, x: float) -> bool:
+        """Whether the value ``x`` is valid."""
+        if not math.isfinite(x) or (self.integer and x != round(x)):
+            return False
+        above = x > self.low if self.low_open else x >= self.low
+        below = x < self.high if self.high_open else x <= self.high
+        return above and below
+
+    def holds_prior(self, low: float, high: float) -> bool:
+        """Whether the prior U(low, high) lies in the range's closure."""
+        return not self.integer and self.low <= low and high <= self.high
+
+    def __str__(self) -> str:
+        kind = "an integer" if self.integer else "a number"
+        if self.integer and math.isfinite(self.low) and math.isfinite(self.high):
+            return f"{kind} in {self.low:g}..{self.high:g}"
+        parts = []
+        if math.isfinite(self.low):
+            parts.append(f"{'>' if self.low_open else '>='} {self.low:g}")
+        if math.isfinite(self.high):
+            parts.append(f"{'<' if self.high_open else '<='} {self.high:g}")
+        return f"{kind} {' and '.join(parts)}" if parts else f"a finite {kind.split()[-1]}"
+
+
+#: m > 0 (every oscillator divides by the mass)
+POSITIVE = Range(0.0, math.inf, low_open=True)
 
 
 @dataclass(frozen=True, eq=False)
@@ -64,7 +116,9 @@ class Simulator(Protocol):
     - ``simulate(params (n, p), rng) -> SimOutput``: outputs ``(n, n_samples)`` and a status
       per row (``abcns.OK`` / ``DIVERGED`` / ``FAILED``); a row that is not OK may hold
       anything, it is never read;
-    - ``config() -> dict``: JSON for provenance.
+    - ``config() -> dict``: JSON for provenance;
+    - optionally ``ranges``: {parameter: :class:`Range`}, the valid values of the parameters
+      it names (fixed values and priors are checked against them before a run).
     """
 
     name: str
@@ -116,6 +170,12 @@ def _output(output: str) -> str:
     return output
 
 
+def _interpolation(value: str) -> str:
+    if value not in INTERPOLATIONS:
+        raise SpecError("data.input_interpolation", f"must be one of {INTERPOLATIONS}, got {value!r}")
+    return value
+
+
 def _backend(backend: str) -> str:
     if backend not in BACKENDS:
         raise SpecError("integrator.backend", f"must be one of {BACKENDS}, got {backend!r}")
@@ -161,14 +221,31 @@ class Oscillator:
     name = ""
     parameter_names: tuple[str, ...] = ()
     defaults: dict[str, float] = {}
+    ranges: dict[str, Range] = {"m": POSITIVE}
 
     def __init__(self, force=None, dt: float = 0.01, output: str = "displacement", state_bound: float = np.inf,
-                 backend: str = "numba"):
+                 backend: str = "numba", input_interpolation: str = "hold"):
         self.force = _force(force, dt)
         self.dt = float(dt)
         self.output = _output(output)
         self.state_bound = float(state_bound)
         self.backend = _backend(backend)
+        self.input_interpolation = _interpolation(input_interpolation)
+
+    @property
+    def _hold(self) -> int:
+        """The kernels' ``hold`` code: 0 held, 1 linear."""
+        return INTERPOLATIONS.index(self.input_interpolation)
+
+    def _stage_forces(self, i: int, substeps: int) -> list[tuple[float, float, float]]:
+        """The force at the start, middle and end of each substep of step i (numpy
+        reference; as the kernels compute it)."""
+        f0 = float(self.force[i])
+        if self.input_interpolation == "hold":
+            return [(f0, f0, f0)] * substeps
+        df = float(self.force[i + 1]) - f0
+        return [(f0 + df * (s / substeps), f0 + df * ((s + 0.5) / substeps), f0 + df * ((s + 1.0) / substeps))
+                for s in range(substeps)]
 
     @property
     def n_samples(self) -> int:
@@ -180,7 +257,8 @@ class Oscillator:
 
     def config(self) -> dict:
         return {"simulator": self.name, **self._method(), "output": self.output, "dt": self.dt,
-                "n_samples": int(self.force.size), "state_bound": self.state_bound, "backend": self.backend}
+                "n_samples": int(self.force.size), "state_bound": self.state_bound, "backend": self.backend,
+                "input_interpolation": self.input_interpolation}
 
     # -- numba path: subclasses define the work rows and the kernel call
     def _work(self, params: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, tuple]]:
@@ -250,8 +328,9 @@ class _RK4Oscillator(Oscillator):
     n_state = 2
 
     def __init__(self, force=None, dt: float = 0.01, substeps: int = 1, output: str = "displacement",
-                 state_bound: float = np.inf, backend: str = "numba"):
-        super().__init__(force, dt, output=output, state_bound=state_bound, backend=backend)
+                 state_bound: float = np.inf, backend: str = "numba", input_interpolation: str = "hold"):
+        super().__init__(force, dt, output=output, state_bound=state_bound, backend=backend,
+                         input_interpolation=input_interpolation)
         self.substeps = _substeps(substeps)
 
     def _method(self) -> dict:
@@ -285,12 +364,11 @@ class _RK4Oscillator(Oscillator):
         with np.errstate(all="ignore"):
             out[:, 0] = self.observe(p, state, force[0])
             for i in range(force.size - 1):
-                f = force[i]
-                for _ in range(self.substeps):
-                    k1 = self.derivative(p, state, f)
-                    k2 = self.derivative(p, [s + 0.5 * h * d for s, d in zip(state, k1, strict=True)], f)
-                    k3 = self.derivative(p, [s + 0.5 * h * d for s, d in zip(state, k2, strict=True)], f)
-                    k4 = self.derivative(p, [s + h * d for s, d in zip(state, k3, strict=True)], f)
+                for fa, fm, fb in self._stage_forces(i, self.substeps):
+                    k1 = self.derivative(p, state, fa)
+                    k2 = self.derivative(p, [s + 0.5 * h * d for s, d in zip(state, k1, strict=True)], fm)
+                    k3 = self.derivative(p, [s + 0.5 * h * d for s, d in zip(state, k2, strict=True)], fm)
+                    k4 = self.derivative(p, [s + h * d for s, d in zip(state, k3, strict=True)], fb)
                     state = [s + (h / 6.0) * (a + 2.0 * b + 2.0 * c + d)
                              for s, a, b, c, d in zip(state, k1, k2, k3, k4, strict=True)]
                 # the divergence guard: non-finite or out of bound, then frozen at rest
@@ -333,7 +411,7 @@ class Duffing(_RK4Oscillator):
         return [(None, w, ())]
 
     def _call(self, w, extra, kind, *args):
-        _kernels().duffing_run(w, self.force, self.dt / self.substeps, self.substeps, kind, *args)
+        _kernels().duffing_run(w, self.force, self.dt / self.substeps, self.substeps, self._hold, kind, *args)
 
     def derivative(self, p, state, f):
         m, c, k, k2, k3, k5 = p
@@ -355,6 +433,7 @@ class BoucWen(_RK4Oscillator):
     name = "bouc_wen"
     parameter_names = ("m", "c", "k", "alpha", "beta", "A", "n")
     defaults = {"k": 0.0}
+    ranges = {"m": POSITIVE, "n": Range(min(BOUC_WEN_EXPONENTS), max(BOUC_WEN_EXPONENTS), integer=True)}
     n_state = 3
 
     @staticmethod
@@ -365,7 +444,7 @@ class BoucWen(_RK4Oscillator):
 
     def unpack(self, params):
         n = params[:, 6]
-        if not np.all(np.isin(n, (1, 2, 3, 4))):
+        if not np.all(np.isin(n, BOUC_WEN_EXPONENTS)):  # refused by the spec's validation (ranges) before a run
             raise SpecError("fixed.n", f"Bouc-Wen n must be an integer in 1..4, got {np.unique(n)}")
         return tuple(params[:, j] for j in range(6)) + (n.astype(np.int64),)
 
@@ -390,7 +469,8 @@ class BoucWen(_RK4Oscillator):
         return parts
 
     def _call(self, w, extra, kind, *args):
-        _kernels().bouc_wen_run(w, extra[0], self.force, self.dt / self.substeps, self.substeps, kind, *args)
+        _kernels().bouc_wen_run(w, extra[0], self.force, self.dt / self.substeps, self.substeps, self._hold, kind,
+                                *args)
 
     @staticmethod
     def z_bound(alpha: np.ndarray, beta: np.ndarray, A: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -421,34 +501,39 @@ class BoucWen(_RK4Oscillator):
 
 
 class Linear(Oscillator):
-    """``m x'' + c x' + k x = f(t)`` by the exact zero-order-hold recursion:
-    ``s_{i+1} = Phi s_i + Gamma f_i`` with ``[[Phi, Gamma], [0, 1]] = expm([[A, B], [0, 0]] dt)``.
-    Exact for a force held over each sample; no substeps."""
+    """``m x'' + c x' + k x = f(t)`` by the exact recursion for the interpolated force:
+    ``s_{i+1} = Phi s_i + Gamma f_i`` (held) or ``s_{i+1} = Phi s_i + Gamma f_i + R (f_{i+1}
+    - f_i)`` (linear), with ``[[Phi, Gamma, R], [0, 1, 1], [0, 0, 1]] = expm([[A, B, 0], [0,
+    0, 1/dt], [0, 0, 0]] dt)``. Exact for a force held, or ramped linearly, over each
+    sample; no substeps."""
 
     name = "linear"
     parameter_names = ("m", "c", "k")
     defaults: dict[str, float] = {}
 
     def _method(self) -> dict:
-        return {"method": "exact-zoh"}
+        return {"method": "exact-zoh" if self.input_interpolation == "hold" else "exact-foh"}
 
     def _work(self, params):
         K = _kernels()
         params = np.atleast_2d(np.asarray(params, dtype=float))
         w = np.zeros((K.LINEAR_ROWS, params.shape[0]))
-        K.zoh_coefficients(np.ascontiguousarray(params[:, 0]), np.ascontiguousarray(params[:, 1]),
-                           np.ascontiguousarray(params[:, 2]), self.dt, w)
+        K.hold_coefficients(np.ascontiguousarray(params[:, 0]), np.ascontiguousarray(params[:, 1]),
+                            np.ascontiguousarray(params[:, 2]), self.dt, w)
         return [(None, w, ())]
 
     def _call(self, w, extra, kind, *args):
-        _kernels().linear_run(w, self.force, kind, *args)
+        _kernels().linear_run(w, self.force, self._hold, kind, *args)
 
     def _simulate_numpy(self, params: np.ndarray) -> SimOutput:
         params = np.atleast_2d(np.asarray(params, dtype=float))
         n = params.shape[0]
         m, c, k = params[:, 0], params[:, 1], params[:, 2]
-        aug = np.zeros((n, 3, 3))
+        ramp = self.input_interpolation == "linear"
+        aug = np.zeros((n, 4, 4) if ramp else (n, 3, 3))  # the force (and its slope) appended to the state
         aug[:, 0, 1] = 1.0
+        if ramp:
+            aug[:, 2, 3] = 1.0 / self.dt
         with np.errstate(all="ignore"):
             aug[:, 1, 0] = -k / m
             aug[:, 1, 1] = -c / m
@@ -469,7 +554,12 @@ class Linear(Oscillator):
                     out[:, i] = v
                 else:
                     out[:, i] = (f - c * v - k * x) / m
-                x, v = p11 * x + p12 * v + g1 * f, p21 * x + p22 * v + g2 * f
+                if ramp:
+                    df = self.force[i + 1] - f if i + 1 < self.force.size else 0.0
+                    x, v = (p11 * x + p12 * v + g1 * f + e[:, 0, 3] * df,
+                            p21 * x + p22 * v + g2 * f + e[:, 1, 3] * df)
+                else:
+                    x, v = p11 * x + p12 * v + g1 * f, p21 * x + p22 * v + g2 * f
                 now = ~np.isfinite(x) | ~np.isfinite(v) | (np.abs(x) > self.state_bound)
                 if now.any():
                     bad |= now
@@ -486,6 +576,8 @@ class GAndK:
     name = "gandk"
     parameter_names = ("A", "B", "g", "k", "c")
     defaults = {"c": 0.8}
+    # B a scale; k > -1/2 keeps the quantile function increasing in the tails ((1 + z^2)^k z ~ z^(2k + 1))
+    ranges = {"B": POSITIVE, "k": Range(-0.5, math.inf, low_open=True)}
     needs_input = False
 
     def __init__(self, n_samples: int = 10_000):

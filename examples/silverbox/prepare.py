@@ -21,7 +21,9 @@ as the end of the gap: 50-sample moving RMS of the input above 3 mV). A segment 
 - the input is **advanced by half a sample** (FFT, zero-padded), as for the Bouc-Wen example:
   our simulators hold ``u[i]`` over a sample, which lags the circuit's continuous input by
   dt/2 (20 degrees at the 69 Hz resonance). Least-squares check on the fit window (scipy,
-  not ABC): linear NMSE 8.85 -> 2.57 and cubic 6.45 -> 0.034 with the advance.
+  not ABC): linear NMSE 8.85 -> 2.57 and cubic 6.45 -> 0.034 with the advance. For this
+  band-limited input the advance is more exact than the spec's ``input_interpolation:
+  linear`` (see ``examples/boucwen/prepare.py``), so the spec keeps the hold.
 
 Writes ``force.npy``, ``displacement.npy`` (realisation 1: fit [0, 1500), test [1500,
 3000) in the spec); :func:`segments` gives the held-out realisations 2..9 the same way

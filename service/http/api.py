@@ -6,12 +6,18 @@ simulators are accepted over HTTP (no code over the wire), data come inline or a
 uploaded ``.npz``, job ids are checked against ``[0-9a-f]{32}`` so no path leaves the store
 directory, and with a token every API request needs ``Authorization: Bearer TOKEN``.
 
-A submitted body is read only once the token has been checked, and checked in this order:
-its media type (415), JSON (400), every string valid Unicode text and every number finite,
-the job's and models' names (422 naming the field), the schema (422, ``detail[i].field``
-a dotted path), then everything the spec builder checks; an upload's arrays are read only
-when the spec names them, and only after their declared shape and dtype passed. Every 422
-shows the offending value as text. The pages carry a strict Content-Security-Policy.
+A submitted body is read only once the token has been checked, and only while one of a
+bounded number of submission slots is free (``ABCNS_MAX_SUBMISSIONS``; uploads one at a
+time). It is checked in this order: its media type (415), then, in a child process
+(``service.http.intake``: nothing CPU-bound runs on the event loop), its size, depth and count
+of values (413), JSON or an upload's YAML (400 / 422), every string valid Unicode text
+and every number finite, the job's and models' names (422 naming the field) and the schema
+(422, ``detail[i].field`` a dotted path); then, in a thread, everything the spec builder
+checks (physical sense included) and the admission limits. An upload's arrays are read
+only when the spec names them, only after their declared shape and dtype passed, and only
+the samples the job reads. Every 422 shows the offending value as text; a job that cannot
+be stored (a full disk) gets 503 with Retry-After, a full queue 429; a 201 carries the
+job's ``Location``. The pages carry a strict Content-Security-Policy.
 """
 
 from __future__ import annotations
@@ -19,90 +25,54 @@ from __future__ import annotations
 import asyncio
 import hmac
 import json
+import logging
 import math
 import os
 import re
-import unicodedata
 import zipfile
-from collections.abc import AsyncIterable
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path as FilePath
 from typing import IO, Annotated, Any
 
+import anyio
 import numpy as np
 from distributed import Client, LocalCluster
 from fastapi import APIRouter, Depends, FastAPI, Header, HTTPException, Path, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from fastapi.sse import EventSourceResponse, ServerSentEvent
-from pydantic import ValidationError
+from fastapi.sse import format_sse_event
 from starlette.datastructures import UploadFile
 from starlette.requests import ClientDisconnect
 
 from abcns import SpecError
 from service.http import page
-from service.http.jobs import JobManager, JobRecord, QueueFull, clean_text
-from service.http.schemas import NAME_MAX_CHARS, PAGE_MAX, Health, JobCreated, JobInfo, PopulationOut, Status, Summary
+from service.http.intake import Intake, Refused, as_text, problem, validation_errors
+from service.http.jobs import JobManager, JobRecord, QueueFull
+from service.http.schemas import PAGE_MAX, Health, JobCreated, JobInfo, LimitsOut, PopulationOut, Status, Summary
 from service.http.settings import Settings
 from service.run.dask_executor import local_cluster
 from service.run.store import Store, StoreError
-from service.spec import JobSpec, _field, spec_loc
+from service.spec import JobSpec, samples_read
 
 JOB_ID = Annotated[str, Path(pattern="^[0-9a-f]{32}$", description="a job id (32 hex digits)")]
 _bearer = HTTPBearer(auto_error=False)
-TEXT_MAX = 200  # characters of an offending value shown in a 422
+log = logging.getLogger("abcns.http")
+__all__ = ["as_text", "create_app", "validation_errors"]  # as_text, validation_errors: service.http.intake's
 
 
 # ---------------------------------------------------------------------------- errors
-def problem(status: int, field: str, msg: str, kind: str, value: Any = None) -> HTTPException:
-    """An error naming the field: ``detail[0].field`` (``sampler.particles``, ``models[0].name``)."""
-    field = clean_text(field)  # a key may be what is wrong
-    loc = ["body", *[p for p in re.split(r"[.\[\]]+", field) if p]]
-    item = {"loc": loc, "field": field, "msg": msg, "type": kind}
-    if value is not None:
-        item["input"] = as_text(value)
-    return HTTPException(status, [item])
-
-
-def spec_error(err: SpecError) -> HTTPException:
+def spec_error(err: SpecError) -> Refused:
     return problem(422, err.field, err.message, "spec")
-
-
-def as_text(value: Any) -> str:
-    """A value as a short text: NaN and Infinity included, long values cut."""
-    if isinstance(value, str):
-        text = value
-    elif isinstance(value, float) and not math.isfinite(value):
-        text = "NaN" if math.isnan(value) else ("Infinity" if value > 0 else "-Infinity")
-    else:
-        try:
-            text = json.dumps(value, default=str)
-        except ValueError:  # NaN inside a container
-            text = repr(value)
-    text = clean_text(text)
-    return text if len(text) <= TEXT_MAX else text[:TEXT_MAX] + f"... ({len(text)} characters)"
-
-
-def validation_errors(errors: Any) -> list[dict]:
-    """pydantic's errors with ``field`` (the dotted path) and the input as text."""
-    out = []
-    for e in errors:
-        loc = [p if isinstance(p, int | str) else str(p) for p in e.get("loc", ())]
-        where = loc[:1] if loc and loc[0] in ("body", "query", "path", "header", "cookie") else []
-        path = list(spec_loc(tuple(loc[len(where):])))  # sampler.alpha, not sampler.abc-ns.alpha
-        loc = where + path
-        item = {"loc": [clean_text(p) if isinstance(p, str) else p for p in loc],
-                "field": clean_text(_field(tuple(path)) or (str(loc[0]) if loc else "")),
-                "msg": clean_text(str(e.get("msg"))), "type": str(e.get("type"))}
-        if "input" in e:
-            item["input"] = as_text(e["input"])
-        out.append(item)
-    return out
 
 
 async def on_validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
     return JSONResponse({"detail": validation_errors(exc.errors())}, status_code=422)
+
+
+async def on_refused(request: Request, exc: Refused) -> JSONResponse:
+    return JSONResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
 
 
 def _finite(x: Any) -> Any:
@@ -122,6 +92,10 @@ def get_manager(request: Request) -> JobManager:
 
 def get_settings(request: Request) -> Settings:
     return request.app.state.settings
+
+
+def get_intake(request: Request) -> Intake:
+    return request.app.state.intake
 
 
 def check_token(request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
@@ -155,109 +129,79 @@ async def read_body(request: Request) -> bytes:
         raise HTTPException(408, "the body did not arrive") from None
 
 
-def parse_json(body: bytes, field: str) -> Any:
-    """JSON text -> value; 400 for anything that is not UTF-8 JSON (or nests too deeply)."""
-    try:
-        return json.loads(body.decode("utf-8"))
-    except UnicodeDecodeError as err:
-        raise HTTPException(400, f"{field}: not UTF-8 ({err.reason} at byte {err.start})") from None
-    except json.JSONDecodeError as err:
-        raise HTTPException(400, f"{field}: not JSON: {err}") from None
-    except RecursionError:
-        raise HTTPException(400, f"{field}: nested too deeply") from None
+def spec_kind(part: UploadFile) -> str:
+    """How an upload's spec file part is read: by its name or media type, else "any"."""
+    name, media = (part.filename or "").lower(), (part.content_type or "").lower()
+    if name.endswith((".yaml", ".yml")) or "yaml" in media:
+        return "yaml"
+    return "json" if name.endswith(".json") or media == "application/json" else "any"
 
 
-def _walk(x: Any, path: tuple = ()):
-    yield path, x
-    if isinstance(x, dict):
-        for k, v in x.items():
-            yield (*path, k), k  # the key itself
-            yield from _walk(v, (*path, k))
-    elif isinstance(x, list):
-        for i, v in enumerate(x):
-            yield from _walk(v, (*path, i))
-
-
-def check_input(raw: Any) -> None:
-    """Every string Unicode text (a lone surrogate is valid JSON but no text), every number
-    finite (JSON has no NaN or Infinity), and the names short text without control
-    characters; 422 naming the field."""
-    for path, v in _walk(raw):
-        if isinstance(v, str):
-            try:
-                v.encode("utf-8")
-            except UnicodeEncodeError:
-                raise problem(422, _field(path) or "body", "not valid Unicode text (a lone surrogate)", "text",
-                              v) from None
-        elif isinstance(v, float) and not math.isfinite(v):
-            raise problem(422, _field(path) or "body", "must be a finite number (JSON has no NaN or Infinity)",
-                          "finite_number", v)
-    if not isinstance(raw, dict):
-        return
-    names = [("name", raw.get("name"))]
-    if isinstance(raw.get("models"), list):
-        names += [(f"models[{i}].name", m.get("name")) for i, m in enumerate(raw["models"]) if isinstance(m, dict)]
-    for field, name in names:
-        if not isinstance(name, str):
-            continue  # the schema says what is wrong
-        if len(name) > NAME_MAX_CHARS:
-            raise problem(422, field, f"at most {NAME_MAX_CHARS} characters, got {len(name)}", "name", name)
-        bad = next((c for c in name if unicodedata.category(c) == "Cc"), None)
-        if bad is not None:
-            raise problem(422, field, f"must not hold control characters (found U+{ord(bad):04X})", "name", name)
-
-
-def validate_spec(raw: Any) -> JobSpec:
-    if not isinstance(raw, dict):
-        raise problem(422, "body", "the job spec must be a JSON object", "json", raw)
-    check_input(raw)
-    try:
-        return JobSpec.model_validate(raw)
-    except ValidationError as err:
-        raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in err.errors()]) from None
-
-
-def inline_arrays(spec: JobSpec) -> dict[str, np.ndarray]:
-    """The inline data of a spec as arrays; a string (a file name) is refused."""
-    out = {}
-    for key in ("input", "observed"):
-        value = getattr(spec.data, key)
-        if isinstance(value, str):
-            raise problem(422, f"data.{key}", "files are not allowed here; give the data inline", "spec", value)
-        if value is not None:
-            out[key] = np.asarray(value, dtype=float)
-    return out
-
-
-def npz_array(file: IO[bytes], name: str, field: str, max_samples: int) -> np.ndarray:
-    """One array of an uploaded .npz: its npy header (shape, dtype) is read and checked
-    against ``max_samples`` before its data are decompressed."""
+def npz_arrays(file: IO[bytes], spec: JobSpec, max_samples: int) -> dict[str, np.ndarray]:
+    """The arrays an upload's spec names (``input: npz:force``) from its .npz, as float64:
+    each one's npy header (shape, dtype) is read and checked first, and only the samples
+    the job reads (``service.spec.samples_read``) are then decompressed, in chunks, into
+    an array allocated for them: at most ``max_samples`` x 8 bytes, whatever the file."""
+    wanted = {key: value[4:] for key in ("input", "observed")
+              if isinstance(value := getattr(spec.data, key), str) and value.startswith("npz:")}
+    if not wanted:
+        return {}
     try:
         archive = zipfile.ZipFile(file)
     except (zipfile.BadZipFile, OSError, ValueError) as err:
         raise problem(422, "data", f"not a readable .npz (a zip of .npy files): {err}", "npz") from None
     with archive:
         members = {m[:-4]: m for m in archive.namelist() if m.endswith(".npy")}
-        if name not in members:
-            raise problem(422, field, f"the upload has no array {name!r}; it has {sorted(members)[:20]}", "npz")
-        try:
-            with archive.open(members[name]) as f:
-                version = np.lib.format.read_magic(f)
-                read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-                shape, _, dtype = read_header(f)
-                size = math.prod(shape)
-                if dtype.hasobject or dtype.kind not in "biuf":
-                    raise problem(422, field, f"the array {name!r} has dtype {dtype}; numbers only", "npz")
-                if size > max_samples:
-                    raise problem(422, field, f"the array {name!r} has shape {shape} ({size} samples); the limit is "
-                                              f"{max_samples} samples", "npz")
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
-            raise problem(422, field, f"the array {name!r} is not a readable .npy: {err}", "npz") from None
-        try:
-            with archive.open(members[name]) as f:
-                return np.asarray(np.lib.format.read_array(f, allow_pickle=False), dtype=float)
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
-            raise problem(422, field, f"the array {name!r} is not a readable .npy: {err}", "npz") from None
+        headers = {key: _npy_header(archive, members, name, f"data.{key}", max_samples)
+                   for key, name in wanted.items()}
+        sizes = {math.prod(shape) for shape, _, _ in headers.values()}
+        flat = all(sum(d > 1 for d in shape) <= 1 for shape, _, _ in headers.values())
+        n = samples_read(spec) if len(sizes) == 1 and flat else None  # records of one length: cut
+        return {key: _npy_data(archive, members[name], f"data.{key}", *headers[key], n)
+                for key, name in wanted.items()}
+
+
+def _npy_header(archive: zipfile.ZipFile, members: dict, name: str, field: str,
+                max_samples: int) -> tuple[tuple, bool, np.dtype]:
+    if name not in members:
+        raise problem(422, field, f"the upload has no array {name!r}; it has {sorted(members)[:20]}", "npz")
+    try:
+        with archive.open(members[name]) as f:
+            version = np.lib.format.read_magic(f)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = read_header(f)
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, RuntimeError) as err:
+        raise problem(422, field, f"the array {name!r} is not a readable .npy: {err}", "npz") from None
+    size = math.prod(shape)
+    if dtype.hasobject or dtype.kind not in "biuf" or dtype.itemsize > 8:
+        raise problem(422, field, f"the array {name!r} has dtype {dtype}; real numbers of at most 8 bytes only (float64, "
+                                  "float32, integers)", "npz")
+    if size > max_samples:
+        raise problem(422, field, f"the array {name!r} has shape {shape} ({size} samples); the limit is {max_samples} "
+                                  "samples", "npz")
+    return shape, fortran, dtype
+
+
+def _npy_data(archive: zipfile.ZipFile, member: str, field: str, shape: tuple, fortran: bool, dtype: np.dtype,
+              n: int | None) -> np.ndarray:
+    """The array's first ``n`` samples (all with None) as float64, decompressed a chunk at a time."""
+    size = math.prod(shape)
+    count = size if n is None else min(n, size)
+    out = np.empty(count)
+    step = max(1, (4 << 20) // dtype.itemsize)
+    try:
+        with archive.open(member) as f:
+            version = np.lib.format.read_magic(f)
+            (np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0)(f)
+            for start in range(0, count, step):
+                k = min(step, count - start)
+                chunk = f.read(k * dtype.itemsize)
+                if len(chunk) < k * dtype.itemsize:
+                    raise ValueError(f"the data end after {start + len(chunk) // dtype.itemsize} of {size} samples")
+                out[start:start + k] = np.frombuffer(chunk, dtype)
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, RuntimeError) as err:
+        raise problem(422, field, f"the array {member[:-4]!r} is not a readable .npy: {err}", "npz") from None
+    return out if n is not None else out.reshape(shape, order="F" if fortran else "C")
 
 
 # ---------------------------------------------------------------------------- routers
@@ -268,64 +212,72 @@ _JOB_BODY = {"requestBody": {"required": True, "content": {
 _UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
     "type": "object", "required": ["spec", "data"],
     "properties": {
-        "spec": {"type": "string", "description": "the job spec as JSON (a text field or a file part); data fields "
-                                                  "may name 'npz:KEY' of the file"},
+        "spec": {"type": "string", "description": "the job spec as JSON or YAML (a text field or a file part: "
+                                                  "spec.yaml or spec.json); data fields may name 'npz:KEY' of the file"},
         "data": {"type": "string", "format": "binary", "description": "an .npz file with the arrays"}}}}}}}
 
 
 @api.post("/jobs", status_code=201, response_model=JobCreated, openapi_extra=_JOB_BODY,
-          responses={400: {"description": "not UTF-8 JSON"}, 415: {"description": "not application/json"}})
-async def submit(request: Request, manager: Annotated[JobManager, Depends(get_manager)]) -> JobCreated:
+          responses={400: {"description": "not UTF-8 JSON"}, 413: {"description": "too large, too deep, too many values"},
+                     415: {"description": "not application/json"}, 503: {"description": "cannot store it now"}})
+async def submit(request: Request, response: Response, manager: Annotated[JobManager, Depends(get_manager)],
+                 intake: Annotated[Intake, Depends(get_intake)]) -> JobCreated:
     """Queue a job. Data inline; only registry simulators; invalid specs -> 422 naming the field."""
     media_type(request, "application/json")
-    spec = validate_spec(parse_json(await read_body(request), "body"))
-    return await queue_job(manager, request, spec, inline_arrays(spec))
+    async with intake.slot():  # a bounded number of bodies read and handled at once
+        spec, arrays = await intake.spec(await read_body(request), "body", "json")  # in a child process
+        return await queue_job(manager, request, response, spec, arrays)
 
 
-async def queue_job(manager: JobManager, request: Request, spec: JobSpec, arrays: dict[str, np.ndarray]) -> JobCreated:
-    """Validated against the service's limits and queued; 422 naming the field, 429 when the queue is full."""
+async def queue_job(manager: JobManager, request: Request, response: Response, spec: JobSpec,
+                    arrays: dict[str, np.ndarray]) -> JobCreated:
+    """Validated against the service's limits and queued; 422 naming the field, 429 when the
+    queue is full, 503 when the job cannot be stored (a full disk); Location names the job."""
+    retry = {"Retry-After": str(request.app.state.settings.retry_after_s)}
     try:
         job = await asyncio.to_thread(manager.submit, spec, arrays)
     except SpecError as err:
         raise spec_error(err) from None
     except QueueFull as err:
-        retry = str(request.app.state.settings.retry_after_s)
-        raise HTTPException(429, str(err), headers={"Retry-After": retry}) from None
+        raise HTTPException(429, str(err), headers=retry) from None
+    except (OSError, MemoryError) as err:
+        what = err.strerror if isinstance(err, OSError) and err.strerror else type(err).__name__
+        log.warning("a job could not be stored: %r", err)
+        raise Refused(503, f"the service cannot store a job now ({what}); try again later", retry) from None
+    response.headers["Location"] = f"{request.scope.get('root_path', '')}/jobs/{job.id}"
     return JobCreated(id=job.id, status=job.status)  # type: ignore[arg-type]
 
 
 @api.post("/jobs/upload", status_code=201, response_model=JobCreated, openapi_extra=_UPLOAD_BODY,
-          responses={400: {"description": "not UTF-8 JSON"}, 415: {"description": "not multipart/form-data"}})
-async def submit_upload(request: Request, manager: Annotated[JobManager, Depends(get_manager)],
-                        settings: Annotated[Settings, Depends(get_settings)]) -> JobCreated:
-    """Queue a job whose arrays come in an uploaded ``.npz`` (``input: npz:force``):
-    ``curl -F spec=@spec.json -F data=@x.npz`` or ``-F spec='{...}'``."""
+          responses={400: {"description": "not UTF-8 JSON"}, 413: {"description": "too large, too deep, too many values"},
+                     415: {"description": "not multipart/form-data"}, 503: {"description": "cannot store it now"}})
+async def submit_upload(request: Request, response: Response, manager: Annotated[JobManager, Depends(get_manager)],
+                        settings: Annotated[Settings, Depends(get_settings)],
+                        intake: Annotated[Intake, Depends(get_intake)]) -> JobCreated:
+    """Queue a job whose arrays come in an uploaded ``.npz`` (``input: npz:force``), its spec
+    JSON or YAML: ``curl -F spec=@spec.yaml -F data=@x.npz`` or ``-F spec='{...}'``."""
     media_type(request, "multipart/form-data")
-    try:
-        form = await request.form(max_files=4, max_fields=4, max_part_size=settings.max_request_bytes)
-    except ClientDisconnect:
-        raise HTTPException(408, "the body did not arrive") from None
-    try:
-        spec_part, data = form.get("spec"), form.get("data")
-        if spec_part is None:
-            raise problem(422, "spec", "missing: the job spec as JSON (-F spec=@spec.json)", "missing")
-        text = await spec_part.read() if isinstance(spec_part, UploadFile) else spec_part.encode("utf-8", "surrogatepass")
-        spec = validate_spec(parse_json(text, "spec"))
-        if not isinstance(data, UploadFile):
-            raise problem(422, "data", "missing: the arrays as an .npz file part (-F data=@x.npz)", "missing")
-        arrays = {}
-        for key in ("input", "observed"):
-            value = getattr(spec.data, key)
-            if isinstance(value, str):
-                if not value.startswith("npz:"):
-                    raise problem(422, f"data.{key}", "give the data inline or as npz:KEY of the upload", "spec", value)
-                arrays[key] = await asyncio.to_thread(npz_array, data.file, value[4:], f"data.{key}",
-                                                      settings.max_array_samples)
-            elif value is not None:
-                arrays[key] = np.asarray(value, dtype=float)
-    finally:
-        await form.close()
-    return await queue_job(manager, request, spec, arrays)
+    async with intake.slot(), intake.upload():  # uploads one at a time: their arrays are the largest
+        try:
+            form = await request.form(max_files=4, max_fields=4, max_part_size=settings.max_request_bytes)
+        except ClientDisconnect:
+            raise HTTPException(408, "the body did not arrive") from None
+        try:
+            spec_part, data = form.get("spec"), form.get("data")
+            if spec_part is None:
+                raise problem(422, "spec", "missing: the job spec, JSON or YAML (-F spec=@spec.yaml)", "missing")
+            if isinstance(spec_part, UploadFile):
+                text, kind = await spec_part.read(), spec_kind(spec_part)
+            else:
+                text, kind = spec_part.encode("utf-8", "surrogatepass"), "any"
+            spec, arrays = await intake.spec(text, "spec", kind, upload=True)  # in a child process
+            del text
+            if not isinstance(data, UploadFile):
+                raise problem(422, "data", "missing: the arrays as an .npz file part (-F data=@x.npz)", "missing")
+            arrays.update(await asyncio.to_thread(npz_arrays, data.file, spec, settings.max_array_samples))
+        finally:
+            await form.close()
+        return await queue_job(manager, request, response, spec, arrays)
 
 
 @api.get("/jobs", response_model=list[JobInfo])
@@ -411,20 +363,37 @@ def event_start(
     return int(last_event_id.strip())
 
 
-@api.get("/jobs/{job_id}/events", response_class=EventSourceResponse, responses={400: {"description": "bad Last-Event-ID"}})
+@api.get("/jobs/{job_id}/events", response_class=StreamingResponse, responses={
+    200: {"description": "server-sent events", "content": {"text/event-stream": {"schema": {"type": "string"}}}},
+    400: {"description": "bad Last-Event-ID"}})
 async def job_events(
     job: Annotated[JobRecord, Depends(get_job)],
     manager: Annotated[JobManager, Depends(get_manager)],
     start: Annotated[int, Depends(event_start)],
-) -> AsyncIterable[ServerSentEvent]:
+) -> StreamingResponse:
     """Server-sent events: queued, started, one ``population`` per finished population, then
     finished / failed / cancelled. Reconnect with ``Last-Event-ID`` to get what was missed;
-    on an ended job the stream ends at once after what is left."""
-    async for e in job.events.follow(start, manager.closing):  # type: ignore[union-attr]
-        if e is None:
-            yield ServerSentEvent(comment="keep-alive")
-        else:
-            yield ServerSentEvent(data=_finite(e["data"]), event=e["event"], id=str(e["id"]))
+    on an ended job the stream ends at once after what is left.
+
+    Streamed as it is (a keep-alive comment every 15 s of silence comes from the log's
+    follower), not through FastAPI's own server-sent events, whose keep-alive task raised
+    anyio.BrokenResourceError into uvicorn's error log each time a client went away: a
+    client that goes away is the normal end of a stream, logged at debug level."""
+
+    async def stream() -> AsyncIterator[bytes]:
+        try:
+            async for e in job.events.follow(start, manager.closing):  # type: ignore[union-attr]
+                if e is None:
+                    yield format_sse_event(comment="keep-alive")
+                else:
+                    yield format_sse_event(data_str=json.dumps(_finite(e["data"]), separators=(",", ":")),
+                                           event=e["event"], id=str(e["id"]))
+        except (asyncio.CancelledError, GeneratorExit, OSError, anyio.BrokenResourceError, ClientDisconnect):
+            log.debug("the event stream of job %s closed by its client", job.id)
+            raise
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
 public = APIRouter()
@@ -441,10 +410,11 @@ async def health(request: Request, manager: Annotated[JobManager, Depends(get_ma
 def limits_of(request: Request) -> dict:
     settings = request.app.state.settings
     return {**settings.limits.public(), "max_queued": settings.max_queued, "max_running": settings.max_running,
-            "max_request_bytes": settings.max_request_bytes, "max_array_samples": settings.max_array_samples}
+            "max_request_bytes": settings.max_request_bytes, "max_array_samples": settings.max_array_samples,
+            "max_json_values": settings.max_json_values}
 
 
-@public.get("/limits")
+@public.get("/limits", response_model=LimitsOut)
 def limits(request: Request) -> dict:
     """The admission limits a job is checked against (422 naming the field when over one)."""
     return limits_of(request)
@@ -502,6 +472,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        app.state.intake = intake = Intake(settings.max_submissions, settings.max_json_values)
+        intake.start()  # the children that parse and validate bodies import their modules meanwhile
         client, cluster = await asyncio.to_thread(_connect, settings)
         manager = await asyncio.to_thread(JobManager, settings.store_dir, client, settings.max_running,
                                           asyncio.get_running_loop(), settings.max_resumes, settings.limits,
@@ -522,6 +494,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         finally:
             watcher.cancel()
+            intake.close()
             await asyncio.to_thread(manager.shutdown, settings.shutdown_timeout_s)
             await asyncio.to_thread(client.close)
             if manager.client is not client:
@@ -534,6 +507,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   description="ABC-NS model selection and parameter estimation jobs for dynamical systems.")
     app.state.settings = settings
     app.add_exception_handler(RequestValidationError, on_validation_error)  # type: ignore[arg-type]
+    app.add_exception_handler(Refused, on_refused)  # type: ignore[arg-type]
     app.include_router(public)
     app.include_router(api)
     schema = app.openapi

@@ -6,9 +6,13 @@ Every job lives in its own folder of the store directory:
   small and rewritten on every change of status;
 - ``spec.json``: the spec as submitted, its data replaced by references to ``data.npz``
   (written once);
-- ``data.npz``: the job's arrays (``input``, ``observed``);
+- ``data.npz``: the job's arrays (``input``, ``observed``), compressed, cut to the samples
+  the job reads (``service.spec.samples_read``);
 - ``events.jsonl``: its events, ids 1, 2, ...;
-- ``store.zarr``: its populations.
+- ``store.zarr``: its populations;
+- ``result.json``: the summary of an ended job, computed once when it ends (``GET
+  /jobs/{id}/result`` reads it; a running job's summary is computed per request, one at a
+  time).
 
 The manager keeps only the records in memory (no spec, no data, no events): the spec is
 read when the job starts, the events when a client asks for them. A restarted service lists
@@ -17,12 +21,19 @@ of the job list) and puts the queued and running ones back in the queue; a runni
 resumes from its last complete population (the runner's resume), so it ends exactly as an
 uninterrupted run, and its events continue. A job found ``running`` was running when the
 service died; it is resumed at most ``max_resumes`` times, then marked failed with the
-reason, so a job that kills the service cannot do it again on every restart.
+reason, so a job that kills the service cannot do it again on every restart. A job whose
+record could not be written when it ended (a full disk) gets its status and its error back
+from its terminal event.
+
+Admission is exact under any concurrency: a submission takes its place in the queue under
+the manager's lock before anything is built or written (and gives it back if it fails), and
+a cancel finds a queued job in the queue under the same lock, or stops it once it runs.
 """
 
 from __future__ import annotations
 
 import asyncio
+import datetime
 import json
 import logging
 import os
@@ -43,12 +54,13 @@ from abcns import SpecError
 from service.http.limits import Limits, admit
 from service.run.runner import Progress, run_job, summary
 from service.run.store import Store, StoreError
-from service.spec import JobSpec, build
+from service.spec import JobSpec, build, cut_to_read
 
 TERMINAL = ("finished", "failed", "cancelled")
 STATUSES = ("queued", "running", *TERMINAL)
 EVENT_TYPES = ("queued", "started", "population", *TERMINAL)
 DATA_FILE = "data.npz"
+RESULT_FILE = "result.json"
 JOB_ID = re.compile(r"[0-9a-f]{32}")
 log = logging.getLogger("abcns.jobs")
 
@@ -57,6 +69,14 @@ def _write_json(path: Path, data: dict) -> None:
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(data))
     os.replace(tmp, path)  # atomic: a reader sees the old or the new file
+
+
+def _read_json(path: Path) -> Any:
+    """The JSON in ``path``, or None when it is missing or unreadable."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
 
 
 def clean_text(s: str) -> str:
@@ -79,6 +99,7 @@ class EventLog:
         self.last_id = 0
         self.last_event: str | None = None
         self.last_population: dict | None = None
+        self.last_error: str | None = None  # a terminal event's error (what job.json may have missed)
         self._changed = asyncio.Event() if loop is not None else None
         self._scan()
 
@@ -97,6 +118,9 @@ class EventLog:
                     self.last_id, self.last_event = int(e["id"]), str(e["event"])
                     if self.last_event == "population":
                         self.last_population = e["data"]
+                    elif self.last_event in TERMINAL:
+                        error = e["data"].get("error")
+                        self.last_error = error if isinstance(error, str) else None
                 except (ValueError, KeyError, TypeError):
                     break
                 good += len(line)
@@ -190,8 +214,9 @@ class JobRecord:
             "name": self.name, "models": self.models, "crashes": self.crashes})
 
     def public(self) -> dict[str, Any]:
+        created = datetime.datetime.fromtimestamp(self.created_at, datetime.UTC).isoformat(timespec="milliseconds")
         return {"id": self.id, "name": self.name, "models": self.models, "status": self.status,
-                "created_at": self.created_at, "error": self.error, "progress": self.progress}
+                "created_at": created.replace("+00:00", "Z"), "error": self.error, "progress": self.progress}
 
     @classmethod
     def read(cls, folder: Path, loop: asyncio.AbstractEventLoop | None) -> JobRecord:
@@ -221,8 +246,19 @@ class JobRecord:
             raise ValueError("no spec.json")
         job.events = EventLog(folder / "events.jsonl", loop)
         job.progress = job.events.last_population
-        job.save()  # the current layout
+        if job.progress is not None and isinstance(job.progress.get("model_probabilities"), list):
+            # an event of an earlier version: the probabilities in the job's model order
+            job.progress = {**job.progress, "model_probabilities": dict(zip(job.models, job.progress["model_probabilities"]))}
+        job.save_or_log()  # the current layout
         return job
+
+    def save_or_log(self) -> None:
+        """save(), or a line in the log when the disk takes nothing (the record in memory is
+        right; the terminal event has what a restart needs)."""
+        try:
+            self.save()
+        except OSError as err:
+            log.error("job %s: cannot write its job.json (status %s): %s", self.id, self.status, err)
 
 
 class QueueFull(Exception):
@@ -248,7 +284,9 @@ class JobManager:
         self.jobs: dict[str, JobRecord] = {}
         self.queue: deque[str] = deque()
         self.running: set[str] = set()
+        self.admitting = 0  # submissions that hold a place in the queue while they are built and written
         self.lock = threading.Lock()
+        self.result_lock = threading.Lock()  # one summary computed at a time (each reads a whole store)
         self.wake = threading.Condition(self.lock)
         self.stopping = False
         self.closing = asyncio.Event()  # set on the loop when the service stops: every event stream ends
@@ -270,9 +308,10 @@ class JobManager:
         for job in sorted(found, key=lambda j: j.created_at):
             self.jobs[job.id] = job
             if job.status not in TERMINAL and job.events is not None and job.events.ended():
-                # the service died between a job's terminal event and its status (``_end``)
-                job.status = job.events.last_event
-                job.save()
+                # the service died (or the disk was full) between a job's terminal event and its
+                # status (``_end``): both come back from the event
+                job.status, job.error = job.events.last_event, job.events.last_error  # type: ignore[assignment]
+                job.save_or_log()
                 continue
             if job.status == "running":  # the service died while it ran
                 job.crashes += 1
@@ -282,21 +321,31 @@ class JobManager:
                     continue
             if job.status not in TERMINAL:
                 job.status = "queued"
-                job.save()
+                job.save_or_log()
                 self.queue.append(job.id)
 
     def submit(self, spec: JobSpec, arrays: dict[str, np.ndarray]) -> JobRecord:
-        """Queue a job: its arrays (``input``, ``observed``) go to data.npz beside the spec,
-        which refers to them; everything is validated before it is queued (SpecError
-        naming the field, and nothing left behind)."""
-        if self.max_queued is not None and len(self.queue) >= self.max_queued:
-            raise QueueFull(f"{len(self.queue)} jobs are waiting (the limit is {self.max_queued}); try again later")
+        """Queue a job: its arrays (``input``, ``observed``), cut to the samples the job
+        reads, go compressed to data.npz beside the spec, which refers to them; everything
+        is validated before it is queued (SpecError naming the field; an OSError when the
+        disk takes nothing; either way nothing is left behind). The job's place in the queue
+        is taken first, under the lock (QueueFull when there is none). ``arrays`` is emptied
+        once they are stored: build() reads them back, and a long record is not held twice."""
+        with self.lock:
+            waiting = len(self.queue) + self.admitting
+            if self.max_queued is not None and waiting >= self.max_queued:
+                raise QueueFull(f"{waiting} jobs are waiting (the limit is {self.max_queued}); try again later")
+            self.admitting += 1
         job_id = uuid.uuid4().hex
         folder = self.store_dir / job_id
-        folder.mkdir()
         try:
-            np.savez(folder / DATA_FILE, **arrays)
-            data = spec.data.model_copy(update={k: f"{DATA_FILE}:{k}" for k in arrays})
+            folder.mkdir()
+            stored = dict(cut_to_read(spec, arrays))  # a new dict: cut_to_read may return arrays itself
+            arrays.clear()
+            np.savez_compressed(folder / DATA_FILE, **stored)
+            keys = list(stored)
+            del stored
+            data = spec.data.model_copy(update={k: f"{DATA_FILE}:{k}" for k in keys})
             spec = spec.model_copy(update={"data": data})
             built = build(spec, folder, allow_import=False)  # raises SpecError naming the field
             spec = admit(spec, built, self.limits)  # the service's limits (SpecError) and default budget
@@ -304,11 +353,15 @@ class JobManager:
             job = JobRecord(job_id, folder, spec.name, [m.name for m in spec.models], "queued", time.time())
             job.events = EventLog(folder / "events.jsonl", self.loop)
             job.save()
+            job.events.append("queued", {"id": job_id, "name": job.name, "models": job.models,
+                                         "distance": spec.distance.name})  # the live page's tolerance unit
         except BaseException:
+            with self.lock:
+                self.admitting -= 1
             shutil.rmtree(folder, ignore_errors=True)
             raise
-        job.events.append("queued", {"id": job_id, "name": job.name, "models": job.models})
         with self.lock:
+            self.admitting -= 1
             self.jobs[job_id] = job
             self.queue.append(job_id)
             self.wake.notify_all()
@@ -328,13 +381,17 @@ class JobManager:
         return out
 
     def cancel(self, job_id: str) -> JobRecord:
+        """A queued job never starts (it is taken out of the queue under the lock, so the
+        dispatcher cannot have it); one the dispatcher has taken, or that runs, stops within
+        a moment, even in the middle of a batch; what it did stays in the store."""
         job = self.jobs[job_id]
         with self.lock:
-            if job.status == "queued":
+            queued = job_id in self.queue
+            if queued:
                 self.queue.remove(job_id)
-                self._end(job, "cancelled", None)
-                return job
-        job.cancel.set()  # a running job stops between batches; what it did stays in the store
+            job.cancel.set()
+        if queued:
+            self._end(job, "cancelled", None)
         return job
 
     def purge(self, job_id: str) -> bool:
@@ -348,10 +405,30 @@ class JobManager:
         return True
 
     def result(self, job: JobRecord) -> dict | None:
+        """The job's summary (None before its store exists): an ended job's is read from
+        result.json, written when it ended (or here, once, for a job that ended before this
+        version); a running job's is computed from its store. Summaries are computed one at
+        a time: each reads the whole store."""
+        cached = job.folder / RESULT_FILE
+        if job.status in TERMINAL and (out := _read_json(cached)) is not None:
+            return out
+        with self.result_lock:
+            if job.status in TERMINAL and (out := _read_json(cached)) is not None:
+                return out  # computed by the request before this one
+            ended = job.status in TERMINAL
+            try:
+                out = summary(Store.open(job.store_path))
+            except StoreError:
+                return None
+            if ended:
+                self._cache(job, out)
+            return out
+
+    def _cache(self, job: JobRecord, result: dict) -> None:
         try:
-            return summary(Store.open(job.store_path))
-        except StoreError:
-            return None
+            _write_json(job.folder / RESULT_FILE, result)
+        except OSError as err:  # a full disk: computed again next time
+            log.warning("job %s: cannot write its %s: %s", job.id, RESULT_FILE, err)
 
     # ------------------------------------------------------------------ running
     def _dispatch(self) -> None:
@@ -370,13 +447,12 @@ class JobManager:
             threading.Thread(target=self._run, args=(job,), name=f"abcns-job-{job.id[:8]}", daemon=True).start()
 
     @staticmethod
-    def _progress(pop, n_simulations_total: int, elapsed_s: float, rate: float | None) -> dict:
-        """A population event: model probabilities in the job's model order (the names are
-        in the ``queued`` event and the job's record, never repeated here)."""
+    def _progress(pop, models: list[str], n_simulations_total: int, elapsed_s: float, rate: float | None) -> dict:
+        """A population event: the model probabilities by model name."""
         return {
             "population": pop.t, "epsilon": pop.epsilon, "epsilon_next": pop.epsilon_next,
             "acceptance_rate": pop.acceptance_rate, "simulations": int(n_simulations_total),
-            "model_probabilities": [float(p) for p in pop.model_probabilities],
+            "model_probabilities": {name: float(p) for name, p in zip(models, pop.model_probabilities)},
             "elapsed_s": float(elapsed_s), "simulations_per_s": rate,
         }
 
@@ -393,7 +469,7 @@ class JobManager:
         totals = store.totals()
         for t in range(seen + 1, store.n_populations + 1):
             pop = store.population(t)
-            job.progress = self._progress(pop, totals[t - 1], pop.elapsed_s, None)
+            job.progress = self._progress(pop, job.models, totals[t - 1], pop.elapsed_s, None)
             job.events.append("population", job.progress)  # type: ignore[union-attr]
 
     def _connected(self) -> bool:
@@ -426,14 +502,23 @@ class JobManager:
         return started_on is not None and self._scheduler_id() != started_on
 
     def _run(self, job: JobRecord) -> None:
+        if job.cancel.is_set():  # cancelled as the dispatcher took it: it never starts
+            try:
+                self._end(job, "cancelled", None)
+            finally:
+                with self.lock:
+                    self.running.discard(job.id)
+                    self.wake.notify_all()
+            return
         resumed = job.store_path.exists()
         started_on = self._scheduler_id()
         job.status = "running"
-        job.save()
+        job.save_or_log()
         job.events.append("started", {"resumed": resumed})  # type: ignore[union-attr]
 
         def on_population(p: Progress) -> None:
-            job.progress = self._progress(p.population, p.n_simulations_total, p.elapsed_s, p.simulations_per_s)
+            job.progress = self._progress(p.population, job.models, p.n_simulations_total, p.elapsed_s,
+                                          p.simulations_per_s)
             job.events.append("population", job.progress)  # type: ignore[union-attr]
 
         try:
@@ -444,7 +529,7 @@ class JobManager:
                              cancel=lambda: job.cancel.is_set() or self.stopping, owned_store=True)
             if result.stop_reason.value == "cancelled" and self.stopping and not job.cancel.is_set():
                 job.status = "queued"  # the service is stopping: the job resumes when it starts again
-                job.save()
+                job.save_or_log()
             else:
                 self._end(job, "cancelled" if result.stop_reason.value == "cancelled" else "finished", None)
         except (SpecError, StoreError) as err:
@@ -454,7 +539,7 @@ class JobManager:
                 # the scheduler died under the job: back to the front of the queue, resumed from
                 # its last complete population once a scheduler answers again
                 job.status = "queued"
-                job.save()
+                job.save_or_log()
                 job.events.append("requeued", {"reason": f"lost the scheduler ({type(err).__name__}: {err})"})  # type: ignore[union-attr]
                 with self.lock:
                     self.queue.appendleft(job.id)
@@ -466,20 +551,34 @@ class JobManager:
                 self.wake.notify_all()
 
     def _end(self, job: JobRecord, status: str, error: str | None) -> None:
-        """The job's terminal event, then its status: whoever sees the job ended finds the
-        event in its log (a poller that reads the status, then the events, misses nothing)."""
+        """The job's summary (computed once, kept in result.json), its terminal event, then
+        its status: whoever sees the job ended finds the event in its log (a poller that
+        reads the status, then the events, misses nothing). A write that fails (a full disk)
+        is logged: the status holds in memory, and a restart recovers status and error
+        from the terminal event when job.json missed them."""
         data: dict[str, Any] = {"status": status}
         if error:
             data["error"] = error
-        result = self.result(job)
+        with self.result_lock:
+            try:
+                result = summary(Store.open(job.store_path))
+            except StoreError:
+                result = None
+            if result is not None:
+                self._cache(job, result)
         if result:
             probs = result.get("model_probabilities") or {}
             data.update(stop_reason=result.get("stop_reason"), n_populations=result.get("n_populations"),
                         n_simulations=result.get("n_simulations"),
-                        model_probabilities=[probs.get(m) for m in job.models])
-        job.events.append(status, data)  # type: ignore[union-attr]
+                        model_probabilities={m: probs.get(m) for m in job.models})
+            if result.get("notes"):
+                data["notes"] = result["notes"]  # why it stopped, in words (nothing_accepted)
+        try:
+            job.events.append(status, data)  # type: ignore[union-attr]
+        except OSError as err:
+            log.error("job %s: cannot append its %s event: %s", job.id, status, err)
         job.status, job.error = status, error
-        job.save()
+        job.save_or_log()
 
     def begin_shutdown(self) -> None:
         """Stop taking jobs, stop the running ones between batches, end every event stream.
@@ -502,4 +601,4 @@ class JobManager:
             job = self.jobs[job_id]
             if job.status == "running":
                 job.status = "queued"
-                job.save()
+                job.save_or_log()

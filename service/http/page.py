@@ -14,6 +14,9 @@ the token anywhere.
 
 import base64
 import hashlib
+import json
+
+from service.report.colours import MODEL_COLOURS
 
 
 def _hash(text: str) -> str:
@@ -25,8 +28,9 @@ STYLE = r"""
  h1{font-size:1.3em;margin:0 0 .5em} table{border-collapse:collapse} td,th{padding:.25em .7em;border-bottom:1px solid #ddd;text-align:left}
  .grid{display:grid;grid-template-columns:1fr 1fr;gap:1em} .card{border:1px solid #ddd;border-radius:6px;padding:.6em}
  .card h2{font-size:1em;margin:0 0 .3em} .kv span{display:inline-block;margin-right:1.4em} .kv b{font-variant-numeric:tabular-nums}
- svg{width:100%;height:220px} .axis{stroke:#999;stroke-width:1} .lbl{font-size:10px;fill:#555}
- .hist{display:inline-block;margin:0 .6em .6em 0} .hist svg{width:240px;height:90px} .gap{margin-top:1em}
+ svg{width:100%;height:230px} .axis{stroke:#777;stroke-width:1} .grid{stroke:#e4e4e4;stroke-width:1} .lbl{font-size:11px;fill:#333}
+ .axis-title{font-size:12px;fill:#111} .hist{display:inline-block;margin:0 1.4em .8em 0} .hist svg{width:240px;height:112px}
+ .gap{margin-top:1em}
  .status-running{color:#b60} .status-finished{color:#070} .status-failed{color:#b00} .status-cancelled{color:#777}
 #warnings{color:#a40;margin:.5em 0;padding-left:1.2em}
 """
@@ -38,9 +42,11 @@ function headers(extra) { const h = Object.assign({}, extra || {}); const t = se
 async function getJSON(url) { const r = await fetch(url, {headers: headers()}); if (!r.ok) throw new Error(url + ": " + r.status); return r.json(); }
 function fmt(x, d) { if (x === null || x === undefined) return "-"; if (typeof x !== "number") return String(x); const a = Math.abs(x); return (a !== 0 && (a < 1e-3 || a >= 1e5)) ? x.toExponential(d || 3) : x.toPrecision(d || 4); }
 // elements, never markup: every string becomes a text node
-function el(tag, attrs, ...children) { const e = document.createElement(tag); for (const [k, v] of Object.entries(attrs || {})) e.setAttribute(k, String(v)); e.append(...children.map(c => typeof c === "number" ? String(c) : c)); return e; }
+// (a child that is a node stays a node: an SVG <rect> in an <svg> is drawn, its text would not be)
+function nodes(children) { return children.map(c => (c instanceof Node) ? c : String(c)); }
+function el(tag, attrs, ...children) { const e = document.createElement(tag); for (const [k, v] of Object.entries(attrs || {})) e.setAttribute(k, String(v)); e.append(...nodes(children)); return e; }
 const SVG_NS = "http://www.w3.org/2000/svg";
-function sv(tag, attrs, ...children) { const e = document.createElementNS(SVG_NS, tag); for (const [k, v] of Object.entries(attrs || {})) e.setAttribute(k, String(v)); e.append(...children.map(String)); return e; }
+function sv(tag, attrs, ...children) { const e = document.createElementNS(SVG_NS, tag); for (const [k, v] of Object.entries(attrs || {})) e.setAttribute(k, String(v)); e.append(...nodes(children)); return e; }
 function text(id, value) { document.getElementById(id).textContent = value; }
 """
 
@@ -63,21 +69,67 @@ VIEW_JS = r"""
 const jobId = location.pathname.split("/")[2];
 text("job", jobId.slice(0, 8));
 const pops = [];  // population events
-const COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#17becf"];
+const COLORS = __MODEL_COLOURS__;  // a model's colour, as in abcns plot (service/report/colours.py)
+const EPS_COLOR = COLORS[0], ACC_COLOR = "#2ca02c";  // as abcns plot's tolerance figure
 const HIST_PARTICLES = 50000, PAGE = 10000;  // the marginals use at most this many particles of a population
 let modelNames = [], lastId = 0, ended = false, histBusy = false, histShown = 0;
+let unit = " %";  // the tolerance's unit: % for the NMSE (the default distance), none for a summary distance
 
+// a job's model probabilities in the order of its models (a list, or name -> value)
+function probsOf(p, names) {
+  const v = p.model_probabilities || [];
+  return Array.isArray(v) ? v : (names.length ? names : Object.keys(v)).map(n => v[n]);
+}
+
+// "nice" tick values in [lo, hi]: steps of 1, 2 or 5 x 10^k, about n of them (whole numbers if integer)
+function ticks(lo, hi, n, integer) {
+  const raw = (hi - lo) / Math.max(1, n - 1);
+  let step = Math.pow(10, Math.floor(Math.log10(raw)));
+  for (const m of [1, 2, 5, 10]) { if (m * step >= raw * (1 - 1e-9)) { step *= m; break; } }
+  if (integer) step = Math.max(1, Math.round(step));
+  const out = [];
+  for (let v = Math.ceil(lo / step - 1e-9) * step; v <= hi + step * 1e-9; v += step) out.push(Number(v.toPrecision(12)));
+  return out;
+}
+
+// ticks of a log axis (positions in log10): at 1 x 10^k, else 1, 2, 5 x 10^k, else every digit, the first with 3 or more
+function logTicks(y0, y1) {
+  let out = [];
+  for (const digits of [[1], [1, 2, 5], [1, 2, 3, 4, 5, 6, 7, 8, 9]]) {
+    out = [];
+    for (let k = Math.floor(y0); k <= Math.ceil(y1); k++) {
+      for (const d of digits) { const v = k + Math.log10(d); if (v >= y0 - 1e-9 && v <= y1 + 1e-9) out.push(v); }
+    }
+    if (out.length >= 3) break;
+  }
+  return out;
+}
+
+function tickText(x) { const a = Math.abs(x); return (a === 0 || (a >= 1e-3 && a < 1e5)) ? String(Number(x.toPrecision(3))) : x.toExponential(1); }
+
+// a line chart of the populations: ticks and their values along both axes, and the axes' titles
 function line(svg, series, opts) {
-  const W = 500, H = 200, L = 46, B = 18, T = 8;
-  svg.setAttribute("viewBox", `0 0 ${W} ${H + B}`);
+  const W = 500, H = 230, L = 58, R = 12, T = 10, B = 40;  // the plot area: x in [L, W - R], y in [T, H - B]
+  svg.setAttribute("viewBox", `0 0 ${W} ${H}`);
   const xs = series.flatMap(s => s.points.map(p => p[0])), ys = series.flatMap(s => s.points.map(p => p[1]));
-  if (!xs.length) { svg.replaceChildren(); return; }
+  const titles = [sv("text", {class: "axis-title", x: L + (W - L - R) / 2, y: H - 4, "text-anchor": "middle"}, "population"),
+    sv("text", {class: "axis-title", x: 0, y: 0, "text-anchor": "middle",
+                transform: `translate(13,${T + (H - B - T) / 2}) rotate(-90)`}, opts.ylabel)];
+  if (!xs.length) { svg.replaceChildren(...titles); return; }
   let x0 = Math.min(...xs), x1 = Math.max(...xs); if (x1 === x0) x1 = x0 + 1;
-  let y0 = opts.y0 !== undefined ? opts.y0 : Math.min(...ys), y1 = opts.y1 !== undefined ? opts.y1 : Math.max(...ys); if (y1 === y0) y1 = y0 + 1;
-  const X = x => L + (x - x0) / (x1 - x0) * (W - L - 5), Y = y => T + (1 - (y - y0) / (y1 - y0)) * (H - T);
-  const out = [sv("line", {class: "axis", x1: L, y1: H, x2: W, y2: H}), sv("line", {class: "axis", x1: L, y1: T, x2: L, y2: H}),
-    sv("text", {class: "lbl", x: 2, y: T + 8}, opts.fmt(y1)), sv("text", {class: "lbl", x: 2, y: H}, opts.fmt(y0)),
-    sv("text", {class: "lbl", x: L, y: H + 14}, x0), sv("text", {class: "lbl", x: W - 30, y: H + 14}, x1)];
+  let y0 = opts.y0 !== undefined ? opts.y0 : Math.min(...ys), y1 = opts.y1 !== undefined ? opts.y1 : Math.max(...ys);
+  if (y1 === y0) { y0 -= 0.5; y1 += 0.5; }
+  const X = x => L + (x - x0) / (x1 - x0) * (W - L - R), Y = y => T + (1 - (y - y0) / (y1 - y0)) * (H - B - T);
+  const out = [sv("line", {class: "axis", x1: L, y1: H - B, x2: W - R, y2: H - B}),
+               sv("line", {class: "axis", x1: L, y1: T, x2: L, y2: H - B}), ...titles];
+  for (const v of ticks(x0, x1, 6, true)) {
+    out.push(sv("line", {class: "axis", x1: X(v), y1: H - B, x2: X(v), y2: H - B + 4}),
+             sv("text", {class: "lbl", x: X(v), y: H - B + 15, "text-anchor": "middle"}, v));
+  }
+  for (const v of (opts.yticks ? opts.yticks(y0, y1) : ticks(y0, y1, 5, false))) {
+    out.push(sv("line", {class: "grid", x1: L, y1: Y(v), x2: W - R, y2: Y(v)}),
+             sv("text", {class: "lbl", x: L - 5, y: Y(v) + 3, "text-anchor": "end"}, opts.fmt(v)));
+  }
   for (const s of series) {
     const d = s.points.map((p, i) => (i ? "L" : "M") + X(p[0]).toFixed(1) + "," + Y(p[1]).toFixed(1)).join("");
     out.push(sv("path", {d: d, fill: "none", stroke: s.color, "stroke-width": 1.6}));
@@ -85,14 +137,20 @@ function line(svg, series, opts) {
   svg.replaceChildren(...out);
 }
 
-function hist(values, label) {
-  const W = 240, H = 90, n = 20;
+// the histogram of one parameter: 20 bars; the parameter's values along the x axis
+function hist(values, label, color) {
+  const W = 240, H = 112, T = 4, B = 30, n = 20;  // the bars in [T, H - B]
   let lo = Math.min(...values), hi = Math.max(...values); if (hi === lo) { hi = lo + 1; }
   const counts = new Array(n).fill(0); for (const v of values) counts[Math.min(n - 1, Math.floor((v - lo) / (hi - lo) * n))]++;
-  const m = Math.max(...counts), bw = W / n;
-  const svg = sv("svg", {viewBox: `0 0 ${W} ${H}`}, ...counts.map((c, i) => sv("rect", {x: (i * bw).toFixed(1),
-    y: (H - c / m * H).toFixed(1), width: (bw - 1).toFixed(1), height: (c / m * H).toFixed(1), fill: "#1f77b4"})));
-  return el("div", {class: "hist"}, el("div", {class: "lbl"}, `${label}: ${fmt(lo)} .. ${fmt(hi)}`), svg);
+  const m = Math.max(...counts), bw = W / n, h = H - B - T;
+  const bars = counts.map((c, i) => sv("rect", {x: (i * bw).toFixed(1), y: (T + h - c / m * h).toFixed(1),
+    width: (bw - 1).toFixed(1), height: (c / m * h).toFixed(1), fill: color}));
+  const axis = [sv("line", {class: "axis", x1: 0, y1: H - B, x2: W, y2: H - B})];
+  [[lo, 1, "start"], [(lo + hi) / 2, W / 2, "middle"], [hi, W - 1, "end"]].forEach(([v, x, anchor]) => axis.push(
+    sv("line", {class: "axis", x1: x, y1: H - B, x2: x, y2: H - B + 4}),
+    sv("text", {class: "lbl", x: x, y: H - B + 14, "text-anchor": anchor}, tickText(v))));
+  axis.push(sv("text", {class: "axis-title", x: W / 2, y: H - 2, "text-anchor": "middle"}, label));
+  return el("div", {class: "hist"}, sv("svg", {viewBox: `0 0 ${W} ${H}`}, ...bars, ...axis));
 }
 
 function leader(probs) { let k = 0; probs.forEach((p, i) => { if (p > probs[k]) k = i; }); return k; }
@@ -100,19 +158,22 @@ function leader(probs) { let k = 0; probs.forEach((p, i) => { if (p > probs[k]) 
 function render() {
   const p = pops[pops.length - 1];
   if (p) {
-    text("population", p.population); text("epsilon", fmt(p.epsilon)); text("acceptance", p.acceptance_rate.toFixed(3));
-    text("simulations", p.simulations); text("elapsed", p.elapsed_s.toFixed(1));
-    const k = leader(p.model_probabilities);
-    text("leader", (modelNames[k] || "model " + (k + 1)) + " (" + p.model_probabilities[k].toFixed(2) + ")");
+    const probs = probsOf(p, modelNames);
+    text("population", p.population); text("epsilon", fmt(p.epsilon)); text("eps-unit", unit);
+    text("acceptance", p.acceptance_rate.toFixed(3)); text("simulations", p.simulations); text("elapsed", p.elapsed_s.toFixed(1));
+    const k = leader(probs);
+    text("leader", (modelNames[k] || "model " + (k + 1)) + " (" + probs[k].toFixed(2) + ")");
   }
-  line(document.getElementById("eps"), [{color: COLORS[0], points: pops.map(q => [q.population, Math.log10(q.epsilon)])}],
-       {fmt: v => fmt(Math.pow(10, v), 3)});  // a log axis labelled with the tolerance itself
-  line(document.getElementById("acc"), [{color: COLORS[2], points: pops.map(q => [q.population, q.acceptance_rate])}],
-       {y0: 0, y1: 1, fmt: v => v.toFixed(1)});
-  const n = pops.length ? pops[0].model_probabilities.length : 0;
+  line(document.getElementById("eps"), [{color: EPS_COLOR, points: pops.map(q => [q.population, Math.log10(q.epsilon)])}],
+       {ylabel: "tolerance \u03b5" + (unit ? " (" + unit.trim() + ")" : ""), fmt: v => tickText(Math.pow(10, v)),
+        yticks: logTicks});  // a log axis labelled with the tolerance itself
+  line(document.getElementById("acc"), [{color: ACC_COLOR, points: pops.map(q => [q.population, q.acceptance_rate])}],
+       {y0: 0, y1: 1, ylabel: "acceptance rate", fmt: tickText});
+  const n = pops.length ? probsOf(pops[0], modelNames).length : modelNames.length;
   line(document.getElementById("probs"), Array.from({length: n}, (_, i) => ({color: COLORS[i % COLORS.length],
-       points: pops.map(q => [q.population, q.model_probabilities[i]])})), {y0: 0, y1: 1, fmt: v => v.toFixed(1)});
-  const legend = Array.from({length: n}, (_, i) => { const s = el("span", {}, "\u25A0 " + (modelNames[i] || "model " + (i + 1)) + "  ");
+       points: pops.map(q => [q.population, probsOf(q, modelNames)[i]])})),
+       {y0: 0, y1: 1, ylabel: "model probability", fmt: tickText});
+  const legend = Array.from({length: n}, (_, i) => { const s = el("span", {class: "model"}, "\u25A0 " + (modelNames[i] || "model " + (i + 1)) + "  ");
     s.style.color = COLORS[i % COLORS.length]; return s; });
   document.getElementById("legend").replaceChildren(...legend);
 }
@@ -131,11 +192,12 @@ async function histograms() {
         pop = await getJSON(`/jobs/${jobId}/populations/${t}?offset=${pop.offset + pop.distances.length}&limit=${PAGE}`);
         theta.push(...pop.theta); models.push(...pop.models);
       }
-      const lead = leader(pop.model_probabilities);
+      const lead = leader(probsOf(pop, pop.model_names));
       const rows = theta.filter((_, i) => models[i] === lead);
       const part = models.length < pop.n_particles ? ` (first ${models.length} of ${pop.n_particles} particles)` : "";
-      document.getElementById("hists").replaceChildren(el("div", {class: "lbl", id: "hist-title"}, `${pop.model_names[lead]}, population ${t}${part}`),
-        ...pop.parameter_names[lead].map((nm, j) => hist(rows.map(r => r[j]), nm)));
+      document.getElementById("hists").replaceChildren(el("div", {class: "lbl", id: "hist-title"},
+        `${pop.model_names[lead]}, population ${t}: ${rows.length} particles${part}`),
+        ...pop.parameter_names[lead].map((nm, j) => hist(rows.map(r => r[j]), nm, COLORS[lead % COLORS.length])));
       histShown = t;
     }
   } catch (e) { /* the next population retries */ } finally { histBusy = false; }
@@ -148,6 +210,10 @@ async function showWarnings() {  // the summary's warnings (an undecided run, ..
   } catch (e) { text("error", String(e)); }
 }
 
+async function workers() {  // the cluster's workers now (the service counts them every 2 s)
+  try { text("workers", (await getJSON("/health")).workers); } catch (e) { text("workers", "-"); }
+}
+
 function setStatus(s) { const e = document.getElementById("status"); e.textContent = s; e.className = "status-" + s; }
 
 function handle(ev) {
@@ -155,7 +221,11 @@ function handle(ev) {
   let data = {}; try { data = JSON.parse(ev.data || "{}"); } catch (e) {}
   if (ev.event === "population") { pops.push(data); render(); histograms(); setStatus("running"); }
   else if (ev.event === "started") setStatus("running");
-  else if (ev.event === "queued") { if (data.models) modelNames = data.models; setStatus("queued"); }
+  else if (ev.event === "queued") {
+    if (data.models) modelNames = data.models;
+    if (data.distance) unit = data.distance === "nmse" ? " %" : "";
+    setStatus("queued"); render();
+  }
   else if (ev.event === "requeued") setStatus("queued");  // the scheduler went away; resumed when it is back
   else if (["finished", "failed", "cancelled"].includes(ev.event)) { ended = true; setStatus(ev.event); histograms(); showWarnings(); }
 }
@@ -183,9 +253,10 @@ async function stream() {
   }
 }
 
+workers(); setInterval(workers, 2000);
 getJSON(`/jobs/${jobId}`).then(j => { text("name", j.name || ""); modelNames = j.models || modelNames; setStatus(j.status); render(); })
   .catch(e => text("error", String(e))).finally(stream);
-"""
+""".replace("__MODEL_COLOURS__", json.dumps(list(MODEL_COLOURS)))
 
 _HEAD = '<meta charset="utf-8"><meta name="viewport" content="width=device-width, initial-scale=1">' \
         f"<style>{STYLE}</style><script>{COMMON_JS}</script>"
@@ -198,15 +269,15 @@ INDEX = ("<!doctype html><html><head><title>abcns jobs</title>" + _HEAD + "</hea
 VIEW = ("<!doctype html><html><head><title>abcns job</title>" + _HEAD + r"""</head><body>
 <h1>job <span id="job"></span> <small id="name"></small></h1>
 <div class="kv card"><span>status <b id="status">-</b></span><span>population <b id="population">-</b></span>
-<span>epsilon <b id="epsilon">-</b></span><span>acceptance <b id="acceptance">-</b></span>
+<span>tolerance <b id="epsilon">-</b><b id="eps-unit"></b></span><span>acceptance <b id="acceptance">-</b></span>
 <span>simulations <b id="simulations">-</b></span><span>elapsed <b id="elapsed">-</b> s</span>
-<span>leading model <b id="leader">-</b></span></div>
+<span>leading model <b id="leader">-</b></span><span>workers <b id="workers">-</b></span></div>
 <ul id="warnings"></ul>
 <div class="grid gap">
- <div class="card"><h2>tolerance per population (log)</h2><svg id="eps"></svg></div>
+ <div class="card"><h2>tolerance per population (log scale)</h2><svg id="eps"></svg></div>
  <div class="card"><h2>acceptance rate per population</h2><svg id="acc"></svg></div>
  <div class="card"><h2>model probabilities per population</h2><svg id="probs"></svg><div id="legend"></div></div>
- <div class="card"><h2>marginals of the leading model (last population)</h2><div id="hists"></div></div>
+ <div class="card"><h2>marginals of the leading model (last population; particles per bar)</h2><div id="hists"></div></div>
 </div>
 <p id="error"></p>
 """ + f"<script>{VIEW_JS}</script></body></html>")

@@ -21,7 +21,7 @@ class ProgressOut(BaseModel):
     epsilon_next: float | None = None
     acceptance_rate: float
     simulations: int
-    model_probabilities: list[float]  # in the order of the job's models
+    model_probabilities: dict[str, float]  # by model name
     elapsed_s: float
     simulations_per_s: float | None = None
 
@@ -31,7 +31,7 @@ class JobInfo(BaseModel):
     name: str | None
     models: list[str]
     status: Status
-    created_at: float
+    created_at: str  # ISO 8601, UTC: 2026-11-24T10:31:02.512Z
     error: str | None = None
     progress: ProgressOut | None = None
 
@@ -58,11 +58,14 @@ class PopulationOut(BaseModel):
     weights: list[float]
 
 
+LimitsOut = dict[str, int | float]  # the admission limits: integers where the limit is one
+
+
 class Health(BaseModel):
     status: Literal["ok"]
     workers: int
     jobs: dict[str, int]
-    limits: dict[str, float]  # the admission limits (GET /limits)
+    limits: LimitsOut  # the admission limits (GET /limits)
 
 
 Summary = dict[str, Any]

@@ -3,8 +3,10 @@
 - A request's headers must arrive within ``header_timeout_s`` of the connection (or of its
   first byte after a keep-alive pause; an idle keep-alive connection closes after 5 s), and
   its body within ``body_timeout_s`` of its headers, else the connection is closed (a 408
-  when no answer has started): a slow client cannot hold a connection open. Headers are
-  limited to 16 KiB (h11), bodies to ``max_request_bytes`` (413).
+  when no answer has started): a slow client cannot hold a connection open. A request's
+  head (its request line and headers) is limited to ``HEADER_LIMIT`` (16 KiB: 431 and the
+  connection closed, however the bytes arrive; h11 alone limits only a head that arrives
+  in pieces), bodies to ``max_request_bytes`` (413).
 - SIGTERM (or Ctrl+C) first ends every event stream and stops the running jobs between
   batches (they are requeued, and resume at the next start), then uvicorn closes the
   connections (waiting at most 3 s for answers in flight) and the app shuts down (running
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 
 import h11
 import uvicorn
@@ -26,6 +29,8 @@ from service.http.api import begin_shutdown, create_app
 from service.http.settings import Settings
 
 GRACE_S = 3.0  # uvicorn waits this long for answers in flight after SIGTERM (streams end at once)
+HEADER_LIMIT = 16 * 1024  # bytes of a request's head: its request line and headers
+_HEAD_END = re.compile(rb"\r?\n\r?\n")  # where h11 sees a head end
 log = logging.getLogger("uvicorn.error")
 
 
@@ -76,21 +81,41 @@ class DeadlineProtocol(H11Protocol):
         self._arm(None)
         super().connection_lost(exc)
 
+    def handle_events(self) -> None:
+        """uvicorn's, after a look at a new request's head: one longer than HEADER_LIMIT gets
+        431 and the connection is closed before h11 parses it."""
+        if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
+            buffered = self.conn.trailing_data[0]
+            end = _HEAD_END.search(buffered, 0, HEADER_LIMIT + 4)
+            if (end.end() if end else len(buffered)) > HEADER_LIMIT:
+                log.warning("%s: refusing a request whose head exceeds %d bytes", self._who(), HEADER_LIMIT)
+                self._answer_and_close(431, b"Request Header Fields Too Large",
+                                       f"the request line and headers exceed {HEADER_LIMIT} bytes\n")
+                return
+        super().handle_events()
+
+    def _who(self) -> str:
+        return f"{self.client[0]}:{self.client[1]}" if self.client else "?"
+
+    def _answer_and_close(self, status: int, reason: bytes, text: str) -> None:
+        """A short plain-text answer written as bytes (h11 sends no response before a request
+        has been parsed), then the connection closed."""
+        body = text.encode()
+        self.transport.write(b"HTTP/1.1 %d %s\r\ncontent-type: text/plain; charset=utf-8\r\ncontent-length: %d\r\n"
+                             b"connection: close\r\n\r\n%s" % (status, reason, len(body), body))
+        self.transport.close()
+
     def _late(self) -> None:
         phase, self._timer = self._phase, None
         if self.transport.is_closing():
             return
-        client = f"{self.client[0]}:{self.client[1]}" if self.client else "?"
-        log.warning("%s: closing a connection whose request %s did not arrive in time", client, phase)
+        log.warning("%s: closing a connection whose request %s did not arrive in time", self._who(), phase)
         cycle = self.cycle
         if phase == "body" and cycle is not None and not cycle.response_started:
             cycle.disconnected = True  # the app's receive() now says http.disconnect; its answer goes nowhere
             cycle.message_event.set()
-            body = b"the request body did not arrive in time\n"
-            for event in (h11.Response(status_code=408, reason=b"Request Timeout", headers=[
-                    (b"content-type", b"text/plain; charset=utf-8"), (b"content-length", str(len(body)).encode()),
-                    (b"connection", b"close")]), h11.Data(data=body), h11.EndOfMessage()):
-                self.transport.write(self.conn.send(event))
+            self._answer_and_close(408, b"Request Timeout", "the request body did not arrive in time\n")
+            return
         self.transport.close()
 
 
@@ -113,5 +138,5 @@ def serve(settings: Settings, host: str, port: int, access_log: bool = True) -> 
                                                             "body_timeout_s": settings.body_timeout_s})
     config = uvicorn.Config(app, host=host, port=port, http=protocol, log_level="info", access_log=access_log,
                             timeout_keep_alive=5, timeout_graceful_shutdown=int(GRACE_S),
-                            h11_max_incomplete_event_size=16 * 1024)
+                            h11_max_incomplete_event_size=HEADER_LIMIT)
     Server(config, app).run()

@@ -22,6 +22,8 @@ class Settings(BaseSettings):
     max_request_bytes: int = Field(default=32 * 1024 * 1024, ge=1024)
     max_resumes: int = Field(default=1, ge=0)  # resumes of a job the service died under, before it is failed
     max_array_samples: int = Field(default=2**25, ge=1)  # samples of one uploaded array (32 Mi: 256 MiB as float64)
+    max_submissions: int = Field(default=2, ge=1)  # submissions read, parsed and stored at once; the rest wait
+    max_json_values: int = Field(default=4_000_000, ge=1000)  # JSON values in one body (a spec, inline data included)
     header_timeout_s: float = Field(default=5.0, gt=0)  # a request's headers must arrive within this
     body_timeout_s: float = Field(default=30.0, gt=0)  # and its body within this of its headers (else 408)
     shutdown_timeout_s: float = Field(default=10.0, gt=0)  # on SIGTERM: running jobs get this to stop between batches

@@ -5,6 +5,11 @@ store, then posterior predictive bands and NMSE on the fit and test windows
 The spec in a store names its data files relative to the spec file, which the store does
 not know: pass ``base_dir`` (the spec file's directory). The data are checked against the
 store's data hash, so a plot never mixes a run with other data.
+
+A simulator that draws a sample rather than following an input (``needs_input`` False, the
+g-and-k) is simulated with a seeded generator, and its records are compared as order
+statistics: the observed record and every simulated one are sorted, so the predictive bands
+and the NMSE are those of the quantile function (the draws' order means nothing).
 """
 
 from __future__ import annotations
@@ -35,17 +40,20 @@ class JobData:
     test: tuple[int, int] | None
     models: dict[str, Model]
     simulators: dict[str, Simulator]
+    sorted_samples: bool = False  # the simulators draw samples: records compared sorted (order statistics)
 
-    def simulate(self, model: str) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    def simulate(self, model: str, seed: int = 0) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
         """``simulate(theta (n, d)) -> (values (n, T), status (n,))`` of one model over the
         whole record: its free parameters, then its fixed values, then the simulator's
-        defaults, as the evaluator maps them."""
+        defaults, as the evaluator maps them. A stochastic simulator draws from
+        ``default_rng(seed)`` afresh at each call; with ``sorted_samples`` each row is sorted."""
         sim = self.simulators[model]
         expand = full_parameters(self.models[model], sim)
 
         def simulate(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            out = sim.simulate(expand(theta), None)
-            return np.ascontiguousarray(out.values), out.status
+            out = sim.simulate(expand(theta), np.random.default_rng(seed))
+            values = np.sort(out.values, axis=1) if self.sorted_samples else out.values
+            return np.ascontiguousarray(values), out.status
 
         return simulate
 
@@ -66,12 +74,13 @@ def job_data(spec: dict | JobSpec, base_dir: str | Path | None, expect_hash: str
     for i, desc in enumerate(spec.models):
         d = desc.model_dump()
         m = model_of(d, f"models[{i}]")
-        sim = simulator_for(d, force, dt, observed, f"models[{i}]", allow_import)
+        sim = simulator_for(d, force, dt, observed, f"models[{i}]", allow_import, spec.data.input_interpolation)
         check_model(m, sim, f"models[{i}]")
         models[m.name], sims[m.name] = m, sim
     fit = tuple(spec.data.fit) if spec.data.fit else (0, observed.size)
     test = tuple(spec.data.test) if spec.data.test else None
-    return JobData(spec, force, observed, dt, fit, test, models, sims)
+    samples = all(getattr(s, "needs_input", None) is False for s in sims.values())
+    return JobData(spec, force, np.sort(observed) if samples else observed, dt, fit, test, models, sims, samples)
 
 
 def store_job_data(store: Store, base_dir: str | Path | None) -> JobData:
@@ -98,7 +107,7 @@ def predictions(result: Result, data: JobData, n_draws: int | None = None, seed:
     windows = {"fit": data.fit, "test": data.test}
     for i in result.alive():
         name = result.models[i].name
-        sim = data.simulate(name)
+        sim = data.simulate(name, seed)
         preds[name] = predictive(result, name, sim, n_draws, np.random.default_rng(seed))
         scores[name] = fit_test_nmse(result, name, sim, data.observed, windows)
     return preds, scores

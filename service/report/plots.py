@@ -25,17 +25,22 @@ from matplotlib.ticker import MaxNLocator, ScalarFormatter
 
 from abcns import Result
 from abcns.analysis import Confusion, Predictive
+from service.report.colours import model_colour
 
-COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:gray")
+
+def _with_unit(label: str, unit: str) -> str:
+    """``label (unit)``, or the label alone when the quantity has no unit."""
+    return f"{label} ({unit})" if unit else label
 
 
-def tolerance_figure(result: Result) -> Figure:
+def tolerance_figure(result: Result, unit: str = "") -> Figure:
+    """``unit``: the distance's unit ("%" for the NMSE of Eq. 7, "" for a summary distance)."""
     pops = result.populations
     t = [p.t for p in pops]
     fig = Figure(figsize=(9, 3.6), layout="constrained")
     ax1, ax2 = fig.subplots(1, 2)
     ax1.semilogy(t, [p.epsilon for p in pops], "o-", ms=3)
-    ax1.set(xlabel="population", ylabel="tolerance $\\varepsilon_t$", title="tolerance per population")
+    ax1.set(xlabel="population", ylabel=_with_unit("tolerance $\\varepsilon_t$", unit), title="tolerance per population")
     ax1.grid(True, which="both", alpha=0.3)
     ax2.plot(t, [p.acceptance_rate for p in pops], "o-", ms=3, color="tab:green")
     ax2.set(xlabel="population", ylabel="acceptance rate", ylim=(0, 1.02), title="acceptance per population")
@@ -55,7 +60,7 @@ def model_probability_figure(result: Result) -> Figure:
     bottom = np.zeros(len(t))
     for i, name in enumerate(result.model_names):
         ax.bar(t, probs[:, i], width, bottom=bottom, label=f"{name} (final {probs[-1, i]:.2f})",
-               color=COLOURS[i % len(COLOURS)], linewidth=0)
+               color=model_colour(i), linewidth=0)
         bottom += probs[:, i]
     ax.set(xlabel="population", ylabel="model probability", ylim=(0, 1), xlim=(t[0] - 0.5, t[-1] + 0.5),
            title="model probabilities per population")
@@ -80,7 +85,7 @@ def marginals_figure(result: Result, model: int | str, truth: Mapping[str, float
     weights = w if result.weighted_posterior else None
     for j, (name, tv) in enumerate(zip(m.parameter_names, _truth(m.parameter_names, truth))):
         ax = axes[j]
-        ax.hist(theta[:, j], bins=bins, weights=weights, color=COLOURS[i % len(COLOURS)], alpha=0.8)
+        ax.hist(theta[:, j], bins=bins, weights=weights, color=model_colour(i), alpha=0.8)
         q = np.quantile(theta[:, j], [0.025, 0.975]) if weights is None else None
         if q is not None:
             for v in q:
@@ -137,12 +142,13 @@ def _compact_ticks(axis, name: str) -> None:
     axis.set_label_text(name)
 
 
-def pairs_figure(result: Result, model: int | str, truth: Mapping[str, float] | None = None) -> Figure:
+def pairs_figure(result: Result, model: int | str, truth: Mapping[str, float] | None = None, unit: str = "") -> Figure:
     """Corner plot of one model's final population: the diagonal is the histogram of
     parameter i (its y axis is counts, unlabelled and tied to nothing); panel (i, j), j < i,
     scatters parameter j (x) against parameter i (y), coloured by distance. Every panel of
     column j shares parameter j's x axis, every off-diagonal panel of row i shares parameter
-    i's y axis; tick labels and names only on the bottom row and the first column."""
+    i's y axis; tick labels and names only on the bottom row and the first column. ``unit``:
+    the distance's (as :func:`tolerance_figure`)."""
     i = result.model_names.index(model) if isinstance(model, str) else model
     m = result.models[i]
     theta, dist, _ = result.particles(i)
@@ -167,7 +173,7 @@ def pairs_figure(result: Result, model: int | str, truth: Mapping[str, float] | 
                 ax.set_visible(False)
                 continue
             if r == c:
-                ax.hist(theta[:, c], bins=25, color=COLOURS[i % len(COLOURS)], alpha=0.8)
+                ax.hist(theta[:, c], bins=25, color=model_colour(i), alpha=0.8)
                 ax.set_yticks([])
                 ax.tick_params(axis="y", left=False, labelleft=False)
                 if tv[c] is not None:
@@ -193,7 +199,7 @@ def pairs_figure(result: Result, model: int | str, truth: Mapping[str, float] | 
             _compact_ticks(first.yaxis, names[c])
             first.set_ylim(*_limits(theta[:, c], tv[c]))
     if sc is not None:
-        fig.colorbar(sc, ax=axes[:, -1].tolist(), label="distance", shrink=0.6)
+        fig.colorbar(sc, ax=axes[:, -1].tolist(), label=_with_unit("distance", unit), shrink=0.6)
     fig.suptitle(f"{m.name}: pairs, population {result.final.t} (red: truth)", fontsize=10)
     return fig
 
@@ -202,7 +208,7 @@ def predictive_figure(pred: Predictive, observed: np.ndarray, dt: float | None, 
                       test: tuple[int, int] | None = None, scores: Mapping[str, Mapping[str, float]] | None = None,
                       ylabel: str = "response") -> Figure:
     """Observed data and the predictive median with 50 % and 99 % bands on the fit window
-    and, when given, the test window."""
+    and, when given, the test window; ``ylabel`` names the response (:func:`response_label`)."""
     windows = [("fit", fit)] + ([("test", test)] if test is not None else [])
     fig = Figure(figsize=(6.5 * len(windows), 3.8), layout="constrained")
     axes = np.atleast_1d(fig.subplots(1, len(windows), squeeze=False)).ravel()
@@ -258,27 +264,39 @@ def save(fig: Figure, path: Path) -> Path:
     return path
 
 
+def response_label(data, model: str) -> str:
+    """What a model's simulated record is, for an axis: the spec's ``integrator.output``
+    (displacement, velocity, acceleration) of an input-driven model, in the unit of the
+    observed record (the spec does not name it); "observed value" for a model without input."""
+    if data.force is None:
+        return "observed value"
+    spec = next(m for m in data.spec.models if m.name == model)
+    return f"{spec.integrator.output} (unit of data.observed)"
+
+
 def plot_result(result: Result, out: str | Path, truth: Mapping[str, float] | None = None,
-                data=None, n_draws: int | None = None, seed: int = 0) -> dict[str, Path]:
+                data=None, n_draws: int | None = None, seed: int = 0, unit: str = "") -> dict[str, Path]:
     """Write the figures of one result to ``out``; with ``data`` (a
-    :class:`service.report.analysis.JobData`) also the predictive bands and an ``nmse.json``."""
+    :class:`service.report.analysis.JobData`) also the predictive bands and an ``nmse.json``.
+    ``unit``: the distance's ("%" for the NMSE; ``abcns plot`` passes the store's)."""
     import json
 
     out = Path(out)
-    files = {"tolerance": save(tolerance_figure(result), out / "tolerance.png"),
+    files = {"tolerance": save(tolerance_figure(result, unit), out / "tolerance.png"),
              "model_probabilities": save(model_probability_figure(result), out / "model_probabilities.png")}
     for i in result.alive():
         name = result.models[i].name
         files[f"marginals_{name}"] = save(marginals_figure(result, i, truth), out / f"marginals_{name}.png")
         if result.models[i].n_dim > 1:
-            files[f"pairs_{name}"] = save(pairs_figure(result, i, truth), out / f"pairs_{name}.png")
+            files[f"pairs_{name}"] = save(pairs_figure(result, i, truth, unit), out / f"pairs_{name}.png")
     if data is not None:
         from service.report.analysis import predictions
 
         preds, scores = predictions(result, data, n_draws, seed)
         for name, pred in preds.items():
             files[f"predictive_{name}"] = save(
-                predictive_figure(pred, data.observed, data.dt, data.fit, data.test, scores[name]),
+                predictive_figure(pred, data.observed, data.dt, data.fit, data.test, scores[name],
+                                  response_label(data, name)),
                 out / f"predictive_{name}.png")
         (out / "nmse.json").write_text(json.dumps(scores, indent=2))
         files["nmse"] = out / "nmse.json"
@@ -286,4 +304,4 @@ def plot_result(result: Result, out: str | Path, truth: Mapping[str, float] | No
 
 
 __all__ = ["confusion_figure", "marginals_figure", "model_probability_figure", "pairs_figure",
-           "plot_result", "predictive_figure", "tolerance_figure"]
+           "plot_result", "predictive_figure", "response_label", "tolerance_figure"]

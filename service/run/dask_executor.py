@@ -26,6 +26,16 @@ submission order (never whichever finishes first: that would bias the posterior 
 cheap parameters). Each batch carries its own seed, so a task Dask reruns after a worker
 died gives the same answer, and the result does not depend on the number of workers.
 
+The job's budget reaches into a running batch. A stream waiting for a task's result asks
+the run's :class:`abcns.filling.Budget` every ``WATCH_S`` whether the run must stop (its
+time budget spent, or cancelled); if so it releases every task not yet consumed (a queued
+one never runs; one already running finishes on its worker and is dropped) and raises
+``Stopped``, so the run ends within ``WATCH_S`` instead of when the batch ends. A task's
+group of batches is also capped by the remaining time: no more batches than the measured
+compute time per batch fits into the seconds left (one batch at least: a batch is the unit
+of the random stream and is never split). A result used is never affected: a stop by time
+or cancel ends the run at the population being filled, whose batches are dropped.
+
 The job's description and data go to the cluster once, as the task :func:`job_payload` that
 every batch depends on. The scheduler keeps its inputs, so if every worker holding it dies
 (or all workers are restarted) it is recomputed and the waiting batches go on.
@@ -44,6 +54,8 @@ import dask
 from distributed import Client, Future, LocalCluster, as_completed
 
 from abcns.executor import Draw, Simulated, pack_draws, unpack_results
+from abcns.filling import Budget
+from abcns.settings import Stopped
 from worker.evaluate import anchor, evaluate_on_worker, job_payload
 
 #: compute time of a task, at least (a task costs ~1-2 ms of CPU in the client, scheduler and
@@ -56,6 +68,9 @@ NEED_MARGIN = 1.1
 #: run and one to start next; more would only wait in its queue, each costing the client and
 #: the scheduler ~1-2 ms of CPU to submit and to release when the population ends first
 IN_FLIGHT_PER_THREAD = 2
+#: seconds between two looks at the run's budget (time, cancel) while a stream waits for a
+#: task: a stop takes effect within this even while a batch runs
+WATCH_S = 0.1
 
 #: Dask settings for abcns's clusters. ``local_cluster`` applies them; stock workers take them
 #: from the environment (docs/deploy.md). Measured idle on this project's 2-core machine with
@@ -80,15 +95,24 @@ def cluster_env() -> dict[str, str]:
 
 
 def local_cluster(n_workers: int, dashboard: bool = False) -> LocalCluster:
-    """The embedded cluster: ``n_workers`` single-threaded worker processes on this machine."""
+    """The embedded cluster: ``n_workers`` single-threaded worker processes on this machine.
+
+    It never asks for a fixed port: the scheduler listens on a free port, and so does its
+    HTTP server, which Dask starts even without a dashboard (``dashboard_address=None``
+    would mean Dask's default, 8787, which a user's own Dask dashboard often holds). With
+    ``dashboard`` the dashboard is served there, on every interface; without, the HTTP
+    server is on 127.0.0.1 with no dashboard."""
     with dask.config.set(CLUSTER_CONFIG):
-        return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                            dashboard_address=":0" if dashboard else None)
+        return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, scheduler_port=0,
+                            dashboard_address=":0" if dashboard else "127.0.0.1:0",
+                            scheduler_kwargs={"dashboard": dashboard})
 
 
 class DaskExecutor:
-    def __init__(self, client: Client, job_key: str, description: dict, arrays: dict, allow_import: bool = False):
+    def __init__(self, client: Client, job_key: str, description: dict, arrays: dict, allow_import: bool = False,
+                 budget: Budget | None = None):
         self.client = client
+        self.budget = budget  # watched while a stream waits for a task; caps a task's expected time
         self.job_key = job_key
         self.nonce = uuid.uuid4().hex[:8]  # keys unique to this run of the job
         self._threads: tuple[float, int] | None = None  # (when asked, worker threads)
@@ -126,15 +150,24 @@ class DaskExecutor:
 
     def group_size(self, need: int, consumed: int, n_workers: int) -> int:
         """Batches in the next task, given the batches expected and those consumed so far;
-        one until a batch's compute time has been measured (a job's first tasks measure it)."""
+        one until a batch's compute time has been measured (a job's first tasks measure it),
+        and no more than fit into the run's seconds left (:meth:`time_cap`)."""
         if self.batch_seconds is None:
             return 1
         size = math.ceil(max(need, consumed) / (2 * n_workers))
         if self.batch_seconds > 0:
             most = max(1, int(MAX_TASK_SECONDS / self.batch_seconds))
             least = min(most, math.ceil(MIN_TASK_SECONDS / self.batch_seconds))
-            size = min(max(size, least), most)
+            size = min(max(size, least), most, self.time_cap())
         return max(1, size)
+
+    def time_cap(self) -> int:
+        """Batches whose measured compute time fits into the run's seconds left (at least
+        one: a batch is never split); unbounded without a time budget or a measurement."""
+        left = self.budget.seconds_left() if self.budget is not None else None
+        if left is None or not self.batch_seconds:
+            return 2**62
+        return max(1, int(left / self.batch_seconds))
 
     def map(self, draws: Iterable[Draw]) -> Stream:
         return Stream(self, iter(draws))
@@ -221,7 +254,7 @@ class Stream:
         fewer tasks than worker threads are left in flight, more are submitted)."""
         task, _ = self.pending[0]
         while task.key not in self.done:
-            future, result = next(self.completed)
+            future, result = self._next_completed()
             self.done[future.key] = result
             if self._in_flight() < self.n_workers:
                 self._top_up()
@@ -229,6 +262,21 @@ class Stream:
         if task.status == "finished":
             return result  # type: ignore[return-value]
         return task.result()  # an error or a cancellation: raises what ``result()`` raises
+
+    def _next_completed(self) -> tuple[Future, object]:
+        """The next task to complete and its result, waiting for it. While it waits, the
+        run's budget is asked every ``WATCH_S`` whether the run must stop (time spent, or
+        cancelled); then every task is released and ``Stopped`` raised: the run ends now,
+        not when the running batch ends."""
+        budget = self.ex.budget
+        while not self.completed.has_ready():
+            reason = budget.reason() if budget is not None else None
+            if reason is not None:
+                self.close()
+                raise Stopped(reason)
+            with self.completed.thread_condition:  # notified when a task completes
+                self.completed.thread_condition.wait(timeout=WATCH_S)
+        return next(self.completed)
 
     def __next__(self) -> Simulated:
         if self.closed:

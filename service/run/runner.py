@@ -90,7 +90,10 @@ def result_from_store(store: Store) -> Result:
 
 
 def summary(store: Store) -> dict:
-    out = result_from_store(store).summary() if store.n_populations else {}
+    # without a population, the run's notes and simulations still say why and after how much it stopped
+    run = store.attrs.get("run", {})
+    out = result_from_store(store).summary() if store.n_populations else {
+        "notes": run.get("notes", []), "n_simulations": run.get("n_simulations"), "wall_time_s": run.get("wall_time_s")}
     out["status"] = store.attrs.get("status", "unknown")
     out["stop_reason"] = store.attrs.get("stop_reason")
     if store.attrs.get("error"):
@@ -241,7 +244,7 @@ def run_job(
     run_info = dict(store.attrs.get("run", {}))
     store.set_status("running", job_key=key)
     executor = (SerialExecutor(job.evaluate) if client is None
-                else DaskExecutor(client, key, description(spec), arrays, allow_import))
+                else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget))
     gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget,
                   noise=job.noise)
     start, sims_start = time.monotonic(), budget.n_simulations

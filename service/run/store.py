@@ -13,7 +13,9 @@ at most ~64 KiB: one population of a large particle array, up to 256 of a scalar
   ``n_simulations``, ``n_failed``, ``n_redraws``, ``n_simulations_total`` (cumulative,
   pilot included) int64, ``has_survivors`` and ``has_ellipsoids`` bool (False for the
   baselines, whose records carry no survivors and no ellipsoids);
-- per model: ``model_probability`` (population, model); the bounds: ``ellipsoid_centre``
+- per model: ``model_probability`` (population, model); ``n_simulations_by_model`` and
+  ``n_failed_by_model`` (population, model) int64, ``n_simulations`` and ``n_failed`` split
+  by model (-1: not recorded); the bounds: ``ellipsoid_centre``
   (population, model, ellipsoid, parameter), ``ellipsoid_matrix`` (population, model,
   ellipsoid, parameter, parameter_b), in the same named columns, NaN where there is none
   and in the rows and columns of parameters the model does not have, ``ellipsoid_note``
@@ -21,25 +23,47 @@ at most ~64 KiB: one population of a large particle array, up to 256 of a scalar
   per model; the ABC-NS evidence bookkeeping ``evidence_<field>`` (population, model) for
   every field of :class:`abcns.evidence.Evidence`, and ``has_evidence`` per population;
 - coordinates: ``model`` (model) the model names, ``parameter`` and ``parameter_b``
-  (parameter) the parameter names of all models, in first-seen order, and
-  ``model_has_parameter`` (model, parameter) bool.
+  (parameter) the parameter names of all models, in first-seen order,
+  ``model_has_parameter`` (model, parameter) bool, and each model's uniform prior
+  ``prior_low`` and ``prior_width`` (model, parameter) float64 (NaN where the model has no
+  such parameter, or the spec names no prior).
 
-So ``xarray.open_zarr(path, consolidated=False)`` is self-describing:
-``ds.model_probability.sel(model="cubic")``, ``ds.theta.sel(parameter="k")`` (NaN for the
-particles of models without ``k``; ``ds.model_index`` says whose particle it is) and
-``ds.ellipsoid_centre.sel(model="cubic", parameter="k")`` work; every variable carries
-``long_name``, ``description`` and, where it has one, ``units`` (``%`` for the NMSE).
+The ellipsoids' geometry (the group attribute ``ellipsoid_frame`` and the two variables'
+descriptions say it too): an ellipsoid is ``{x : (x - c)^T M^-1 (x - c) <= 1}`` with ``c``
+= ``ellipsoid_centre`` and ``M`` = ``ellipsoid_matrix`` (:mod:`abcns.ellipsoid`'s
+convention: M is the scaled covariance, not its inverse). ``x`` is in the frame the
+algorithm fits the bounds in: ``"unit prior box"`` (ABC-NS's evidence variant, the default):
+``x = (theta - prior_low) / prior_width`` per parameter, so a centre of 0.5 is the middle of
+the prior; ``"parameters"`` (the paper variant): ``x = theta``, in the parameters' own units;
+None for the baselines, which store no ellipsoids.
+
+Parameters (``theta``, the priors) are in the units of the simulator's equations for the
+data as given: the spec states no units (with the force in N and the displacement in m, a
+Duffing oscillator's m is in kg, c in N s/m, k in N/m, k3 in N/m^3). The distances and the
+tolerances are in ``%`` for the NMSE (Eq. 7).
+
+So ``xarray.open_zarr(path)`` is self-describing (the store keeps consolidated metadata, so
+xarray opens it without a warning): ``ds.model_probability.sel(model="cubic")``,
+``ds.theta.sel(parameter="k")`` (NaN for the particles of models without ``k``;
+``ds.model_index`` says whose particle it is) and ``ds.ellipsoid_centre.sel(model="cubic",
+parameter="k")`` work; every variable carries ``long_name``, ``description`` and, where it
+has one, ``units``. One model's particles: :func:`model_view` (``Store.model("cubic")``, or
+``model_view(xr.open_zarr(path), "cubic")``) gives its ``theta`` with its own parameters
+only, NaN for the other models' particles, and its slices of the per-model variables.
 
 The group attributes hold ``format_version``, the spec, seed, package versions (numba,
 dask, distributed and the code's git commit included), the data hash, algorithm, model and
-parameter names (in each model's own order), status, stop reason, run information and the
-counter ``n_populations``. Attributes that are not a string or a number (the spec, lists,
-None) are stored as JSON text after the prefix ``json:`` (so ``ds.to_netcdf()`` works);
+parameter names (in each model's own order), status, stop reason, run information, the
+counter ``n_populations`` and ``ellipsoid_frame``. Attributes that are not a string or a
+number (the spec, lists, None) are stored as JSON text after the prefix ``json:`` (so
+``ds.to_netcdf()`` works);
 :attr:`Store.attrs` decodes them. An append (of one population or several consecutive ones)
-resizes and writes every array first and bumps the counter last: a reader that trusts the
-counter never sees half a population, and rows a crash left beyond the counter are ignored
-and overwritten by the next append. zarr's local store writes each file atomically
-(temporary file, then rename).
+resizes and writes every array first, then rewrites the consolidated metadata (the arrays'
+new shapes) and bumps the counter last: a reader that trusts the counter never sees half a
+population, a reader of the consolidated metadata (plain ``xarray.open_zarr``) sees only
+whole populations, and rows a crash left beyond the counter are ignored and overwritten by
+the next append. zarr's local store writes each file atomically (temporary file, then
+rename).
 
 Written for one writer of populations (the job's runner) and any number of readers, in any
 process: every call re-reads the metadata from disk, so a ``Store`` object never goes stale.
@@ -60,9 +84,11 @@ import math
 import os
 import platform
 import subprocess
+import threading
 import time
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +105,7 @@ from abcns.evidence import Evidence
 from abcns.noise import Floor
 from abcns.result import Population
 
-FORMAT_VERSION = 4  # 4: the noise floor per population (floor_*)
+FORMAT_VERSION = 4  # 4: the noise floor per population (floor_*), simulations and failures per model
 CHUNK_BYTES = 64 * 1024
 # zarr writes each metadata file through a temporary "zarr.<uuid>.partial" next to it; a
 # reader listing the group (xarray.open_zarr in Store.dataset) while the writer updates the
@@ -91,8 +117,13 @@ _NOTES = {code: note for note, code in NOTE_CODES.items()}
 _RESERVED = frozenset({
     "format_version", "spec", "seed", "versions", "data_hash", "algorithm", "model_names",
     "parameter_names", "n_particles", "status", "stop_reason", "n_populations", "ellipsoid_note_codes",
-    "created_at", "updated_at", "max_ellipsoids",
+    "created_at", "updated_at", "max_ellipsoids", "ellipsoid_frame",
 })
+#: the group attribute ``ellipsoid_frame``: the coordinates ellipsoid_centre and _matrix are in
+FRAMES = ("unit prior box", "parameters")
+# zarr's note, on writing consolidated metadata, that zarr 3 has not standardised it (xarray
+# reads it, and without it warns on every plain open_zarr); ignored there only
+CONSOLIDATED_WARNING = "Consolidated metadata is currently not part in the Zarr format 3 specification"
 
 _P, _N, _D, _DB, _M, _E = "population", "particle", "parameter", "parameter_b", "model", "ellipsoid"
 _EVIDENCE = {name: "float64" for name in Evidence.FLOATS} | {name: "int64" for name in Evidence.INTS}
@@ -197,8 +228,10 @@ def _decode_attrs(attrs: Mapping[str, Any]) -> dict[str, Any]:
 _VARIABLES: dict[str, tuple[str, str, str | None]] = {
     "population": ("population", "the population number t (1-based)", None),
     "model_index": ("model of the particle", "index along the model dimension", None),
-    "theta": ("parameter values", "the particle's free parameters, in the units of the spec's priors; "
-              "NaN for parameters its model does not have", None),
+    "theta": ("parameter values", "the particle's free parameters, in the units of the spec's priors, which are "
+              "those of the simulator's equations for the data as given (the spec states no units); NaN for "
+              "parameters its model does not have (model_index says whose particle it is; one model: model_view)",
+              None),
     "distance": ("distance", "the particle's distance to the data", "{distance_units}"),
     "weight": ("weight", "normalised to sum to 1 within each model (ABC-NS: survivor selection)", "1"),
     "survivor": ("survivor", "kept from the previous population (ABC-NS)", None),
@@ -215,8 +248,13 @@ _VARIABLES: dict[str, tuple[str, str, str | None]] = {
     "has_survivors": ("has survivors", "False for the baselines (SMC, rejection)", None),
     "has_ellipsoids": ("has ellipsoids", "False for the baselines (SMC, rejection)", None),
     "model_probability": ("model probability", "p(model | data) at this population", "1"),
-    "ellipsoid_centre": ("ellipsoid centre", "the bounding ellipsoids of each model (unused slots NaN)", None),
-    "ellipsoid_matrix": ("ellipsoid matrix", "{x : (x - c)^T A (x - c) <= 1}, A in the named columns", None),
+    "n_simulations_by_model": ("simulations per model", "n_simulations split by model (-1: not recorded)", "1"),
+    "n_failed_by_model": ("failed simulations per model", "n_failed split by model: simulations that failed or "
+                          "diverged (counted rejections; -1: not recorded)", "1"),
+    "ellipsoid_centre": ("ellipsoid centre", "c of the bounding ellipsoids {x : (x - c)^T M^-1 (x - c) <= 1} of "
+                         "each model (unused slots NaN), {frame}", None),
+    "ellipsoid_matrix": ("ellipsoid matrix", "M in {x : (x - c)^T M^-1 (x - c) <= 1} (the scaled covariance, not "
+                         "its inverse), in the named columns, {frame}", None),
     "ellipsoid_note": ("ellipsoid note", "codes of ellipsoid_note_codes; -1 none", None),
     "has_evidence": ("has evidence", "ABC-NS evidence bookkeeping present", None),
     "evidence_log_z": ("log ABC evidence", "log Z_m(eps_t), the prior mass of {d < eps_t} (-inf: dead)", None),
@@ -231,7 +269,7 @@ _VARIABLES: dict[str, tuple[str, str, str | None]] = {
     "evidence_n_proposed": ("proposals", "model m's new proposals simulated in this population", "1"),
     "evidence_n_accepted": ("accepted proposals", "model m's new proposals accepted in this population", "1"),
     "evidence_death": ("death code", "why model m has no particles from t+1 on: "
-                       "0 alive, 1 no particles, 2 improbable, 3 dead before", None),
+                       "0 alive, 1 no particles, 2 improbable, 3 dead before, 4 every simulation failed", None),
     "has_floor": ("has noise floor", "the run knows its distance's noise model (abcns.noise)", None),
     "floor_best": ("best distance", "the lowest distance any particle reached up to this population", "{distance_units}"),
     "floor_model": ("best model", "index along model of the model that reached floor_best (-1: no floor)", None),
@@ -248,7 +286,37 @@ _VARIABLES: dict[str, tuple[str, str, str | None]] = {
     "parameter": ("parameter", "the free parameters of all models, by name", None),
     "parameter_b": ("parameter", "second parameter axis of ellipsoid_matrix", None),
     "model_has_parameter": ("model has parameter", "whether the model infers that parameter", None),
+    "prior_low": ("prior low", "the low end of the model's uniform prior on the parameter (NaN: none)", None),
+    "prior_width": ("prior width", "high - low of the model's uniform prior on the parameter (NaN: none)", None),
 }
+# what {frame} says in the descriptions of ellipsoid_centre and ellipsoid_matrix
+_FRAME_TEXT = {
+    "unit prior box": "with x in the model's unit prior box: x = (theta - prior_low) / prior_width",
+    "parameters": "with x = theta, in the parameters' own units",
+    None: "(none: this algorithm stores no ellipsoids)",
+}
+
+
+def ellipsoid_frame(spec: Mapping[str, Any], algorithm: str) -> str | None:
+    """The frame ABC-NS fits its bounds in (:data:`FRAMES`): the unit prior box in the
+    evidence variant, the parameters in the paper variant; None for the baselines."""
+    if algorithm != "abc-ns":
+        return None
+    sampler = spec.get("sampler") or {}
+    return "parameters" if sampler.get("variant") == "paper" else "unit prior box"
+
+
+def _priors(spec: Mapping[str, Any], model_names: Sequence[str], union: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(prior_low, prior_width) (model, parameter) from the spec's models (NaN where none)."""
+    low = np.full((len(model_names), len(union)), np.nan)
+    width = np.full_like(low, np.nan)
+    described = {m.get("name"): m for m in spec.get("models") or () if isinstance(m, Mapping)}
+    for i, name in enumerate(model_names):
+        for key, bounds in ((described.get(name) or {}).get("priors") or {}).items():
+            if key in union:
+                low[i, union.index(key)] = float(bounds[0])
+                width[i, union.index(key)] = float(bounds[1]) - float(bounds[0])
+    return low, width
 
 
 def _distance_units(spec: Mapping[str, Any]) -> str:
@@ -312,10 +380,13 @@ class Store:
 
         group = zarr.open_group(str(path), mode="w-", zarr_format=3)
         units = _distance_units(spec)
+        frame = ellipsoid_frame(spec, str(algorithm))
+        prior_low, prior_width = _priors(spec, model_names, union)
 
         def meta(name: str) -> dict[str, Any]:
             """A variable's attributes, written with the array (one metadata write each)."""
             long_name, description, unit = _VARIABLES[name]
+            description = description.replace("{frame}", _FRAME_TEXT[frame])
             out = {"long_name": long_name, "description": description or long_name}
             if unit is not None:
                 out["units"] = unit.format(distance_units=units)
@@ -344,6 +415,8 @@ class Store:
         grow("has_survivors", (), "bool", False, [])
         grow("has_ellipsoids", (), "bool", False, [])
         grow("model_probability", (m,), "float64", np.nan, [_M])
+        grow("n_simulations_by_model", (m,), "int64", -1, [_M])
+        grow("n_failed_by_model", (m,), "int64", -1, [_M])
         grow("ellipsoid_centre", (m, k, d), "float64", np.nan, [_M, _E, _D])
         grow("ellipsoid_matrix", (m, k, d, d), "float64", np.nan, [_M, _E, _D, _DB])
         grow("ellipsoid_note", (m, k), "int8", -1, [_M, _E])
@@ -361,6 +434,8 @@ class Store:
             "parameter": (np.array(union, dtype=str), [_D]),
             "parameter_b": (np.array(union, dtype=str), [_DB]),
             "model_has_parameter": (np.array([[u in p for u in union] for p in parameter_names]), [_M, _D]),
+            "prior_low": (prior_low, [_M, _D]),
+            "prior_width": (prior_width, [_M, _D]),
         }
         for name, (values, dims) in static.items():
             arr = group.create_array(name, shape=values.shape, dtype=values.dtype if values.dtype.kind != "U" else str,
@@ -379,6 +454,7 @@ class Store:
             "n_particles": n,
             "max_ellipsoids": k,
             "ellipsoid_note_codes": NOTE_CODES,
+            "ellipsoid_frame": frame,
             "status": "running",
             "stop_reason": None,
             "created_at": _now(),
@@ -386,7 +462,8 @@ class Store:
             "n_populations": 0,
         }
         group.attrs.update(_encode_attrs(attrs))
-        group.attrs["format_version"] = FORMAT_VERSION  # last: marks a complete store
+        _consolidate(path)
+        _group(path, "r+").attrs["format_version"] = FORMAT_VERSION  # last: marks a complete store
         return cls(path, attrs)
 
     @classmethod
@@ -402,7 +479,7 @@ class Store:
     # ------------------------------------------------------------------ attributes
 
     def _group(self, mode: str = "r") -> zarr.Group:
-        return zarr.open_group(str(self.path), mode=mode, zarr_format=3)  # type: ignore[arg-type]
+        return _group(self.path, mode)
 
     @property
     def attrs(self) -> dict:
@@ -461,15 +538,19 @@ class Store:
         await asyncio.gather(*(arr.setitem(slice(n, n + k), value) for arr, value in zip(arrays, rows.values())))
 
     def _commit(self, n_populations: int) -> None:
-        """Bump the counter: the population is part of the store from here on."""
-        self._update_attrs({"n_populations": n_populations, "updated_at": _now()})
+        """Consolidate the metadata (the arrays' new shapes), then bump the counter: the
+        population is part of the store from here on."""
+        self._update_attrs({"n_populations": n_populations, "updated_at": _now()}, consolidate=True)
 
-    def _update_attrs(self, update: dict[str, Any]) -> None:
+    def _update_attrs(self, update: dict[str, Any], consolidate: bool = False) -> None:
         """Read-modify-write of the group attributes under an exclusive lock, so a status
-        change from another process and a counter bump cannot overwrite each other."""
+        change from another process and a counter bump cannot overwrite each other (nor the
+        consolidated metadata, which lives in the same file and is kept by an update)."""
         fd = os.open(self.path, os.O_RDONLY)  # flock(2) on the store's directory: no extra file in the hierarchy
         try:
             fcntl.flock(fd, fcntl.LOCK_EX)
+            if consolidate:
+                _consolidate(self.path)
             self._group("r+").attrs.update(_encode_attrs(update))
         finally:
             os.close(fd)  # releases the lock
@@ -535,6 +616,8 @@ class Store:
             "has_survivors": pop.survivors is not None,
             "has_ellipsoids": bool(pop.ellipsoids),
             "model_probability": np.asarray(pop.model_probabilities, dtype=np.float64),
+            "n_simulations_by_model": self._by_model(pop, "n_simulations_by_model"),
+            "n_failed_by_model": self._by_model(pop, "n_failed_by_model"),
             "ellipsoid_centre": centre,
             "ellipsoid_matrix": matrix,
             "ellipsoid_note": note,
@@ -544,6 +627,15 @@ class Store:
             **floors,
             "population": pop.t,  # last: xarray's index shows t only once the row is written
         }
+
+    def _by_model(self, pop: Population, field: str) -> np.ndarray:
+        """A per-model counter of ``pop`` (all -1 when the population does not record it)."""
+        value = np.asarray(getattr(pop, field), dtype=np.int64)
+        if value.shape == (0,):
+            return np.full(self._n_models, -1, dtype=np.int64)
+        if value.shape != (self._n_models,):
+            raise StoreError(f"population {pop.t}: {field} has shape {value.shape}, expected ({self._n_models},)")
+        return value
 
     # ------------------------------------------------------------------ named columns
 
@@ -567,7 +659,8 @@ class Store:
 
     def _read(self, rows: slice) -> dict[str, np.ndarray]:
         group = self._group("r")
-        return {name: np.asarray(group[name][rows]) for name in _POPULATION_ARRAYS}
+        names = set(group.array_keys())
+        return {name: np.asarray(group[name][rows]) for name in _POPULATION_ARRAYS if name in names}
 
     def _population(self, a: dict[str, np.ndarray], i: int) -> Population:
         ellipsoids: tuple[tuple[Ellipsoid, ...], ...] = ()
@@ -606,6 +699,7 @@ class Store:
             ellipsoids=ellipsoids,
             model_probabilities=a["model_probability"][i].copy(),
             evidence=evidence,
+            **{name: a[name][i].copy() for name in _BY_MODEL if name in a and np.all(a[name][i] >= 0)},
             floor=floor,
         )
 
@@ -647,10 +741,7 @@ class Store:
         for attempt in range(retries + 1):
             n = self.n_populations  # before the data: rows below the counter are complete
             try:
-                # the filters are process-wide before Python 3.14 (zarr warns from its own I/O
-                # thread), so this scope covers the listing, not only this thread
-                with warnings.catch_warnings():
-                    warnings.filterwarnings("ignore", message=PARTIAL_WARNING, category=zarr.errors.ZarrUserWarning)
+                with _ignoring(PARTIAL_WARNING):
                     ds = xr.open_zarr(str(self.path), consolidated=False)
                 return ds.isel(population=slice(0, n))
             except ValueError:  # conflicting sizes of "population" during a resize
@@ -658,6 +749,11 @@ class Store:
                     raise
                 time.sleep(0.05)
         raise AssertionError("unreachable")
+
+    def model(self, name: str) -> xr.Dataset:
+        """One model's part of the store (:func:`model_view` of :meth:`dataset`):
+        ``store.model("cubic").theta`` holds model cubic's particles, with its parameters."""
+        return model_view(self.dataset(), name)
 
     def totals(self) -> np.ndarray:
         """``n_simulations_total`` of the complete populations (zarr only: no xarray, whose
@@ -678,6 +774,53 @@ class Store:
         }
 
 
+def _group(path: Path, mode: str = "r") -> zarr.Group:
+    return zarr.open_group(str(path), mode=mode, zarr_format=3)  # type: ignore[arg-type]
+
+
+_WARNING_FILTERS = threading.Lock()
+
+
+@contextmanager
+def _ignoring(message: str) -> Iterator[None]:
+    """Ignore one zarr warning for the duration. The warning filters are process-wide before
+    Python 3.14 (and zarr warns from its own I/O thread, so the scope covers that thread), and
+    ``catch_warnings`` restores the list it saw on entry: two overlapping scopes in two threads
+    (a reader's Store.dataset beside the writer's commit) would drop each other's filter, hence
+    one scope at a time in this process."""
+    with _WARNING_FILTERS, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=message, category=zarr.errors.ZarrUserWarning)
+        yield
+
+
+def _consolidate(path: Path) -> None:
+    """Rewrite the group's consolidated metadata (every array's metadata, their shapes
+    included, in the group's own ``zarr.json``, beside its attributes)."""
+    with _ignoring(CONSOLIDATED_WARNING):
+        zarr.consolidate_metadata(str(path), zarr_format=3)
+
+
+def model_view(ds: xr.Dataset, model: str) -> xr.Dataset:
+    """One model's part of a dataset of the store's schema (:meth:`Store.dataset`, or a plain
+    ``xarray.open_zarr`` of a store): its particles' ``theta`` (its own parameters only),
+    ``distance``, ``weight`` and ``survivor``, NaN (False) at the other models' particles;
+    the population-level variables; and the per-model variables at ``model`` (its
+    probability, counters, ellipsoids, evidence, prior). ``model_view(ds, "cubic").theta``
+    is what ``ds.theta.sel(model="cubic")`` would mean."""
+    names = [str(m) for m in ds["model"].values]
+    if model not in names:
+        raise KeyError(f"no model {model!r} in this store; its models are {names}")
+    own = ds["parameter"].values[ds["model_has_parameter"].sel(model=model).values]
+    mine = ds["model_index"] == names.index(model)
+    out = ds.sel(model=model).sel(parameter=own)
+    if "parameter_b" in out.dims:
+        out = out.sel(parameter_b=own)
+    for name in ("theta", "distance", "weight"):
+        out[name] = out[name].where(mine)
+    out["survivor"] = out["survivor"] & mine
+    return out.assign_attrs(model=model)
+
+
 def _read_attrs(path: Path) -> dict:
     if not path.exists():
         raise StoreNotFound(f"no result store at {path}: the path does not exist")
@@ -694,8 +837,10 @@ def _read_attrs(path: Path) -> dict:
     return dict(attrs)
 
 
+# the per-model counters of a Population (optional: stores written before them lack them)
+_BY_MODEL = ("n_simulations_by_model", "n_failed_by_model")
 # the arrays a Population is read back from
-_POPULATION_ARRAYS = (
+_POPULATION_ARRAYS = (*_BY_MODEL,
     "population", "model_index", "theta", "distance", "weight", "survivor", "epsilon", "epsilon_next", "elapsed_s",
     "n_accepted", "n_simulations", "n_failed", "n_redraws", "has_survivors", "has_ellipsoids", "model_probability",
     "ellipsoid_centre", "ellipsoid_matrix", "ellipsoid_note", "has_evidence", *(f"evidence_{name}" for name in _EVIDENCE),
@@ -713,7 +858,7 @@ def dataset_populations(ds: xr.Dataset) -> list[Population]:
     """The populations a dataset of the store's schema holds (``Store.dataset()``,
     ``xarray.open_zarr`` of a store, or ``service.report.export.to_dataset``)."""
     reader = Store(Path(str(ds.encoding.get("source", "<dataset>"))), dataset_attrs(ds))
-    arrays = {name: np.asarray(ds[name].values) for name in _POPULATION_ARRAYS}
+    arrays = {name: np.asarray(ds[name].values) for name in _POPULATION_ARRAYS if name in ds}
     return [reader._population(arrays, i) for i in range(ds.sizes["population"])]
 
 
@@ -722,5 +867,5 @@ def _union(parameter_names: Sequence[Sequence[str]]) -> list[str]:
     return list(dict.fromkeys(name for names in parameter_names for name in names))
 
 
-__all__ = ["FORMAT_VERSION", "NOTE_CODES", "STATUSES", "Store", "StoreError", "StoreIncomplete", "StoreNotFound",
-           "data_hash"]
+__all__ = ["FORMAT_VERSION", "FRAMES", "NOTE_CODES", "STATUSES", "Store", "StoreError", "StoreIncomplete",
+           "StoreNotFound", "data_hash", "ellipsoid_frame", "model_view"]

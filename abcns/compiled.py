@@ -1,0 +1,534 @@
+"""Numba kernels of the population step's geometry: the split tree of ``abcns.bounds``
+and the ellipsoid counts of ``abcns.ellipsoid``. Imported on first use (numba's import
+and its compiled-function cache cost ~0.5 s, which ``import abcns`` does not pay).
+
+Neither kernel decides a result by its own rounding:
+
+- :func:`tree_rows` returns only *which rows* go to which ellipsoid of a bound (each set
+  is then fitted by ``ellipsoid.fit``, in numpy, as before). Its arithmetic (means,
+  covariances, Cholesky factors, whitened points, 2-means) rounds differently from
+  numpy's BLAS and LAPACK calls, so a decision can differ only where two compared values
+  agree to ~1e-15 (a point on a 2-means boundary, two splits of equal volume), which a
+  continuous sample does not meet. The split axis is the leading eigenvector of a node's
+  covariance from numpy's ``eigh`` (called back from the kernel, once per level of the
+  tree), so its sign, which orders the two halves and hence the ellipsoids of the bound,
+  is the one LAPACK's dsyevd gives as numpy calls it.
+- :func:`count_inside` is exact or says it cannot be: see ``ellipsoid.n_containing``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, objmode
+
+
+@njit(cache=True, error_model="numpy")
+def _invert(a: np.ndarray, out: np.ndarray) -> bool:
+    """``out`` = a^-1 by Gauss-Jordan elimination with partial pivoting; False when a pivot is
+    zero or not finite. (Any inverse serves :func:`count_inside`: its error bound uses the
+    residual of the inverse it got.)"""
+    d = a.shape[0]
+    w = a.copy()
+    out[:] = 0.0
+    for i in range(d):
+        out[i, i] = 1.0
+    for c in range(d):
+        p = c
+        for r in range(c + 1, d):
+            if abs(w[r, c]) > abs(w[p, c]):
+                p = r
+        piv = w[p, c]
+        if not (piv != 0.0 and math.isfinite(piv)):
+            return False
+        if p != c:
+            for j in range(d):
+                w[c, j], w[p, j] = w[p, j], w[c, j]
+                out[c, j], out[p, j] = out[p, j], out[c, j]
+        for j in range(d):
+            w[c, j] /= piv
+            out[c, j] /= piv
+        for r in range(d):
+            if r != c:
+                f = w[r, c]
+                for j in range(d):
+                    w[r, j] -= f * w[c, j]
+                    out[r, j] -= f * out[c, j]
+    return True
+
+
+#: points per block of the distance loops (their work arrays stay in the L1 cache)
+BLOCK = 256
+
+
+@njit(cache=True, error_model="numpy")
+def _distances(xt: np.ndarray, inv: np.ndarray, centre: np.ndarray, diff: np.ndarray, y: np.ndarray,
+               s: np.ndarray) -> None:
+    """``s[i] = |inv (x_i - centre)|^2`` for the columns x_i of ``xt`` (d, n); ``diff`` (d, >= n)
+    and ``y`` (>= n,) are work space. Each sum runs over the points innermost (vectorised)."""
+    d, n = xt.shape
+    for b in range(d):
+        cb = centre[b]
+        for i in range(n):
+            diff[b, i] = xt[b, i] - cb
+    for i in range(n):
+        s[i] = 0.0
+    for a in range(d):
+        for i in range(n):
+            y[i] = 0.0
+        for b in range(d):
+            c = inv[a, b]
+            for i in range(n):
+                y[i] += c * diff[b, i]
+        for i in range(n):
+            s[i] += y[i] * y[i]
+
+
+@njit(cache=True, error_model="numpy")
+def _inverses(axes: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """(the inverses of the k axes matrices, their Frobenius norms, the relative error bound
+    m of ``ellipsoid.n_containing``: ``10 max_j (|X_j A_j - I|_F + (d + 1 + 4 d^3 2^d) eps
+    |A_j|_F |X_j|_F)``); m is inf when a matrix cannot be inverted."""
+    k, d, _ = axes.shape
+    inv = np.empty((k, d, d))
+    norms = np.empty(k)
+    eps = 2.220446049250313e-16  # np.finfo(float).eps
+    m = 0.0
+    for j in range(k):
+        if not _invert(axes[j], inv[j]):
+            return inv, norms, np.inf
+        res2 = a2 = x2 = 0.0
+        for a in range(d):
+            for b in range(d):
+                r = 0.0
+                for c in range(d):
+                    r += inv[j, a, c] * axes[j, c, b]
+                if a == b:
+                    r -= 1.0
+                res2 += r * r
+                a2 += axes[j, a, b] * axes[j, a, b]
+                x2 += inv[j, a, b] * inv[j, a, b]
+        norms[j] = math.sqrt(x2)
+        m = max(m, 10.0 * (math.sqrt(res2) + (d + 1 + 4 * d**3 * 2.0**d) * eps * math.sqrt(a2 * x2)))
+    return inv, norms, m
+
+
+@njit(cache=True, error_model="numpy")
+def count_inside(xt: np.ndarray, axes: np.ndarray, centres: np.ndarray, slack: float) -> tuple[np.ndarray, bool]:
+    """How many of the k ellipsoids (``axes`` (k, d, d), ``centres`` (k, d)) hold each column
+    of ``xt`` (d, n), by the inverses of the axes, with the proven error window of
+    ``ellipsoid.n_containing``: (counts, True), or (partial counts, False) as soon as one
+    squared distance is within the window of ``1 + slack``, not finite or above 1e300, or
+    when an axes matrix is too ill-conditioned for the bound (m > 1e-3)."""
+    n = xt.shape[1]
+    counts = np.zeros(n, np.int64)
+    inv, inv_norm, m = _inverses(axes)
+    if not m <= 1e-3:
+        return counts, False
+    ok = _count(xt, inv, inv_norm, centres, np.zeros(n), np.ones(n, np.bool_), m, 1.0 + slack, counts)
+    return counts, ok
+
+
+@njit(cache=True, error_model="numpy")
+def _count(xt: np.ndarray, inv: np.ndarray, inv_norm: np.ndarray, centres: np.ndarray, shift: np.ndarray,
+           held: np.ndarray, m: float, t: float, holders: np.ndarray) -> bool:
+    """Add to ``holders[i]`` the ellipsoids (``inv``, ``centres``) that hold point i (column
+    of ``xt``) for sure, with distances of relative error m and points within ``shift[i]``
+    of where they should be (the distance moves by up to ``1.01 |inv|_F shift``); False as
+    soon as a point of ``held`` is too close to call (or its distance is not finite or above
+    1e300). Inside for sure: ``(sqrt(s (1 + m)) + delta)^2 (1 + m) < t``; outside for sure:
+    ``(sqrt(s (1 - m)) - delta)^2 (1 - m) > t``, said without a square root per point."""
+    d, n = xt.shape
+    t_in, t_out = math.sqrt(t / (1.0 + m)), math.sqrt(t / (1.0 - m))
+    s = np.empty(BLOCK)
+    y = np.empty(BLOCK)
+    diff = np.empty((d, BLOCK))
+    for first in range(0, n, BLOCK):  # blocks of points: the work arrays stay in the L1 cache
+        last = min(n, first + BLOCK)
+        for j in range(centres.shape[0]):
+            _distances(xt[:, first:last], inv[j], centres[j], diff, y, s)
+            grow = 1.01 * inv_norm[j]
+            for c in range(last - first):
+                i = first + c
+                delta = grow * shift[i]
+                below, above = t_in - delta, t_out + delta
+                if s[c] * (1.0 + m) < below * below and below > 0.0:
+                    holders[i] += 1
+                elif not (s[c] * (1.0 - m) > above * above and s[c] <= 1e300) and held[i]:
+                    return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _node(points: np.ndarray, rows: np.ndarray, cov: np.ndarray, y: np.ndarray) -> tuple[bool, float]:
+    """``bounds._node`` of ``points[rows]``: (ok, log volume); fills ``cov`` (d, d) and the
+    whitened points ``y`` (len(rows), d). Not ok when the covariance is not positive
+    definite (Cholesky fails, as LAPACK's dpotrf does: a pivot <= 0 or NaN) or every
+    point sits at the mean."""
+    n = rows.shape[0]
+    d = points.shape[1]
+    mean = np.zeros(d)
+    for i in range(n):
+        for j in range(d):
+            mean[j] += points[rows[i], j]
+    for j in range(d):
+        mean[j] /= n
+    for i in range(n):
+        for j in range(d):
+            y[i, j] = points[rows[i], j] - mean[j]
+    for a in range(d):
+        for b in range(a + 1):
+            s = 0.0
+            for i in range(n):
+                s += y[i, a] * y[i, b]
+            cov[a, b] = s / (n - 1)
+            cov[b, a] = cov[a, b]
+    chol = np.zeros((d, d))
+    log_det = 0.0
+    for j in range(d):
+        s = cov[j, j]
+        for k in range(j):
+            s -= chol[j, k] * chol[j, k]
+        if not s > 0.0:
+            return False, 0.0
+        chol[j, j] = math.sqrt(s)
+        log_det += math.log(chol[j, j])
+        for i in range(j + 1, d):
+            t = cov[i, j]
+            for k in range(j):
+                t -= chol[i, k] * chol[j, k]
+            chol[i, j] = t / chol[j, j]
+    r2 = 0.0
+    for i in range(n):
+        q = 0.0
+        for j in range(d):  # forward substitution: y_i = chol^-1 (p_i - mean)
+            t = y[i, j]
+            for k in range(j):
+                t -= chol[j, k] * y[i, k]
+            y[i, j] = t / chol[j, j]
+            q += y[i, j] * y[i, j]
+        r2 = max(r2, q)
+    if not r2 > 0.0:
+        return False, 0.0
+    log_unit_ball = 0.5 * d * math.log(math.pi) - math.lgamma(0.5 * d + 1.0)
+    return True, log_unit_ball + log_det + 0.5 * d * math.log(r2)
+
+
+@njit(cache=True, error_model="numpy")
+def radii(points: np.ndarray) -> tuple[bool, np.ndarray]:
+    """(ok, squared whitened radius of each point) of ``bounds._node(points)``."""
+    n, d = points.shape
+    y = np.empty((n, d))
+    ok, _ = _node(points, np.arange(n), np.empty((d, d)), y)
+    r2 = np.empty(n)
+    for i in range(n):
+        q = 0.0
+        for j in range(d):
+            q += y[i, j] * y[i, j]
+        r2[i] = q
+    return ok, r2
+
+
+@njit(cache=True, error_model="numpy")
+def _two_means(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.ndarray,
+               iterations: int) -> np.ndarray:
+    """``bounds.two_means`` of ``points[rows]`` with whitened points ``y``."""
+    n = rows.shape[0]
+    d = points.shape[1]
+    lo_i, hi_i = 0, 0
+    lo_v, hi_v = np.inf, -np.inf
+    for i in range(n):
+        p = 0.0
+        for j in range(d):
+            p += points[rows[i], j] * axis[j]
+        if p < lo_v:
+            lo_v, lo_i = p, i
+        if p > hi_v:
+            hi_v, hi_i = p, i
+    c0 = y[lo_i].copy()
+    c1 = y[hi_i].copy()
+    second = np.zeros(n, np.bool_)
+    new = np.zeros(n, np.bool_)
+    s0 = np.empty(d)
+    s1 = np.empty(d)
+    for it in range(iterations):
+        thr = 0.0
+        for j in range(d):
+            thr += c1[j] * c1[j] - c0[j] * c0[j]
+        thr *= 0.5
+        changed = False
+        for i in range(n):
+            v = 0.0
+            for j in range(d):
+                v += y[i, j] * (c1[j] - c0[j])
+            new[i] = v > thr
+            changed = changed or new[i] != second[i]
+        if it > 0 and not changed:
+            break
+        for i in range(n):
+            second[i] = new[i]
+        s0[:] = 0.0
+        s1[:] = 0.0
+        n1 = 0
+        for i in range(n):
+            if second[i]:
+                n1 += 1
+                for j in range(d):
+                    s1[j] += y[i, j]
+            else:
+                for j in range(d):
+                    s0[j] += y[i, j]
+        if n - n1 > 0:
+            for j in range(d):
+                c0[j] = s0[j] / (n - n1)
+        if n1 > 0:
+            for j in range(d):
+                c1[j] = s1[j] / n1
+    return second
+
+
+@njit(cache=True, error_model="numpy")
+def tree_rows(points: np.ndarray, max_ellipsoids: int, leaf: int, split_gain: float,
+              iterations: int) -> tuple[bool, np.ndarray, np.ndarray]:
+    """``bounds._tree`` from the root ``points``, its best set of at most ``max_ellipsoids``:
+    (ok, rows of the sets one after the other, each ascending, the sets' start offsets and
+    the end). Not ok when the root has no covariance ellipsoid.
+
+    The nodes are made breadth first, with one call of numpy's ``eigh`` per level for the
+    split axes (so LAPACK's dsyevd as numpy calls it gives their signs); a node's rows are a
+    segment of ``perm``, split (stably) into its halves' segments. ``total[v, k]`` / ``choice[v, k]`` are the dynamic
+    programme of ``_tree``: the least total volume (relative to the root's) of at most k
+    ellipsoids for node v, and how: -1 its own ellipsoid, -2 as with k - 1, else k1 (k1
+    for the first half, k - k1 for the second)."""
+    n, d = points.shape
+    cap = 1 + 2 * max_ellipsoids * (n // max(2 * leaf, 1) + 1)
+    start = np.zeros(cap, np.int64)
+    stop = np.zeros(cap, np.int64)
+    budget = np.zeros(cap, np.int64)
+    child = -np.ones((cap, 2), np.int64)
+    log_volume = np.zeros(cap)
+    covs = np.zeros((cap, d, d))
+    perm = np.arange(n)
+    ybuf = np.empty((n, d))  # the whitened points of each node still to split, in its segment
+    work = np.empty(n, np.int64)
+
+    ok, lv = _node(points, perm, covs[0], ybuf)
+    if not ok:
+        return False, perm[:0], np.zeros(1, np.int64)
+    start[0], stop[0], budget[0], log_volume[0] = 0, n, max_ellipsoids, lv
+    n_nodes = 1
+    lo_level, hi_level = 0, 1  # the nodes of a level of the tree are made one after the other
+    while lo_level < hi_level:  # breadth first: one eigh call (numpy's) per level of the tree
+        todo = np.empty(hi_level - lo_level, np.int64)
+        n_todo = 0
+        for v in range(lo_level, hi_level):
+            if budget[v] >= 2 and stop[v] - start[v] >= 2 * leaf:
+                todo[n_todo] = v
+                n_todo += 1
+        lo_level = hi_level
+        if n_todo == 0:
+            break
+        stacked = np.empty((n_todo, d, d))
+        for i in range(n_todo):
+            for a in range(d):
+                for b in range(d):
+                    stacked[i, a, b] = covs[todo[i], a, b]
+        with objmode(axes="float64[:, :]"):
+            axes = np.ascontiguousarray(np.linalg.eigh(stacked)[1][:, :, -1])
+        for i in range(n_todo):
+            v = todo[i]
+            s, e = start[v], stop[v]
+            rows = perm[s:e]
+            second = _two_means(points, rows, ybuf[s:e], axes[i], iterations)
+            n1 = 0
+            for r in range(e - s):
+                n1 += second[r]
+            n0 = e - s - n1
+            if min(n0, n1) < max(leaf, d + 1):
+                continue
+            a, b = 0, n0  # stable partition: the first half's rows, then the second's
+            for r in range(e - s):
+                if second[r]:
+                    work[b] = rows[r]
+                    b += 1
+                else:
+                    work[a] = rows[r]
+                    a += 1
+            ok0, lv0 = _node(points, work[:n0], covs[n_nodes], ybuf[s:s + n0])
+            if not ok0:
+                continue
+            ok1, lv1 = _node(points, work[n0:e - s], covs[n_nodes + 1], ybuf[s + n0:e])
+            if not ok1:
+                continue
+            start[n_nodes], stop[n_nodes], log_volume[n_nodes] = s, s + n0, lv0
+            start[n_nodes + 1], stop[n_nodes + 1], log_volume[n_nodes + 1] = s + n0, e, lv1
+            budget[n_nodes] = budget[n_nodes + 1] = budget[v] - 1
+            for r in range(e - s):
+                perm[s + r] = work[r]
+            child[v, 0], child[v, 1] = n_nodes, n_nodes + 1
+            n_nodes += 2
+        hi_level = n_nodes
+
+    total = np.zeros((n_nodes, max_ellipsoids + 1))
+    choice = np.zeros((n_nodes, max_ellipsoids + 1), np.int64)
+    for v in range(n_nodes - 1, -1, -1):  # children after parents: reverse order is bottom-up
+        total[v, 1] = math.exp(log_volume[v] - log_volume[0])
+        choice[v, 1] = -1
+        first, sec = child[v, 0], child[v, 1]
+        for k in range(2, budget[v] + 1):
+            total[v, k], choice[v, k] = total[v, k - 1], -2
+            if first < 0:
+                continue
+            best_k1, best_t = 1, total[first, 1] + total[sec, k - 1]
+            for k1 in range(2, k):
+                t = total[first, k1] + total[sec, k - k1]
+                if t < best_t:
+                    best_k1, best_t = k1, t
+            if best_t < split_gain * total[v, k - 1]:
+                total[v, k], choice[v, k] = best_t, best_k1
+
+    out = np.empty(n, np.int64)
+    member = np.zeros(n, np.bool_)
+    offsets = np.zeros(max_ellipsoids + 1, np.int64)
+    n_sets = 0
+    todo_v = np.empty(max_ellipsoids, np.int64)  # a stack of (node, k): the sets still to emit
+    todo_k = np.empty(max_ellipsoids, np.int64)
+    todo_v[0], todo_k[0], n_todo = 0, max_ellipsoids, 1
+    while n_todo > 0:
+        n_todo -= 1
+        v, k = todo_v[n_todo], todo_k[n_todo]
+        while choice[v, k] == -2:
+            k -= 1
+        if choice[v, k] == -1:
+            for r in range(start[v], stop[v]):
+                member[perm[r]] = True
+            at = offsets[n_sets]
+            for r in range(n):  # the node's rows, ascending
+                if member[r]:
+                    out[at] = r
+                    at += 1
+                    member[r] = False
+            n_sets += 1
+            offsets[n_sets] = at
+        else:
+            k1 = choice[v, k]
+            todo_v[n_todo], todo_k[n_todo] = child[v, 1], k - k1
+            todo_v[n_todo + 1], todo_k[n_todo + 1] = child[v, 0], k1
+            n_todo += 2
+    return True, out[:offsets[n_sets]], offsets[:n_sets + 1]
+
+
+@njit(cache=True, error_model="numpy")
+def labels(cdf: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """``cdf.searchsorted(u, side="right")`` (``Generator.choice``'s last step), by a scan of
+    the few entries of ``cdf``: the first index whose entry exceeds u, else len(cdf)."""
+    k = cdf.shape[0]
+    out = np.empty(u.shape[0], np.int64)
+    for i in range(u.shape[0]):
+        j = 0
+        while j < k and not u[i] < cdf[j]:
+            j += 1
+        out[i] = j
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def mixture_weights(which: np.ndarray, z: np.ndarray, u: np.ndarray, centres: np.ndarray, axes: np.ndarray,
+                    low: np.ndarray, high: np.ndarray, slack: float, count: bool) -> tuple[np.ndarray, bool]:
+    """``bounds.union_volume``'s weights without the points' bits: point i of ellipsoid
+    ``which[i]`` is ``centre + axes (u^(1/d) z / |z|)`` (``z``, ``u``: that ellipsoid's
+    draws, the ellipsoids' draws one after the other in ellipsoid order, each in row order);
+    its weight is 1{low <= x <= high} / (the number of ellipsoids that hold it) (``count``)
+    or 1{low <= x <= high}. Every decision is taken with a margin that covers the rounding of
+    both this loop and numpy's arithmetic in ``ellipsoid.sample`` (so the weights are those of
+    the points numpy would make), else (w, False).
+
+    The margins. numpy's point and this loop's each lie within
+    ``e_i = (4 d + 128) eps (|centre_i| + sum_j |axes_ij|)`` of the exact one: the norm of z
+    (d + 2 roundings), the power (libm's, or numpy's SIMD one: a few ulp; 32 allowed; here a
+    square root for d = 2 and 4), the product and quotient (2), the matrix product (d), the
+    sum (1), on ``|u^(1/d) z / |z|| <= 1``, with room to spare. A box face is decided when
+    the point is farther than ``2 e_i`` from it; an ellipsoid as in :func:`_count`, the
+    distance moved by ``1.01 |inv|_F |2 e|`` (the point's shift through the inverse axes)
+    and by the relative error m of the fast distances (``count_inside``'s bound)."""
+    n, d = z.shape
+    k = centres.shape[0]
+    w = np.zeros(n)
+    eps = 2.220446049250313e-16
+    inv, inv_norm, m = _inverses(axes)
+    if count and not m <= 1e-3:
+        return w, False
+    t = 1.0 + slack
+    rel = (4 * d + 128) * eps
+    start = np.zeros(k + 1, np.int64)  # where each ellipsoid's draws begin in z and u
+    for i in range(n):
+        start[which[i] + 1] += 1
+    for j in range(k):
+        start[j + 1] += start[j]
+    xt = np.empty((d, n))  # the points, transposed (the loops below run over points, innermost)
+    shift = np.empty(n)  # a bound on |numpy's point - this one|
+    held = np.zeros(n, np.bool_)
+    for i in range(n):
+        q = which[i]
+        at = start[q]
+        start[q] += 1
+        norm2 = 0.0
+        for b in range(d):
+            norm2 += z[at, b] * z[at, b]
+        if not norm2 > 0.0:
+            return w, False
+        if d == 1:
+            radius = u[at]
+        elif d == 2:
+            radius = math.sqrt(u[at])
+        elif d == 4:
+            radius = math.sqrt(math.sqrt(u[at]))
+        else:
+            radius = u[at] ** (1.0 / d)
+        scale = radius / math.sqrt(norm2)
+        inside = True
+        shift2 = 0.0
+        for a in range(d):
+            v = centres[q, a]
+            bound = abs(centres[q, a])
+            for b in range(d):
+                v += axes[q, a, b] * (scale * z[at, b])
+                bound += abs(axes[q, a, b])
+            xt[a, i] = v
+            err = 2.0 * rel * bound
+            shift2 += err * err
+            if abs(v - low[a]) <= err or abs(v - high[a]) <= err:
+                return w, False  # too close to a face to call
+            if not (v >= low[a] and v <= high[a]):
+                inside = False
+        held[i] = inside
+        shift[i] = math.sqrt(shift2)
+    if not count:
+        for i in range(n):
+            w[i] = 1.0 if held[i] else 0.0
+        return w, True
+    holders = np.zeros(n, np.int64)
+    if not _count(xt, inv, inv_norm, centres, shift, held, m, t, holders):
+        return w, False
+    for i in range(n):
+        if held[i]:
+            if holders[i] == 0:
+                return w, False  # numpy's 1 / 0: its own path says what that gives
+            w[i] = 1.0 / holders[i]
+    return w, True
+
+
+@njit(cache=True, error_model="numpy")
+def in_box(x: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """``np.all((x >= low) & (x <= high), axis=-1)`` for x (n, d)."""
+    n, d = x.shape
+    out = np.empty(n, np.bool_)
+    for i in range(n):
+        ok = True
+        for j in range(d):
+            if not (x[i, j] >= low[j] and x[i, j] <= high[j]):
+                ok = False
+                break
+        out[i] = ok
+    return out

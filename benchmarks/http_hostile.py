@@ -1,0 +1,206 @@
+"""Peak memory of the HTTP service through the hostile suite of issue R.
+
+Starts a stock `dask scheduler` with two workers and `abcns serve` (default limits) on
+127.0.0.1 and sends it, in this order, what the issue's hostile client sent:
+
+1. bodies that froze it: 900 levels around a million zeros (2 MB), a flat array of 14
+   million zeros (29 MB), and a 31 MB spec of 3.9 million numbers inside every limit (it
+   is parsed and validated in full), three of each at once;
+2. physically invalid specs (fs 1e-300 and 1e308, m = -1 and 0, priors [-1e308, 1e308],
+   a force of 2^62);
+4. uploads of 2^25-sample records: four longdouble at once (a megabyte each, 512 MB per
+   record decompressed) and four float64 with a fit window at once;
+5. 30 submissions at once with ABCNS_MAX_QUEUED=3's count of places;
+6. 5,000-digit integers, in /jobs and in an upload's spec;
+7. duplicate model names;
+9. 100 KB headers, 20 event streams dropped mid-stream, and 20 concurrent GET /result of a
+   job of 20,000 particles (until its tenth population, then cancelled).
+
+and then, beyond the issue's suite, two uploads at once of whole 2^25-sample records (no
+fit window: the largest upload a job may hold at the default limits). Point 3 (a batch
+outliving the budget) and 8 (a full disk) cost time or need a fault injected, not memory:
+tests/test_http_holds.py covers them. Meanwhile a thread polls /health; the script prints
+the answers by status, /health's slowest answer, and the peak resident memory (VmHWM,
+reset between phases) of the service process and of the child process that parses
+submissions, phase by phase.
+
+    python -m benchmarks.http_hostile
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import io
+import json
+import tempfile
+import threading
+import time
+import zipfile
+from pathlib import Path
+
+import httpx
+import numpy as np
+import psutil
+
+from benchmarks.harness import AUTH, ROOT, Service, StockCluster, duffing_spec
+
+
+def peak_mb(pid: int) -> float:
+    """A process's peak resident memory since its start or the last reset_peak()."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return 0.0
+
+
+def reset_peak(pid: int) -> None:
+    """Reset a process's VmHWM to its current resident memory (Linux: clear_refs, 5)."""
+    Path(f"/proc/{pid}/clear_refs").write_text("5")
+
+
+def zeros_npz(n: int, dtype: str, head: dict[str, np.ndarray]) -> bytes:
+    """An .npz of ``n``-sample records: ``head``, then zeros (deflated: well under a MB)."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        for name, first in head.items():
+            with zf.open(f"{name}.npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array_header_1_0(f, {"descr": np.dtype(dtype).str, "fortran_order": False,
+                                                         "shape": (n,)})
+                f.write(first.astype(dtype).tobytes())
+                zeros, left = bytes(16 << 20), (n - first.size) * np.dtype(dtype).itemsize
+                while left:
+                    f.write(zeros[: min(left, len(zeros))])
+                    left -= min(left, len(zeros))
+    return buffer.getvalue()
+
+
+def main() -> None:
+    tmp = Path(tempfile.mkdtemp())
+    cluster = StockCluster(tmp / "dask")
+    service = Service(tmp / "jobs", cluster.address, env={"ABCNS_MAX_QUEUED": "3"})
+    statuses: collections.Counter = collections.Counter()
+    health: list[float] = []
+    done = threading.Event()
+
+    def poll() -> None:
+        with httpx.Client(timeout=60) as client:
+            while not done.is_set():
+                start = time.perf_counter()
+                client.get(f"{service.url}/health")
+                health.append(time.perf_counter() - start)
+                time.sleep(0.05)
+
+    async def at_once(requests) -> None:
+        async with httpx.AsyncClient(base_url=service.url, timeout=600, headers=AUTH) as http:
+            for r in await asyncio.gather(*(make(http) for make in requests)):
+                statuses[r.status_code] += 1
+                if r.status_code == 201:
+                    await http.delete(f"/jobs/{r.json()['id']}")
+
+    def body(raw: bytes):
+        return lambda http: http.post("/jobs", content=raw, headers={"Content-Type": "application/json"})
+
+    def upload(spec: dict | str, npz: bytes, name: str = "spec.json"):
+        text = spec if isinstance(spec, str) else json.dumps(spec)
+        return lambda http: http.post("/jobs/upload", files={"spec": (name, text.encode()), "data": ("x.npz", npz)})
+
+    poller = threading.Thread(target=poll, daemon=True)
+    poller.start()
+    start = time.monotonic()
+    service_proc = psutil.Process(service.proc.pid)  # type: ignore[union-attr]
+    peaks: list[tuple[str, float, float]] = []  # (phase, service MB, parser MB)
+
+    def phase(name: str) -> None:
+        """The peaks of the phase before, then a reset for this one."""
+        children = service_proc.children(recursive=True)
+        if peaks:
+            peaks[-1] = (peaks[-1][0], peak_mb(service_proc.pid), max((peak_mb(c.pid) for c in children), default=0.0))
+        if name:
+            print(name, flush=True)
+            for pid in [service_proc.pid, *(c.pid for c in children)]:
+                reset_peak(pid)
+            peaks.append((name, 0.0, 0.0))
+
+    try:
+        phase("1. bodies that froze the service")
+        deep = b'{"name":"x","data":' + b"[" * 900 + b",".join([b"0"] * 1_000_000) + b"]" * 900 + b"}"
+        wide = b'{"name":"x","data":[' + b",".join([b"0"] * 14_000_000) + b"]}"
+        spec = duffing_spec(max_populations=1, particles=200)
+        spec["data"].update(input="__A__", observed="__B__")
+        numbers = b"[" + b",".join([b"0.123456"] * 1_950_000) + b"]"
+        full = json.dumps(spec).encode().replace(b'"__A__"', numbers).replace(b'"__B__"', numbers)
+        for raw in (deep, wide, full):
+            asyncio.run(at_once([body(raw)] * 3))
+        del deep, wide, full, numbers
+
+        phase("2. physically invalid specs")
+        changes = [lambda s: s["data"].update(fs=1e-300), lambda s: s["data"].update(fs=1e308),
+                   lambda s: s["models"][0]["fixed"].update(m=-1), lambda s: s["models"][0]["fixed"].update(m=0),
+                   lambda s: s["models"][0]["priors"].update(k=[-1e308, 1e308]),
+                   lambda s: s["data"].update(input=[f * 2.0**62 for f in s["data"]["input"]])]
+        for change in changes:
+            spec = duffing_spec(max_populations=1, particles=200)
+            change(spec)
+            asyncio.run(at_once([body(json.dumps(spec).encode())]))
+
+        phase("4. uploads of 2^25-sample records, with a fit window or longdouble")
+        folder = ROOT / "examples" / "duffing_41"
+        head = {"force": np.load(folder / "force.npy"), "x": np.load(folder / "displacement.npy")}
+        spec = duffing_spec(max_populations=1, particles=200)
+        spec["data"].update(input="npz:force", observed="npz:x")
+        whole = json.loads(json.dumps(spec))
+        for key in ("fit", "test"):
+            whole["data"].pop(key)
+        asyncio.run(at_once([upload(spec, zeros_npz(2**25, "longdouble", head))] * 4))
+        asyncio.run(at_once([upload(spec, zeros_npz(2**25, "float64", head))] * 4))
+
+        phase("5. thirty submissions at once")
+        asyncio.run(at_once([body(json.dumps(duffing_spec(max_populations=10_000, particles=200)).encode())] * 30))
+
+        phase("6., 7. long integers, duplicate names")
+        text = json.dumps(duffing_spec(max_populations=1)).replace('"seed": 41', '"seed": ' + "7" * 5000)
+        dup = duffing_spec(max_populations=1)
+        dup["models"][1]["name"] = dup["models"][0]["name"]
+        asyncio.run(at_once([body(text.encode()), upload(text, zeros_npz(10, "float64", {})),
+                             body(json.dumps(dup).encode())]))
+
+        phase("9. headers, dropped streams, concurrent results of a large job")
+        statuses[httpx.get(f"{service.url}/health", headers={"X-Pad": "a" * 100_000}, timeout=30).status_code] += 1
+        big = duffing_spec(max_populations=10, particles=20_000)
+        big["sampler"]["batch_size"] = 1000
+        job_id = httpx.post(f"{service.url}/jobs", json=big, headers=AUTH, timeout=60).json()["id"]
+        for _ in range(20):
+            with httpx.stream("GET", f"{service.url}/jobs/{job_id}/events", headers=AUTH, timeout=600) as r:
+                for line in r.iter_lines():
+                    if line.startswith("event: started") or line.startswith("event: population"):
+                        break
+        while httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()["status"] not in (
+                "finished", "failed", "cancelled"):
+            time.sleep(1)
+        asyncio.run(at_once([lambda http: http.get(f"/jobs/{job_id}/result")] * 20))
+
+        phase("beyond the issue: two uploads of whole 2^25-sample records at once (no fit window: the largest "
+              "a job may hold)")
+        asyncio.run(at_once([upload(whole, zeros_npz(2**25, "float64", head))] * 2))
+        phase("")
+    finally:
+        done.set()
+        poller.join(timeout=60)
+        errors = "\n".join(line for line in service.log.read_text().splitlines() if "ERROR" in line or "Traceback" in line)
+        service.close()
+        cluster.close()
+    print(f"{sum(statuses.values())} answers in {time.monotonic() - start:.0f} s: "
+          + ", ".join(f"{n} x {s}" for s, n in sorted(statuses.items())))
+    print(f"/health: {len(health)} probes, slowest {max(health):.3f} s, p99 {np.percentile(health, 99):.3f} s")
+    print("peak RSS by phase (MB): the service process, the process that parses submissions")
+    for name, main_mb, child_mb in peaks:
+        print(f"  {main_mb:6.0f} {child_mb:6.0f}  {name}")
+    issue = [p for p in peaks if not p[0].startswith("beyond")]
+    print(f"peak RSS through the issue's suite: service {max(p[1] for p in issue):.0f} MB, parser "
+          f"{max(p[2] for p in issue):.0f} MB")
+    print(f"errors in the service's log: {errors or 'none'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,96 @@
+"""The cluster model of issue O (benchmarks/cluster_model): exact answers in trivial cases,
+the trace format, and the validation it was built against (a deterministic replay: no
+timing of this machine is involved). A few seconds."""
+
+import math
+
+import pytest
+
+from benchmarks.cluster_model.costs import FREE
+from benchmarks.cluster_model.model import Design, Pattern, replay
+from benchmarks.cluster_model.trace import FORMAT, PopulationTrace, Trace, consumed
+
+CODEC = {"draws": 0.0, "unpack_draws": 0.0, "results": 0.0, "unpack_results": 0.0}
+STORE = {"create": 0.0, "one": 0.0, "all": 0.0, "populations": 1, "status": 0.0, "read": 0.0}
+
+
+def one_population(batches: int, accepted: int, batch_size: int = 10) -> Trace:
+    """One population whose last batch completes it on its last row."""
+    pop = PopulationTrace(t=1, epsilon=1.0, n_needed=batches * accepted, accepted=[accepted] * batches,
+                          evaluator_us=[0.0] * batches, simulations=batches * batch_size, runner_s={}, codec_us=CODEC)
+    return Trace("synthetic", {"batch_size": batch_size, "populations": 1}, {}, STORE, [pop])
+
+
+@pytest.mark.parametrize("batches", [1, 7, 40])
+def test_one_worker_without_overheads_is_fully_efficient(batches):
+    """One task per batch (today's executor groups batches once it has timed one, and a
+    task's batches past the population's end are surplus that a lone worker waits for)."""
+    out = replay(one_population(batches, accepted=3), 1, 0.002, FREE, Design(task_batches=1))
+    assert out.efficiency == pytest.approx(1.0, abs=1e-12)
+    assert out.wall == pytest.approx(batches * 10 * 0.002, abs=1e-12)
+    assert out.simulations == batches * 10
+
+
+@pytest.mark.parametrize("workers, units", [(1, 31), (4, 31), (8, 31), (14, 31), (14, 28), (64, 31)])
+def test_a_barrier_per_round_costs_the_last_wave(workers, units):
+    """Rounds of ``units`` equal tasks, each round after the last: ceil(units / W) waves each,
+    so the efficiency is units / (W x ceil(units / W)) exactly without overheads."""
+    out = Pattern("floor", workers, 0.05, FREE, units=units, rounds=3).run()
+    waves = math.ceil(units / workers)
+    assert out.wall == pytest.approx(3 * waves * 0.05, abs=1e-12)
+    assert out.efficiency == pytest.approx(units / (workers * waves), abs=1e-12)
+
+
+def test_a_worker_overhead_per_task_adds_up():
+    """One worker, one population of 1-batch tasks: each task costs its overhead on top, the
+    executor's 2 W + 2 no-op tasks too (the job's data and the anchors, run first)."""
+    overhead = 0.004
+    out = replay(one_population(5, accepted=2), 1, 0.002, FREE.scaled(worker_task=overhead), Design(task_batches=1))
+    assert out.wall == pytest.approx(5 * 10 * 0.002 + (5 + 4) * overhead, abs=1e-12)
+
+
+def test_lookahead_rows_are_simulated_and_counted_and_carried_surplus_pays():
+    """Look-ahead rows are simulated and counted (those outside the next bounds too); on a
+    free cluster whose populations end in a partial wave (8 workers, 20 ms per simulation),
+    carrying the surplus batches into the next population shortens the run."""
+    trace = Trace.load("evidence-1000")
+    today = replay(trace, 8, 0.020, FREE)
+    ahead = replay(trace, 8, 0.020, FREE, Design(lookahead_share=0.5))
+    carried = replay(trace, 8, 0.020, FREE, Design(carry_batches=8))
+    assert today.counted == pytest.approx(trace.simulations, rel=0.01)  # the replay's count is the run's
+    assert ahead.counted > today.counted and ahead.executed > today.executed
+    assert carried.wall < today.wall
+
+
+def test_trace_round_trips_and_refuses_other_formats(tmp_path):
+    trace = Trace.load("paper-1000")
+    assert trace.simulations == 7654  # the 16-core runs' count: the populations are the job's, whatever the cluster
+    path = tmp_path / "t.json"
+    trace.save(path)
+    back = Trace.load(path)
+    assert back.to_json() == trace.to_json()
+    assert [len(p.accepted) for p in back.populations] == [len(p.accepted) for p in trace.populations]
+    path.write_text(trace.to_json().replace(FORMAT, "something-else/9"))
+    with pytest.raises(ValueError, match="format"):
+        Trace.load(path)
+
+
+def test_consumed_rows_follow_the_filling_rule():
+    assert consumed([5, 5, 5], 10, 10) == (2, 20)
+    assert consumed([4, 4, 4], 10, 10) == (3, 25)  # 2 of the last batch's 4: half its rows
+    with pytest.raises(ValueError, match="fewer than the 10 needed"):
+        consumed([1, 1], 10, 10)
+
+
+def test_the_model_validates_against_the_16_core_paper_session():
+    """The replay of the recorded trace with the 16-core machine's costs lands within 0.05 of
+    each measured efficiency (benchmarks/measurements/2026-11-25-16-cores.md)."""
+    from benchmarks.cluster_model import measured
+    from benchmarks.cluster_model.study import TOLERANCE, sixteen_costs
+
+    session = measured.SIXTEEN["paper"]
+    costs = sixteen_costs("paper")
+    trace = Trace.load(session.trace)
+    for workers, (efficiency, _, _) in session.jobs.items():
+        out = replay(trace, workers, 0.002, costs)
+        assert abs(out.efficiency - efficiency) <= TOLERANCE, (workers, out.efficiency, efficiency)

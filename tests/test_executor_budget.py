@@ -1,0 +1,126 @@
+"""The run's budget reaches into a running batch (issue R.3): the Dask executor asks the
+run's :class:`abcns.filling.Budget` while it waits for a result, and on a cancel or a spent
+time budget drops every batch in flight and raises ``Stopped`` at once, not when the
+running batch ends; a task's group of batches is capped by the seconds left.
+
+The slow batch is ``benchmarks.sleepy``'s Duffing oscillator, which sleeps 2 ms per
+simulation: a batch of 20,000 takes 40 s of wall time on any machine (sleep, not CPU), and
+the worker stays responsive meanwhile, so the test can see the batch still running after
+the executor stopped waiting. The cluster (two stock workers, one per such test) is killed
+at the end.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from types import SimpleNamespace
+
+import pytest
+from distributed import Client
+
+from abcns import StopReason, StopRules
+from abcns.filling import Budget, draws
+from abcns.rejection import prior_proposer
+from abcns.settings import Stopped
+from benchmarks import sleepy
+from benchmarks.harness import StockCluster, duffing_spec, wait_until
+from service.run.dask_executor import MAX_TASK_SECONDS, DaskExecutor
+from service.spec import build, description, parse
+
+pytestmark = pytest.mark.distributed
+BATCH = 20_000  # 40 s of sleep in one batch
+
+
+@pytest.fixture(scope="module")
+def sleepy_job():
+    raw = duffing_spec(max_populations=1, particles=200)
+    for model in raw["models"]:
+        model["simulator"] = sleepy.NAME
+    spec = parse(raw)
+    return spec, build(spec, None, allow_import=True)
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    cluster = StockCluster(tmp_path_factory.mktemp("dask"), n_workers=2)  # one per test of a running batch
+    with Client(cluster.address, timeout=30) as c:
+        yield c
+    for p in cluster.procs:  # the dropped batch still sleeps in the worker: no waiting for it
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+def executing(client: Client, group: str) -> int:
+    """Tasks of the executor's task group the workers are executing now (a released task
+    keeps running to its end)."""
+    keys = client.run(lambda dask_worker: [ts.key for ts in dask_worker.state.executing])
+    return sum(isinstance(k, tuple) and k[0] == group for ks in keys.values() for k in ks)
+
+
+def stopped_while_a_batch_runs(client, sleepy_job, budget: Budget, stop_now) -> Stopped:
+    """Start a stream of one 40-s batch, wait until the worker runs it, call ``stop_now``;
+    the stream must raise Stopped while the batch still runs."""
+    spec, built = sleepy_job
+    executor = DaskExecutor(client, f"budget-{time.monotonic_ns()}", description(spec),
+                            {"force": built.force, "observed": built.observed}, allow_import=True, budget=budget)
+    results = executor.map(draws(prior_proposer(built.models), seed=1, t=1, epsilon=float("inf"), batch_size=BATCH))
+    got: list = []
+    consumer = threading.Thread(target=lambda: got.append(_next(results)), daemon=True)
+    consumer.start()
+    try:
+        wait_until(lambda: executing(client, executor.group) == 1, 60, "a worker to run the batch", 0.2)
+        stop_now()
+        consumer.join(timeout=30)  # the batch has 40 s of sleep to go: only a stop that reaches in ends this
+        assert not consumer.is_alive(), "the executor waited for the running batch"
+        assert executing(client, executor.group) == 1  # the batch still runs: the stream did not wait for it
+        (outcome,) = got
+        assert isinstance(outcome, Stopped), outcome
+        assert not results.pending  # every task released
+        return outcome
+    finally:
+        results.close()
+        executor.close()
+
+
+def _next(results):
+    try:
+        return next(results)
+    except Stopped as stopped:
+        return stopped
+
+
+def test_a_cancel_ends_the_wait_for_a_running_batch(client, sleepy_job):
+    flag = threading.Event()
+    budget = Budget(StopRules(max_populations=1), cancel=flag.is_set)
+    assert stopped_while_a_batch_runs(client, sleepy_job, budget, flag.set).reason is StopReason.CANCELLED
+
+
+def test_the_time_budget_ends_the_wait_for_a_running_batch(client, sleepy_job):
+    now = [0.0]
+    budget = Budget(StopRules(max_populations=1, max_seconds=60), clock=lambda: now[0])
+
+    def spend() -> None:
+        now[0] = 61.0  # the budget is spent now, mid-batch
+
+    assert stopped_while_a_batch_runs(client, sleepy_job, budget, spend).reason is StopReason.MAX_SECONDS
+
+
+def test_a_task_holds_no_more_batches_than_fit_into_the_seconds_left():
+    """The group of a task (batches of 1 ms each here) is capped by the time left: 5 ms
+    left -> 5 batches, where MAX_TASK_SECONDS alone would allow 100; never below one."""
+    now = [0.0]
+    budget = Budget(StopRules(max_populations=1, max_seconds=10.0), clock=lambda: now[0])
+    fake = SimpleNamespace(batch_seconds=0.001, budget=budget)
+    fake.time_cap = lambda: DaskExecutor.time_cap(fake)  # type: ignore[arg-type]
+    size = DaskExecutor.group_size(fake, need=10_000, consumed=0, n_workers=1)  # type: ignore[arg-type]
+    assert size == int(MAX_TASK_SECONDS / 0.001) == 100
+    now[0] = 10.0 - 0.005
+    assert DaskExecutor.group_size(fake, need=10_000, consumed=0, n_workers=1) == 5  # type: ignore[arg-type]
+    now[0] = 11.0
+    assert DaskExecutor.group_size(fake, need=10_000, consumed=0, n_workers=1) == 1  # type: ignore[arg-type]
+    fake.budget = Budget(StopRules(max_populations=1))  # no time budget: no cap
+    assert DaskExecutor.group_size(fake, need=10_000, consumed=0, n_workers=1) == 100  # type: ignore[arg-type]

@@ -1,0 +1,102 @@
+"""`abcns submit`: a YAML spec and its data files become a job on a running `abcns serve`
+(real processes: a stock Dask scheduler and worker, the service), followed like `abcns run`
+and ending with the same result as `abcns run` of the same spec; each kind of error is one
+line with its own exit code."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import yaml
+
+from benchmarks.harness import AUTH, TOKEN, Service, StockCluster, free_port
+
+pytestmark = pytest.mark.http
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+DEMO = ROOT / "data" / "authors-demo" / "demo_data.npz"
+POPULATIONS = 3
+
+
+def abcns(*args, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([BIN / "abcns", *map(str, args)], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, **(env or {})})
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    """One worker, one service (at most 1,000 particles a job) for the module."""
+    tmp = tmp_path_factory.mktemp("submit")
+    cluster = StockCluster(tmp / "dask", n_workers=1)
+    service = Service(tmp / "jobs", cluster.address, env={"ABCNS_MAX_PARTICLES": "1000"})
+    yield service, cluster.address
+    service.close()
+    cluster.close()
+
+
+@pytest.fixture(scope="module")
+def spec(tmp_path_factory) -> Path:
+    """The authors' demo, shortened, as a user writes it: YAML, the force in an .npz beside
+    it, the response in a .csv column."""
+    folder = tmp_path_factory.mktemp("spec")
+    with np.load(DEMO) as d:
+        np.savez(folder / "record.npz", force=d["force"])
+        np.savetxt(folder / "response.csv", d["displacement"], header="displacement", comments="", delimiter=",")
+    raw = yaml.safe_load((ROOT / "examples" / "authors_demo" / "spec.yaml").read_text())
+    raw["data"].update(input="record.npz:force", observed="response.csv:displacement")
+    raw["sampler"].update(particles=200, batch_size=100)
+    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": POPULATIONS}
+    path = folder / "spec.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+def test_submit_uploads_the_spec_and_its_files_and_follows_the_job_to_run_s_result(service, spec, tmp_path):
+    svc, scheduler = service
+    done = abcns("submit", spec, "--url", svc.url, "--token", TOKEN)
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = done.stdout.splitlines()
+    pops = [line for line in lines if line.startswith("population ")]
+    assert [int(p.split()[1]) for p in pops] == list(range(1, POPULATIONS + 1)), lines
+    assert all(" %  acceptance" in p and "sims/s" in p and p.endswith("workers 1") for p in pops), pops
+    assert lines[len(pops)] == "" and lines[len(pops) + 1].startswith("status finished  stop max_populations")
+    job_id = done.stderr.split("job ", 1)[1].split(":", 1)[0]
+    assert lines[-1].startswith(f"job: {svc.url}/jobs/{job_id}")
+    # the data the service ran on are the files' (the result is abcns run's, bit for bit)
+    submitted = httpx.get(f"{svc.url}/jobs/{job_id}/result", headers=AUTH, timeout=60).json()
+    ran = json.loads(abcns("run", spec, "--out", tmp_path / "run.zarr", "--scheduler", scheduler, "--json",
+                           "--quiet").stdout)
+    for key in ("epsilon", "acceptance_rate", "simulations", "model_probabilities", "posterior"):
+        assert submitted[key] == ran[key], key
+
+
+def test_each_error_is_one_line_with_its_exit_code(service, spec, tmp_path):
+    svc, _ = service
+    cases = []
+    # the spec is checked here first (2), naming the field
+    bad = yaml.safe_load(spec.read_text())
+    bad["models"][1]["prior"] = bad["models"][1].pop("priors")
+    (spec.parent / "bad.yaml").write_text(yaml.safe_dump(bad))
+    cases.append((("submit", spec.parent / "bad.yaml", "--url", svc.url, "--token", TOKEN), 2,
+                  "error: models[1].prior: Extra inputs are not permitted; did you mean `priors`?"))
+    # the service's own limits (2): over its 1,000 particles
+    big = yaml.safe_load(spec.read_text())
+    big["sampler"]["particles"] = 2000
+    (spec.parent / "big.yaml").write_text(yaml.safe_dump(big))
+    cases.append((("submit", spec.parent / "big.yaml", "--url", svc.url, "--token", TOKEN), 2,
+                  "error: the service refused the job: sampler.particles: "))
+    # the token (5), and a service that is not there (3)
+    cases.append((("submit", spec, "--url", svc.url, "--token", "wrong"), 5, "error: the service refused the token (403"))
+    nowhere = f"http://127.0.0.1:{free_port()}"
+    cases.append((("submit", spec, "--url", nowhere), 3, f"error: cannot reach the service at {nowhere}: "))
+    for args, code, start in cases:
+        done = abcns(*args, env={"ABCNS_TOKEN": ""})
+        assert done.returncode == code, (args, done.stderr[-2000:])
+        assert len(done.stderr.strip().splitlines()) == 1 and done.stderr.startswith(start), (args, done.stderr)
