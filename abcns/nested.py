@@ -209,7 +209,11 @@ def finish_population(
         var_c = ev.log_coverage_variance(cover, prev.n_coverage)
         direct = log_a + prev.log_volume - np.log(cover)
         var_pred = prev.log_z_next_se**2
-        log_z, var_z = ev.combine(prev.log_z_next, var_pred, direct, var_a + prev.log_volume_se**2 + var_c)
+        # a coverage not measured (fewer than 4 of the bound's new particles) is unknown, not 1:
+        # a bound fitted to a few survivors can miss most of the region, so the direct estimate
+        # then has no weight and the prediction carries log Z
+        var_direct = np.where(prev.n_coverage > 0, var_a + prev.log_volume_se**2 + var_c, np.inf)
+        log_z, var_z = ev.combine(prev.log_z_next, var_pred, direct, var_direct)
         with np.errstate(invalid="ignore"):  # the prediction's weight in the combination
             w_pred = np.where(np.isfinite(var_pred), np.nan_to_num(var_z / var_pred, nan=1.0, posinf=1.0), 0.0)
     log_z = np.where(alive_now, log_z, -np.inf)

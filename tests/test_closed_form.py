@@ -204,6 +204,23 @@ def test_evidence_line_and_disc_match_exact_abc_probability(seed):
     assert abs(pop.particle_shares[0] - p_exact) > abs(pop.model_probabilities[0] - p_exact)
 
 
+def test_an_unmeasured_coverage_gives_the_direct_estimate_no_weight():
+    """line_and_disc seed 39 (batch 200): at population 10 the disc has 20 particles and
+    fewer than 4 new ones below the next tolerance, so its bound's coverage cannot be
+    measured (``n_coverage`` 0). The bound, fitted to a few survivors, held ~1/4 of the disc:
+    read as a coverage of 1 with no error, population 11's direct estimate put the disc's
+    log Z 1.46 too low at a standard error of 0.057 (z = -25.7; p(line) 0.9976 against
+    0.9897, p's z = +56.6). Unmeasured, it gets no weight and the prediction carries log Z
+    (z = -1.1). Exact answer, so the check is the estimate's own 4 standard errors."""
+    models, evaluate = line_and_disc()
+    r = run(models, evaluate, NSSettings(particles=1000, epsilon_initial=0.3, batch_size=EVIDENCE_BATCH),
+            StopRules(min_epsilon_decrease=None, max_populations=11), seed=39)
+    before, pop = r.populations[-2], r.final
+    assert before.evidence.n_coverage[1] == 0 and pop.model_counts(2)[1] > 0
+    z = (pop.evidence.log_z[1] - line_and_disc_log_evidence(pop.epsilon)[1]) / pop.evidence.log_z_se[1]
+    assert abs(z) < 4, (pop.t, z, pop.evidence.log_z_se[1])
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", EVIDENCE_SEEDS)
 def test_evidence_balls_4_and_5_match_exact_abc_probability(seed):
