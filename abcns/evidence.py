@@ -15,11 +15,14 @@ under eps. ABC-NS already counts what Z needs, every population:
   cross-validation when the bound is fitted), so the direct estimate is
   ``log Z = log a + log V - log c``, V the prior mass of B_m (Monte Carlo, in the unit box);
 - the share r_m of m's new particles below the next tolerance predicts Z_m(eps_{t+1}) =
-  Z_m(eps_t) r_m (the nested-sampling recursion).
+  Z_m(eps_t) r_m c_m (the nested-sampling recursion; c_m the coverage of the bound the new
+  particles came from, whose misses lie at the edge of the region at eps_t).
 
 Each population's log Z combines the prediction from the previous population and the direct
-estimate by inverse variance (binomial variances on the log scale; delta method), so the
-estimate gathers information over populations. Pure functions on arrays, one entry per model.
+estimate by inverse variance (binomial variances on the log scale at the Agresti-Coull
+estimate; delta method), so the estimate gathers information over populations. Every term of
+the standard error is derived in docs/design.md ("The evidence's standard error"). Pure
+functions on arrays, one entry per model.
 """
 
 from __future__ import annotations
@@ -68,21 +71,43 @@ class Evidence:
 
 
 def log_share(k: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(log(k / n), its variance (1 - k/n) / k) elementwise; -inf and inf where k = 0."""
+    """(log a, its variance) for a share a of k successes in n binomial trials, elementwise.
+
+    The point is log(k / n); where k = 0, log((1/2) / (n + 1)) (finite: a share of zero
+    must not declare a model dead on its own). The variance is the delta method's
+    (1 - a) / (n a), evaluated at the Agresti-Coull estimate a = (k + 2) / (n + 4) (two
+    successes and two failures added): (n - k + 2) / ((n + 4)(k + 2)). At a = k / n it would
+    rest on the count of the rarer outcome, which is the error's own source: an acceptance
+    near 1 with fewer rejections than due is too high and its variance too small at once
+    (docs/design.md, "The evidence's standard error"). Infinite where n = 0."""
     k, n = np.asarray(k, float), np.asarray(n, float)
     with np.errstate(divide="ignore", invalid="ignore"):
-        share = np.where(n > 0, k / n, 0.0)
-        log = np.where(k > 0, np.log(share), -np.inf)
-        var = np.where(k > 0, (1.0 - share) / k, np.inf)
+        log = np.where(k > 0, np.log(k / np.maximum(n, 1.0)), np.log(0.5 / (n + 1.0)))
+        var = np.where(n > 0, (n - k + 2.0) / ((n + 4.0) * (k + 2.0)), np.inf)
     return log, var
 
 
-def log_share_smoothed(k: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """log((k + 1/2) / (n + 1)) and its variance: finite for k = 0 (a ratio that must not
-    declare a model dead on its own)."""
-    k, n = np.asarray(k, float), np.asarray(n, float)
-    r = (k + 0.5) / (n + 1.0)
-    return np.log(r), (1.0 - r) / ((n + 1.0) * r)
+def log_coverage_variance(coverage: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Variance of log c for a coverage c measured by ``bounds.coverage`` on n points: the
+    binomial error of the held-out share (at least one point's worth), plus the error of its
+    1/n correction, which halves the share the half-fits miss and is uncertain by as much as
+    it corrects (1 - c); zero where nothing was measured (n = 0)."""
+    c, n = np.asarray(coverage, float), np.asarray(n, float)
+    m = np.maximum(n, 1.0)
+    return np.where(n > 0, np.maximum(1.0 - c, 1.0 / m) / (np.maximum(c, 1e-12) * m) + (1.0 - c) ** 2, 0.0)
+
+
+def coverage_term_next(coverage: np.ndarray, var_c: np.ndarray, w_pred: np.ndarray, log_r: np.ndarray) -> np.ndarray:
+    """What log c adds to the variance of the prediction log Z + log r + log c.
+
+    log Z holds -log c with the direct estimate's weight 1 - w (w: the prediction's weight),
+    so the sum holds +log c with weight w: its variance w^2 var_c replaces the (1 - w)^2 var_c
+    log Z carries, a change of (2 w - 1) var_c. The correction assumes the bound's misses lie
+    outside the region at the next tolerance; at worst they lie inside it, which is then short
+    of at most (1 - c) / r: that share enters as an error of its own size."""
+    r = np.exp(np.minimum(np.asarray(log_r, float), 0.0))
+    miss = np.minimum((1.0 - np.asarray(coverage, float)) / np.maximum(r, 1e-12), 1.0)
+    return (2.0 * np.asarray(w_pred, float) - 1.0) * var_c + miss**2
 
 
 def combine(a: np.ndarray, var_a: np.ndarray, b: np.ndarray, var_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

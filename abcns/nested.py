@@ -25,8 +25,8 @@ Two variants (``NSSettings.variant``):
   each model's evidence (``abcns.evidence``); survivors follow the probability predicted at
   eps_{t+1} (at least 2 (d + 1) each while a model has them), proposals follow it too
   (p / acceptance, with a floor per alive model); a model dies when it has no particle below
-  eps_{t+1}, or when its probability plus three standard errors falls below
-  ``min_model_probability``. Bounds are fitted in the unit prior box to every particle below
+  eps_{t+1}, or when its probability plus three standard errors at the next tolerance falls
+  below ``min_model_probability`` in two populations in a row. Bounds are fitted in the unit prior box to every particle below
   eps_{t+1} (the region the next population must sample, not only the survivors) and split
   into several ellipsoids where that halves the volume (``abcns.bounds``).
 
@@ -40,7 +40,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass
-from functools import partial
 
 import numpy as np
 
@@ -198,36 +197,40 @@ def finish_population(
     alive_now = counts > 0
 
     # ---- evidence at eps_t: the prediction from t - 1 combined with this population's counts
+    # (docs/design.md, "The evidence's standard error", derives every term)
     if previous is None:  # rejection from the priors: Z = accepted / proposed, exactly
         log_z, var_z = ev.log_share(n_accepted, n_proposed)
+        cover, var_c, w_pred = np.ones(n_models), np.zeros(n_models), np.zeros(n_models)
     else:
         prev = previous.evidence
         assert prev is not None
         log_a, var_a = ev.log_share(n_accepted, n_proposed)
-        smooth_a, smooth_var = ev.log_share_smoothed(n_accepted, n_proposed)
-        log_a, var_a = np.where(n_accepted > 0, log_a, smooth_a), np.where(n_accepted > 0, var_a, smooth_var)
-        var_a = np.where(n_proposed > 0, var_a, np.inf)
-        # binomial error of the held-out share, plus the error of its 1/n correction (which
-        # halves the missed share: it is uncertain by as much as it corrects, 1 - c)
-        n_cov = np.maximum(prev.n_coverage, 1)
-        var_c = np.where(prev.n_coverage > 0,
-                         np.maximum(1 - prev.coverage, 1 / n_cov) / (np.maximum(prev.coverage, 1e-12) * n_cov), 0.0)
-        var_c = var_c + (1 - prev.coverage) ** 2
-        direct = log_a + prev.log_volume - np.log(np.maximum(prev.coverage, 1e-12))
-        log_z, var_z = ev.combine(prev.log_z_next, prev.log_z_next_se**2, direct, var_a + prev.log_volume_se**2 + var_c)
+        cover = np.where(prev.n_coverage > 0, np.maximum(prev.coverage, 1e-12), 1.0)
+        var_c = ev.log_coverage_variance(cover, prev.n_coverage)
+        direct = log_a + prev.log_volume - np.log(cover)
+        var_pred = prev.log_z_next_se**2
+        # a coverage not measured (fewer than 4 of the bound's new particles) is unknown, not 1:
+        # a bound fitted to a few survivors can miss most of the region, so the direct estimate
+        # then has no weight and the prediction carries log Z
+        var_direct = np.where(prev.n_coverage > 0, var_a + prev.log_volume_se**2 + var_c, np.inf)
+        log_z, var_z = ev.combine(prev.log_z_next, var_pred, direct, var_direct)
+        with np.errstate(invalid="ignore"):  # the prediction's weight in the combination
+            w_pred = np.where(np.isfinite(var_pred), np.nan_to_num(var_z / var_pred, nan=1.0, posinf=1.0), 0.0)
     log_z = np.where(alive_now, log_z, -np.inf)
     var_z = np.where(alive_now, var_z, np.inf)
     p_now, _ = ev.probabilities(log_z, np.sqrt(var_z))
 
-    # ---- prediction at eps_next: the share of each model's new particles below it
+    # ---- prediction at eps_next: the share of each model's new particles below it, times the
+    # coverage of the bound they were drawn from (its misses lie at the edge of the region at
+    # eps_t, outside the region at eps_next, so the share overstates the ratio by 1 / coverage)
     below = distances < eps_next
     k_new = np.bincount(which, weights=is_new & below, minlength=n_models)
     n_new = np.bincount(which, weights=is_new, minlength=n_models)
     k_all = np.bincount(which, weights=below, minlength=n_models)
     k_r, n_r = np.where(n_new > 0, k_new, k_all), np.where(n_new > 0, n_new, counts)
-    log_r, var_r = ev.log_share_smoothed(k_r, n_r)
-    log_z_next = np.where(capacity > 0, log_z + log_r, -np.inf)
-    var_next = np.where(capacity > 0, var_z + var_r, np.inf)
+    log_r, var_r = ev.log_share(k_r, n_r)
+    log_z_next = np.where(capacity > 0, log_z + log_r + np.log(cover), -np.inf)
+    var_next = np.where(capacity > 0, var_z + var_r + ev.coverage_term_next(cover, var_c, w_pred, log_r), np.inf)
     p_next, se_next = ev.probabilities(log_z_next, np.sqrt(var_next))
 
     # ---- deaths and survivor quotas
@@ -235,7 +238,16 @@ def finish_population(
     notes: list[str] = []
     if settings.evidence:
         death[alive_now & (capacity == 0)] = ev.NO_PARTICLES
+        # by probability only when the previous population's prediction was below the threshold
+        # too: one population's error bar can be wrong (a few in a thousand beyond 3 standard
+        # errors), and death is for good
         improbable = alive_now & (capacity > 0) & (p_next + 3 * se_next < settings.death_probability)
+        if previous is not None:
+            assert previous.evidence is not None
+            p_was, se_was = ev.probabilities(previous.evidence.log_z_next, previous.evidence.log_z_next_se)
+            improbable &= p_was + 3 * se_was < settings.death_probability
+        else:
+            improbable[:] = False
         death[improbable] = ev.IMPROBABLE
         alive_next = death == ev.ALIVE
         shares = np.where(alive_next, p_next, 0.0)
@@ -276,11 +288,8 @@ def finish_population(
         else:
             fallback = frame.box_ellipsoid()
         points = frame.to_frame(theta[rows, : model.n_dim])
-        fit: Callable[[np.ndarray], bd.Union] | None = None
         if settings.evidence:
-            fit = partial(bd.fit_union, enlargement=settings.enlargement, max_ellipsoids=settings.n_ellipsoids,
-                          fallback=fallback)
-            bound = fit(points)
+            bound = bd.fit_union(points, settings.enlargement, settings.n_ellipsoids, fallback)
         else:
             fitted = ell.fit(theta[np.sort(keep), : model.n_dim], fallback=fallback)
             bound = (ell.enlarge(fitted, settings.enlargement),)
@@ -288,7 +297,8 @@ def finish_population(
             if e.note:
                 notes.append(f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)")
         bounds.append(bound)
-        geometry_jobs.append(_geometry_job(bound, frame, points, fit))
+        geometry_jobs.append(_geometry_job(bound, frame, points, is_new[rows],
+                                           settings.enlargement if settings.evidence else None))
 
     # ---- proposals of t + 1
     acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
@@ -307,16 +317,17 @@ def finish_population(
                 tied=found is None)
 
 
-def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray,
-                  fit: Callable[[np.ndarray], bd.Union] | None) -> Geometry:
+def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, new: np.ndarray,
+                  enlargement: float | None) -> Geometry:
     """The measurement of one model's new bound, for :meth:`Step.evidence`: (log prior mass
     of the bound, its standard error, the share of the accepted region it holds, points
-    tested). The coverage is cross-validated when the bound is a fit of ``points`` (``fit``),
-    else the share of ``points`` the bound holds; then the volume by Monte Carlo."""
+    tested). The coverage is cross-validated on the ``new`` points (uniform in the region
+    sampled) when the bound is a fit of ``points`` with this ``enlargement`` (the evidence
+    variant), else the share of ``points`` the bound holds; then the volume by Monte Carlo."""
 
     def measure(geometry: np.random.Generator) -> GeometryResult:
-        if fit is not None:
-            cover, n_cover = bd.coverage(points, fit, geometry)
+        if enlargement is not None:
+            cover, n_cover = bd.coverage(points, bound, enlargement, geometry, new)
         else:
             cover, n_cover = float(np.mean(bd.n_inside(bound, points) > 0)), points.shape[0]
         log_v, log_v_se = bd.union_volume(bound, frame.box, VOLUME_DRAWS, geometry)

@@ -177,7 +177,7 @@ class NSSettings:
         equal proposals, one ellipsoid on the survivors in raw units).
     max_ellipsoids : most ellipsoids in a model's bound (evidence variant; default 8).
     min_model_probability : a model dies when its probability plus three standard errors
-        falls below this (evidence variant; default 1e-3).
+        falls below this in two populations in a row (evidence variant; default 1e-3).
     min_proposal_share : share of proposals every alive model gets at least (evidence
         variant; default 0.05, and at most half of all proposals go to such floors).
     """

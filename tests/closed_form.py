@@ -59,3 +59,58 @@ def line_and_disc(x0=0.3, y0=0.6):
 def line_and_disc_log_evidence(eps):
     """Exact log Z of :func:`line_and_disc` (eps <= 0.3)."""
     return np.log([2 * eps, np.pi * eps**2])
+
+
+def balls_4_and_5():
+    """Deterministic distances in four and five dimensions: M1 ``2 |theta - c|`` with theta ~
+    U(0, 1)^4, M2 ``|theta - c|`` with theta ~ U(0, 1)^5, c the centre of the box. For eps <=
+    0.5 the accepted sets are balls inside the boxes (radius eps / 2 and eps), so the ABC
+    evidences are the balls' volumes Z1 = (pi^2 / 2)(eps / 2)^4 and Z2 = (8 pi^2 / 15) eps^5
+    exactly; p(M2) = 256 eps / (15 + 256 eps): 0.88 at eps 0.45, 0.63 at 0.1, 0.34 at 0.03."""
+    models = [Model("ball4", {f"x{i}": (0, 1) for i in range(4)}), Model("ball5", {f"x{i}": (0, 1) for i in range(5)})]
+
+    def ball(scale: float, d: int):
+        def f(theta, rng):
+            return scale * np.linalg.norm(theta[:, :d] - 0.5, axis=1), np.full(theta.shape[0], OK, np.int8)
+
+        return f
+
+    return models, per_model([ball(2.0, 4), ball(1.0, 5)])
+
+
+def balls_4_and_5_log_evidence(eps):
+    """Exact log Z of :func:`balls_4_and_5` (eps <= 0.5)."""
+    return np.log([np.pi**2 / 2 * (eps / 2) ** 4, 8 * np.pi**2 / 15 * eps**5])
+
+
+def _uniform_ball(centre, radius, n, rng):
+    d = len(centre)
+    g = rng.standard_normal((n, d))
+    g /= np.linalg.norm(g, axis=1)[:, None]
+    return np.asarray(centre) + radius * g * (rng.random(n) ** (1.0 / d))[:, None]
+
+
+def two_models_region(m, eps, n, rng, a=(5.0, 20.0)):
+    """n draws of model m's theta given |s - S_OBS| < eps (:func:`two_models`), in its unit
+    prior box: the accepted mass the evidence counts (rejection from theta within 8 of the
+    data, where all but 1e-15 of it lies)."""
+    lo, hi = max(-a[m], S_OBS - eps - 8), min(a[m], S_OBS + eps + 8)
+    out, got = [], 0
+    while got < n:
+        theta = rng.uniform(lo, hi, 4 * n)
+        keep = theta[np.abs(theta + rng.standard_normal(theta.size) - S_OBS) < eps]
+        out.append(keep)
+        got += keep.size
+    return ((np.concatenate(out)[:n] + a[m]) / (2 * a[m]))[:, None]
+
+
+def line_and_disc_region(m, eps, n, rng, x0=0.3, y0=0.6):
+    """n points uniform in model m's accepted set of :func:`line_and_disc` (eps <= 0.3)."""
+    if m == 0:
+        return (x0 + eps * (2 * rng.random(n) - 1))[:, None]
+    return _uniform_ball((x0, y0), eps, n, rng)
+
+
+def balls_4_and_5_region(m, eps, n, rng):
+    """n points uniform in model m's accepted ball of :func:`balls_4_and_5` (eps <= 0.5)."""
+    return _uniform_ball(np.full(4 + m, 0.5), eps / 2 if m == 0 else eps, n, rng)

@@ -22,6 +22,7 @@ from abcns import (
     per_model,
     run,
 )
+from abcns.evidence import IMPROBABLE, probabilities
 from abcns.executor import BatchError, SimulatorError, run_draw
 from abcns.nested import apportion, survivor_quotas
 
@@ -324,9 +325,30 @@ def test_dead_model_stays_dead_and_is_reported():
             StopRules(min_epsilon_decrease=None, max_populations=12), seed=2)
     died = r.died_at()
     assert "far" in died
+    assert r.death_rules() == {"far": "no_particles"}  # at once: no population in a row needed
     assert all(p.model_probabilities[0] == 0 for p in r.populations[died["far"] - 1:])
     assert r.summary()["dead_models"] == died
     assert set(r.posterior()) == {"near"}
+
+
+def test_a_model_dies_by_probability_only_after_two_populations_in_a_row_below_the_threshold():
+    """line_and_disc with min_model_probability 0.1: the disc's exact probability pi eps /
+    (2 + pi eps) falls below 0.1 at eps 0.07. Its probability plus three standard errors at
+    the next tolerance first falls below 0.1 in one population (seed 1: population 5, 0.099);
+    it must survive that one and die by probability in the next, the second in a row below
+    (before: it died in the first)."""
+    from closed_form import line_and_disc
+
+    models, evaluate = line_and_disc()
+    r = run(models, evaluate, NSSettings(particles=1000, epsilon_initial=0.3, batch_size=200, min_model_probability=0.1),
+            StopRules(min_epsilon_decrease=None, epsilon_target=0.01), seed=1)
+    assert r.death_rules() == {"disc": "probability"}
+    upper = [float(p[1] + 3 * se[1]) for p, se in
+             (probabilities(pop.evidence.log_z_next, pop.evidence.log_z_next_se) for pop in r.populations)]
+    below = [u < 0.1 for u in upper]
+    dies = [int(pop.evidence.death[1]) == IMPROBABLE for pop in r.populations]
+    assert dies.count(True) == 1, upper
+    assert dies.index(True) == below.index(True) + 1 and below[dies.index(True)], (upper, dies)
 
 
 def test_apportion_and_quotas():
