@@ -3,8 +3,9 @@
 ABC-NS (paper, Algorithm 2) bounds the surviving particles of a model by one ellipsoid.
 A curved or split accepted region is covered poorly by one ellipsoid, so a bound here is a
 tuple of ellipsoids (one in the paper variant), found by recursive 2-means splits that
-are kept only when they halve the volume (the rule of MultiNest and dynesty's
-``bounding.py``; the code is our own). Every function is pure, and each random draw comes
+are kept only when the halves' ellipsoids hold less than ``SPLIT_GAIN`` (0.8) of the
+volume of the one they replace (MultiNest and dynesty's ``bounding.py`` split this way
+with their own thresholds; the code is our own). Every function is pure, and each random draw comes
 from the generator it is given.
 
 - :func:`fit_union` : points -> ellipsoids (each enlarged by f0);

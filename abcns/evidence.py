@@ -155,3 +155,65 @@ def allocation(p: np.ndarray, acceptance: np.ndarray, alive: np.ndarray, floor: 
     f = min(floor, 0.5 / n_alive)
     out = np.where(alive, (1.0 - n_alive * f) * want + f, 0.0)
     return out / out.sum()
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One population's evidence estimate (:func:`estimate`), per model: log Z at eps_t and
+    its variance, the prediction at eps_{t+1} and its variance, and the probabilities both
+    give (``se_next``: the standard errors of ``p_next``)."""
+
+    log_z: np.ndarray
+    var_z: np.ndarray
+    log_z_next: np.ndarray
+    var_next: np.ndarray
+    p_now: np.ndarray
+    p_next: np.ndarray
+    se_next: np.ndarray
+
+
+def estimate(which: np.ndarray, distances: np.ndarray, is_new: np.ndarray, epsilon_next: float,
+             n_proposed: np.ndarray, n_accepted: np.ndarray, previous: Evidence | None) -> Estimate:
+    """The evidence of population t from its counts and the previous population's evidence
+    (its prediction at eps_t and its bounds' geometry): the two estimates of log Z at eps_t
+    combined by inverse variance, then the prediction at ``epsilon_next``. ``which``: each
+    particle's model; ``is_new``: drawn in this population (not a survivor); ``previous``
+    None for the first population (rejection from the priors: Z = accepted / proposed,
+    exactly). docs/design.md, "The evidence's standard error", derives every term."""
+    n_models = n_proposed.shape[0]
+    counts = np.bincount(which, minlength=n_models)
+    alive_now = counts > 0
+    if previous is None:
+        log_z, var_z = log_share(n_accepted, n_proposed)
+        cover, var_c, w_pred = np.ones(n_models), np.zeros(n_models), np.zeros(n_models)
+    else:
+        log_a, var_a = log_share(n_accepted, n_proposed)
+        cover = np.where(previous.n_coverage > 0, np.maximum(previous.coverage, 1e-12), 1.0)
+        var_c = log_coverage_variance(cover, previous.n_coverage)
+        direct = log_a + previous.log_volume - np.log(cover)
+        var_pred = previous.log_z_next_se**2
+        # a coverage not measured (fewer than 4 of the bound's new particles) is unknown, not 1:
+        # a bound fitted to a few survivors can miss most of the region, so the direct estimate
+        # then has no weight and the prediction carries log Z
+        var_direct = np.where(previous.n_coverage > 0, var_a + previous.log_volume_se**2 + var_c, np.inf)
+        log_z, var_z = combine(previous.log_z_next, var_pred, direct, var_direct)
+        with np.errstate(invalid="ignore"):  # the prediction's weight in the combination
+            w_pred = np.where(np.isfinite(var_pred), np.nan_to_num(var_z / var_pred, nan=1.0, posinf=1.0), 0.0)
+    log_z = np.where(alive_now, log_z, -np.inf)
+    var_z = np.where(alive_now, var_z, np.inf)
+    p_now, _ = probabilities(log_z, np.sqrt(var_z))
+
+    # the prediction at eps_next: the share of each model's new particles below it, times the
+    # coverage of the bound they were drawn from (its misses lie at the edge of the region at
+    # eps_t, outside the region at eps_next, so the share overstates the ratio by 1 / coverage)
+    below = distances < epsilon_next
+    k_new = np.bincount(which, weights=is_new & below, minlength=n_models)
+    n_new = np.bincount(which, weights=is_new, minlength=n_models)
+    k_all = np.bincount(which, weights=below, minlength=n_models)
+    k_r, n_r = np.where(n_new > 0, k_new, k_all), np.where(n_new > 0, n_new, counts)
+    log_r, var_r = log_share(k_r, n_r)
+    capacity = k_all > 0
+    log_z_next = np.where(capacity, log_z + log_r + np.log(cover), -np.inf)
+    var_next = np.where(capacity, var_z + var_r + coverage_term_next(cover, var_c, w_pred, log_r), np.inf)
+    p_next, se_next = probabilities(log_z_next, np.sqrt(var_next))
+    return Estimate(log_z, var_z, log_z_next, var_next, p_now, p_next, se_next)

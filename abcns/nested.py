@@ -26,9 +26,14 @@ Two variants (``NSSettings.variant``):
   eps_{t+1} (at least 2 (d + 1) each while a model has them), proposals follow it too
   (p / acceptance, with a floor per alive model); a model dies when it has no particle below
   eps_{t+1}, or when its probability plus three standard errors at the next tolerance falls
-  below ``min_model_probability`` in two populations in a row. Bounds are fitted in the unit prior box to every particle below
-  eps_{t+1} (the region the next population must sample, not only the survivors) and split
-  into several ellipsoids where that halves the volume (``abcns.bounds``).
+  below ``min_model_probability`` in two populations in a row. Bounds are fitted in the
+  unit prior box to every particle below eps_{t+1} (the region the next population must
+  sample, not only the survivors) and split into several ellipsoids where the split holds
+  less than ``bounds.SPLIT_GAIN`` of the volume (``abcns.bounds``).
+
+What the variants decide is in ``abcns.variants``; the evidence estimator, with its
+derivation, in ``abcns.evidence``; this module holds the steps both share (the paper's
+Algorithm 2) and the run loop.
 
 The evidence bookkeeping (``Population.evidence``) is computed in both variants; in the paper
 variant it is a diagnostic and uses its own random stream, so the paper's populations are
@@ -48,36 +53,12 @@ from abcns import ellipsoid as ell
 from abcns import evidence as ev
 from abcns.executor import Executor
 from abcns.filling import Budget, Filled, Filling, Stopped, draw_inside, fill, population_rng
-from abcns.noise import Floor, Noise, best_by_model, estimate
+from abcns.noise import Floor, Noise, Tracker
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
 from abcns.result import Population, RunEnd
 from abcns.settings import NSSettings, StopReason, StopRules
-
-
-def apportion(total: int, shares: np.ndarray) -> np.ndarray:
-    """Split ``total`` into integers proportional to ``shares`` (largest remainder)."""
-    shares = np.asarray(shares, dtype=float)
-    if total <= 0 or shares.sum() <= 0:
-        return np.zeros(shares.shape, dtype=np.int64)
-    exact = total * shares / shares.sum()
-    base = np.floor(exact).astype(np.int64)
-    remainder = total - int(base.sum())
-    order = np.argsort(-(exact - base), kind="stable")
-    base[order[:remainder]] += 1
-    return base
-
-
-def survivor_quotas(total: int, counts: np.ndarray, capacity: np.ndarray) -> np.ndarray:
-    """Survivors per model: proportional to particle counts, capped by each model's
-    positive-weight particles, shortfalls passed on to models with room left."""
-    total = min(total, int(capacity.sum()))
-    quota = np.minimum(apportion(total, counts), capacity)
-    while quota.sum() < total:
-        room = capacity - quota
-        extra = apportion(total - int(quota.sum()), np.where(room > 0, counts + 1e-12, 0.0))
-        quota = np.minimum(quota + extra, capacity)
-    return quota
+from abcns.variants import variant_of
 
 
 def next_tolerance(distances: np.ndarray, n_drop: int, lower: float | None = None) -> float | None:
@@ -153,20 +134,6 @@ class Step:
                            **self.evidence_parts)
 
 
-def _floored_quotas(total: int, shares: np.ndarray, capacity: np.ndarray, floor: np.ndarray) -> np.ndarray:
-    """Survivor quotas proportional to ``shares``, each at least min(floor, capacity) and at
-    most its capacity; the floors are taken from the largest quotas."""
-    quota = survivor_quotas(total, shares, capacity)
-    need = np.minimum(floor, capacity)
-    while np.any(quota < need):
-        donors = np.flatnonzero(quota > need)
-        if donors.size == 0:
-            break
-        quota[int(np.argmax(need - quota))] += 1
-        quota[donors[np.argmax(quota[donors])]] -= 1
-    return quota
-
-
 def finish_population(
     models: Sequence[Model],
     frames: Sequence[bd.Frame],
@@ -183,10 +150,13 @@ def finish_population(
     lower: float | None = None,
 ) -> Step:
     """eps_next (:func:`next_tolerance`, not below ``lower``), weights normalised per model,
-    survivors, next bounds, allocation, notes; the evidence once :meth:`Step.evidence` has
-    measured the bounds' geometry. When every particle has the same distance, eps_next is
-    eps_t (``Step.tied``) and the run must stop."""
+    the evidence estimate (``abcns.evidence.estimate``), then what the variant decides
+    (``abcns.variants``): deaths and survivor quotas, survivors drawn by weight, the next
+    bounds, the allocation; the evidence once :meth:`Step.evidence` has measured the bounds'
+    geometry. When every particle has the same distance, eps_next is eps_t (``Step.tied``)
+    and the run must stop."""
     n_models = len(models)
+    variant = variant_of(settings)
     found = next_tolerance(distances, settings.n_drop, lower)
     eps_next = epsilon if found is None else found
     raw = ns_weights(distances, epsilon, eps_next, settings.weights)
@@ -195,77 +165,20 @@ def finish_population(
     capacity = np.bincount(which, weights=positive, minlength=n_models).astype(np.int64)
     n_proposed, n_accepted = filled.counts(n_models)
     alive_now = counts > 0
+    previous_evidence = previous.evidence if previous is not None else None
+    assert previous is None or previous_evidence is not None
+    est = ev.estimate(which, distances, is_new, eps_next, n_proposed, n_accepted, previous_evidence)
 
-    # ---- evidence at eps_t: the prediction from t - 1 combined with this population's counts
-    # (docs/design.md, "The evidence's standard error", derives every term)
-    if previous is None:  # rejection from the priors: Z = accepted / proposed, exactly
-        log_z, var_z = ev.log_share(n_accepted, n_proposed)
-        cover, var_c, w_pred = np.ones(n_models), np.zeros(n_models), np.zeros(n_models)
-    else:
-        prev = previous.evidence
-        assert prev is not None
-        log_a, var_a = ev.log_share(n_accepted, n_proposed)
-        cover = np.where(prev.n_coverage > 0, np.maximum(prev.coverage, 1e-12), 1.0)
-        var_c = ev.log_coverage_variance(cover, prev.n_coverage)
-        direct = log_a + prev.log_volume - np.log(cover)
-        var_pred = prev.log_z_next_se**2
-        # a coverage not measured (fewer than 4 of the bound's new particles) is unknown, not 1:
-        # a bound fitted to a few survivors can miss most of the region, so the direct estimate
-        # then has no weight and the prediction carries log Z
-        var_direct = np.where(prev.n_coverage > 0, var_a + prev.log_volume_se**2 + var_c, np.inf)
-        log_z, var_z = ev.combine(prev.log_z_next, var_pred, direct, var_direct)
-        with np.errstate(invalid="ignore"):  # the prediction's weight in the combination
-            w_pred = np.where(np.isfinite(var_pred), np.nan_to_num(var_z / var_pred, nan=1.0, posinf=1.0), 0.0)
-    log_z = np.where(alive_now, log_z, -np.inf)
-    var_z = np.where(alive_now, var_z, np.inf)
-    p_now, _ = ev.probabilities(log_z, np.sqrt(var_z))
-
-    # ---- prediction at eps_next: the share of each model's new particles below it, times the
-    # coverage of the bound they were drawn from (its misses lie at the edge of the region at
-    # eps_t, outside the region at eps_next, so the share overstates the ratio by 1 / coverage)
-    below = distances < eps_next
-    k_new = np.bincount(which, weights=is_new & below, minlength=n_models)
-    n_new = np.bincount(which, weights=is_new, minlength=n_models)
-    k_all = np.bincount(which, weights=below, minlength=n_models)
-    k_r, n_r = np.where(n_new > 0, k_new, k_all), np.where(n_new > 0, n_new, counts)
-    log_r, var_r = ev.log_share(k_r, n_r)
-    log_z_next = np.where(capacity > 0, log_z + log_r + np.log(cover), -np.inf)
-    var_next = np.where(capacity > 0, var_z + var_r + ev.coverage_term_next(cover, var_c, w_pred, log_r), np.inf)
-    p_next, se_next = ev.probabilities(log_z_next, np.sqrt(var_next))
-
-    # ---- deaths and survivor quotas
     death = np.where(alive_now, ev.ALIVE, ev.DEAD_BEFORE).astype(np.int64)
-    notes: list[str] = []
-    if settings.evidence:
-        death[alive_now & (capacity == 0)] = ev.NO_PARTICLES
-        # by probability only when the previous population's prediction was below the threshold
-        # too: one population's error bar can be wrong (a few in a thousand beyond 3 standard
-        # errors), and death is for good
-        improbable = alive_now & (capacity > 0) & (p_next + 3 * se_next < settings.death_probability)
-        if previous is not None:
-            assert previous.evidence is not None
-            p_was, se_was = ev.probabilities(previous.evidence.log_z_next, previous.evidence.log_z_next_se)
-            improbable &= p_was + 3 * se_was < settings.death_probability
-        else:
-            improbable[:] = False
-        death[improbable] = ev.IMPROBABLE
-        alive_next = death == ev.ALIVE
-        shares = np.where(alive_next, p_next, 0.0)
-        floor = np.array([bd.min_points(m.n_dim) for m in models])
-        quotas = _floored_quotas(settings.n_survivors, shares, np.where(alive_next, capacity, 0), floor)
-    else:
-        quotas = survivor_quotas(settings.n_survivors, counts, capacity)
-        death[alive_now & (quotas == 0)] = ev.NO_PARTICLES
-        alive_next = death == ev.ALIVE
+    quotas = variant.survive(models, est, counts, capacity, alive_now, previous_evidence, death)
+    alive_next = death == ev.ALIVE
     death[(death != ev.ALIVE) & (n_proposed > 0) & (filled.failures(n_models) == n_proposed)] = ev.SIMULATIONS_FAILED
-    for m in map(int, np.flatnonzero(alive_now & ~alive_next)):
-        rule = ev.DEATH_RULES[int(death[m])]
-        notes.append(f"population {t}: {models[m].name} dies ({rule}; p = {p_next[m]:.3g} at the next tolerance)")
+    notes = [f"population {t}: {models[m].name} dies ({ev.DEATH_RULES[int(death[m])]}; p = {est.p_next[m]:.3g} at "
+             "the next tolerance)" for m in map(int, np.flatnonzero(alive_now & ~alive_next))]
     if quotas.sum() < settings.n_survivors:
         notes.append(f"population {t}: only {quotas.sum()} survivors (ties at eps_next, or few particles of the "
                      "alive models below it); the next population draws more new particles")
 
-    # ---- survivors (by weight) and bounds
     weights = np.zeros_like(raw)
     survivors = np.zeros(which.shape[0], dtype=bool)
     bounds: list[bd.Union] = []
@@ -281,40 +194,33 @@ def finish_population(
         keep = rng.choice(rows, size=int(quotas[m]), replace=False, p=weights[rows])
         survivors[keep] = True
         frame = frames[m]
-        prev_bound = previous.ellipsoids[m] if previous is not None else ()
-        if prev_bound:
-            largest = max(prev_bound, key=lambda e: e.log_volume)
-            fallback = ell.from_matrix(largest.centre, largest.matrix / settings.enlargement)
-        else:
-            fallback = frame.box_ellipsoid()
         points = frame.to_frame(theta[rows, : model.n_dim])
-        if settings.evidence:
-            bound = bd.fit_union(points, settings.enlargement, settings.n_ellipsoids, fallback)
-        else:
-            fitted = ell.fit(theta[np.sort(keep), : model.n_dim], fallback=fallback)
-            bound = (ell.enlarge(fitted, settings.enlargement),)
-        for e in bound:
-            if e.note:
-                notes.append(f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)")
+        prev_bound = previous.ellipsoids[m] if previous is not None else ()
+        bound = variant.bound(points, theta[np.sort(keep), : model.n_dim], _fallback(prev_bound, frame, settings))
+        notes += [f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)" for e in bound if e.note]
         bounds.append(bound)
         geometry_jobs.append(_geometry_job(bound, frame, points, is_new[rows],
-                                           settings.enlargement if settings.evidence else None))
+                                           settings.enlargement if variant.cross_validated else None))
 
-    # ---- proposals of t + 1
     acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
-    if settings.evidence:
-        alloc = ev.allocation(p_next, acceptance, alive_next, settings.proposal_floor)
-        probabilities = p_now
-    else:
-        alloc = alive_next / max(1, int(np.count_nonzero(alive_next)))
-        probabilities = counts / counts.sum()
-    parts = dict(log_z=log_z, log_z_se=np.sqrt(var_z), log_z_next=log_z_next, log_z_next_se=np.sqrt(var_next),
-                 allocation=alloc, n_proposed=n_proposed, n_accepted=n_accepted, death=death)
+    alloc, probabilities = variant.proposals(est, counts, acceptance, alive_next)
+    parts = dict(log_z=est.log_z, log_z_se=np.sqrt(est.var_z), log_z_next=est.log_z_next,
+                 log_z_next_se=np.sqrt(est.var_next), allocation=alloc, n_proposed=n_proposed,
+                 n_accepted=n_accepted, death=death)
     if found is None:
         notes.append(f"population {t}: every particle has the distance {float(distances[0]):.6g}; no tolerance below "
                      "it leaves a particle, so the run stops (ties)")
     return Step(eps_next, weights, survivors, tuple(bounds), probabilities, notes, parts, tuple(geometry_jobs),
                 tied=found is None)
+
+
+def _fallback(previous_bound: bd.Union, frame: bd.Frame, settings: NSSettings) -> ell.Ellipsoid:
+    """The ellipsoid a fit falls back to when its points cannot make one: the previous bound's
+    largest, without its enlargement, or the prior box's."""
+    if not previous_bound:
+        return frame.box_ellipsoid()
+    largest = max(previous_bound, key=lambda e: e.log_volume)
+    return ell.from_matrix(largest.centre, largest.matrix / settings.enlargement)
 
 
 def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, new: np.ndarray,
@@ -372,6 +278,28 @@ class BoundProposer:
         return which, theta, redraws
 
 
+def _stop_reason(stop: StopRules, at_floor: bool, t: int, eps: float, eps_next: float, tied: bool,
+                 floor: Floor | None) -> StopReason | None:
+    """The rule that ends the run after population t: ties, the noise floor (``at_floor``:
+    the run stops there, and this population was accepted at or below the decision
+    tolerance), then ``stop``'s rules."""
+    if tied:
+        return StopReason.TIES
+    if at_floor and floor is not None and eps <= floor.decision * (1 + 1e-12):
+        return StopReason.NOISE_FLOOR  # the lowest population tolerance above the floor
+    return stop.reason_after(eps, eps_next, t)
+
+
+def _with_survivors(pop: Population, filled: Filled) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(models, theta, distances, is_new) of the population made of ``pop``'s survivors and
+    the new particles ``filled``."""
+    assert pop.survivors is not None  # set on every ABC-NS population
+    keep = np.flatnonzero(pop.survivors)
+    return (np.concatenate([pop.models[keep], filled.models]), np.concatenate([pop.theta[keep], filled.theta]),
+            np.concatenate([pop.distances[keep], filled.distances]),
+            np.concatenate([np.zeros(keep.size, bool), np.ones(filled.models.shape[0], bool)]))
+
+
 def abc_ns(
     models: Sequence[Model],
     executor: Executor,
@@ -400,98 +328,89 @@ def abc_ns(
     own random streams make the order irrelevant to the result.
     """
     settings.check_particles(models)
-    budget = budget or Budget(stop, clock, cancel)
-    source, n_pilot = "resumed" if history else "given", 0
-    notes: list[str] = []
+    run = _Run(models, executor, settings, stop, seed, budget or Budget(stop, clock, cancel), history, noise)
+    return (yield from run.populations(history))
 
-    def end(reason: StopReason) -> RunEnd:
-        return RunEnd(reason, budget.n_simulations, n_pilot, source, tuple(notes))
 
-    frames = [bd.Frame(m.low, m.high, unit=settings.evidence) for m in models]
+class _Run:
+    """One ABC-NS run's state between populations (:func:`abc_ns`)."""
 
-    def start(t: int, eps: float, bounds: Sequence[bd.Union], allocation: np.ndarray, n_survivors: int) -> Filling:
+    def __init__(self, models: Sequence[Model], executor: Executor, settings: NSSettings, stop: StopRules,
+                 seed: int, budget: Budget, history: Sequence[Population], noise: Noise | None):
+        self.models, self.executor, self.settings, self.stop, self.seed = models, executor, settings, stop, seed
+        self.budget = budget
+        self.source, self.n_pilot = "resumed" if history else "given", 0
+        self.notes: list[str] = []
+        self.frames = [bd.Frame(m.low, m.high, unit=settings.evidence) for m in models]
+        self.floors = Tracker(noise, models, history)
+        self.at_floor = settings.evidence and stop.noise_floor and noise is not None
+        self.pending: Filling | None = None  # the next population, started
+
+    def end(self, reason: StopReason) -> RunEnd:
+        return RunEnd(reason, self.budget.n_simulations, self.n_pilot, self.source, tuple(self.notes))
+
+    def start(self, t: int, eps: float, bounds: Sequence[bd.Union], allocation: np.ndarray, n_survivors: int) -> Filling:
         """Open population t: proposals from ``bounds`` by the evidence's ``allocation`` (the
-        evidence variant) or the paper's rule."""
-        propose = BoundProposer(tuple(models), tuple(frames), tuple(bounds),
-                                allocation if settings.evidence else None, settings.max_redraws)
-        # N particles in every population: when fewer than beta N survive (ties at eps_next,
-        # or the alive models hold fewer particles below it), more are new
-        return Filling(propose, settings.particles - n_survivors, eps, executor, seed=seed, t=t,
-                       batch_size=settings.batch_size)
+        evidence variant) or the paper's rule; N particles in every population (when fewer
+        than beta N survive, more are new)."""
+        s = self.settings
+        propose = BoundProposer(tuple(self.models), tuple(self.frames), tuple(bounds),
+                                allocation if s.evidence else None, s.max_redraws)
+        return Filling(propose, s.particles - n_survivors, eps, self.executor, seed=self.seed, t=t,
+                       batch_size=s.batch_size)
 
-    pending: Filling | None = None  # the next population, started
-    # each model's lowest distance so far (the noise floor's best fit)
-    best = best_by_model(np.concatenate([p.models for p in history]), np.concatenate([p.distances for p in history]),
-                         len(models)) if history else np.full(len(models), np.inf)
-    stop_at_floor = settings.evidence and stop.noise_floor and noise is not None
-
-    def stop_reason(t: int, eps: float, eps_next: float, tied: bool, floor: Floor | None) -> StopReason | None:
-        """The rule that ends the run after population t: ties, the noise floor (this
-        population was accepted at or below the decision tolerance), then ``stop``'s rules."""
-        if tied:
-            return StopReason.TIES
-        if stop_at_floor and floor is not None and eps <= floor.decision * (1 + 1e-12):
-            return StopReason.NOISE_FLOOR  # the lowest population tolerance above the floor
-        return stop.reason_after(eps, eps_next, t)
-
-    def complete(t, eps, which, theta, distances, is_new, filled, previous) -> tuple[Population, StopReason | None]:
+    def complete(self, t, eps, which, theta, distances, is_new, filled, previous) -> tuple[Population, StopReason | None]:
         """Finish population t; when the run goes on, open population t + 1 (an executor that
         runs ahead starts simulating) before this one's bound geometry is measured."""
-        nonlocal pending, best
-        best = best_by_model(which, distances, len(models), best)
-        floor = estimate(noise, models, best, np.bincount(which, minlength=len(models)) > 0) if noise is not None else None
-        lower = floor.decision if stop_at_floor and floor is not None else None
-        step = finish_population(models, frames, t, eps, which, theta, distances, is_new, filled, previous,
-                                 settings, population_rng(seed, t), lower)
-        notes.extend(step.notes)
-        reason = stop_reason(t, eps, step.epsilon_next, step.tied, floor)
+        floor = self.floors.after(which, distances)
+        lower = floor.decision if self.at_floor and floor is not None else None
+        step = finish_population(self.models, self.frames, t, eps, which, theta, distances, is_new, filled, previous,
+                                 self.settings, population_rng(self.seed, t), lower)
+        self.notes.extend(step.notes)
+        reason = _stop_reason(self.stop, self.at_floor, t, eps, step.epsilon_next, step.tied, floor)
         if reason is StopReason.NOISE_FLOOR:
             assert floor is not None
-            notes.append(f"population {t}: the decision tolerance {floor.decision:.6g} is reached (noise floor "
-                         f"{floor.floor:.6g} + its spread {floor.spread:.3g}); the run stops")
-        if reason is None and budget.reason() is None:
-            pending = start(t + 1, step.epsilon_next, step.bounds, step.evidence_parts["allocation"],
-                            int(np.count_nonzero(step.survivors)))
+            self.notes.append(f"population {t}: the decision tolerance {floor.decision:.6g} is reached (noise floor "
+                              f"{floor.floor:.6g} + its spread {floor.spread:.3g}); the run stops")
+        if reason is None and self.budget.reason() is None:
+            self.pending = self.start(t + 1, step.epsilon_next, step.bounds, step.evidence_parts["allocation"],
+                                      int(np.count_nonzero(step.survivors)))
         pop = population_from(
-            t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, budget.elapsed(),
+            t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, self.budget.elapsed(),
             step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
-            evidence=step.evidence(geometry_rng(seed, t)), floor=floor,
+            evidence=step.evidence(geometry_rng(self.seed, t)), floor=floor,
         )
         return pop, reason
 
-    try:
-        if history:
-            pop = history[-1]
-            tied = next_tolerance(pop.distances, settings.n_drop) is None
-            reason = stop_reason(pop.t, pop.epsilon, pop.epsilon_next, tied, pop.floor)
-        else:
-            eps, source, n_pilot = initial_epsilon(models, settings, executor, budget, seed)
-            filled = fill(prior_proposer(models), settings.particles, eps, executor, budget,
-                          seed=seed, t=1, batch_size=settings.batch_size)
-            pop, reason = complete(1, eps, filled.models, filled.theta, filled.distances,
-                                   np.ones(filled.models.shape[0], bool), filled, None)
-            yield pop
-        while reason is None:
-            budget.check()
-            assert pop.evidence is not None and pop.survivors is not None  # set on every ABC-NS population
-            keep = np.flatnonzero(pop.survivors)
-            filling = pending or start(pop.t + 1, pop.epsilon_next, pop.ellipsoids,  # a resumed run opens it here
-                                       pop.evidence.allocation, keep.size)
-            pending = None
-            filled = filling.finish(budget)
-            pop, reason = complete(
-                pop.t + 1, pop.epsilon_next,
-                np.concatenate([pop.models[keep], filled.models]),
-                np.concatenate([pop.theta[keep], filled.theta]),
-                np.concatenate([pop.distances[keep], filled.distances]),
-                np.concatenate([np.zeros(keep.size, bool), np.ones(filled.models.shape[0], bool)]),
-                filled, pop,
-            )
-            yield pop
-    except Stopped as stopped:
-        notes.extend(stopped.notes)
-        return end(stopped.reason)
-    finally:
-        if pending is not None:
-            pending.close()
-    return end(reason)
+    def populations(self, history: Sequence[Population]) -> Generator[Population, None, RunEnd]:
+        """The populations after ``history`` (the first from the priors when it is empty)."""
+        settings, budget = self.settings, self.budget
+        try:
+            if history:
+                pop = history[-1]
+                tied = next_tolerance(pop.distances, settings.n_drop) is None
+                reason = _stop_reason(self.stop, self.at_floor, pop.t, pop.epsilon, pop.epsilon_next, tied, pop.floor)
+            else:
+                eps, self.source, self.n_pilot = initial_epsilon(self.models, settings, self.executor, budget, self.seed)
+                filled = fill(prior_proposer(self.models), settings.particles, eps, self.executor, budget,
+                              seed=self.seed, t=1, batch_size=settings.batch_size)
+                pop, reason = self.complete(1, eps, filled.models, filled.theta, filled.distances,
+                                            np.ones(filled.models.shape[0], bool), filled, None)
+                yield pop
+            while reason is None:
+                budget.check()
+                assert pop.evidence is not None and pop.survivors is not None  # set on every ABC-NS population
+                filling = self.pending or self.start(  # a resumed run opens it here
+                    pop.t + 1, pop.epsilon_next, pop.ellipsoids, pop.evidence.allocation,
+                    int(np.count_nonzero(pop.survivors)))
+                self.pending = None
+                filled = filling.finish(budget)
+                pop, reason = self.complete(pop.t + 1, pop.epsilon_next, *_with_survivors(pop, filled), filled, pop)
+                yield pop
+        except Stopped as stopped:
+            self.notes.extend(stopped.notes)
+            return self.end(stopped.reason)
+        finally:
+            if self.pending is not None:
+                self.pending.close()
+        return self.end(reason)

@@ -136,3 +136,23 @@ def best_by_model(which: np.ndarray, distances: np.ndarray, n_models: int,
     best = np.full(n_models, np.inf) if previous is None else np.array(previous, dtype=float)
     np.minimum.at(best, which, distances)
     return best
+
+
+class Tracker:
+    """A run's noise floor, population by population: each model's best distance so far
+    (rebuilt from the ``history`` of a resumed run) and the floor it gives."""
+
+    def __init__(self, noise: Noise | None, models: Sequence[Model], history: Sequence = ()):
+        self.noise, self.models = noise, models
+        n = len(models)
+        self.best = (best_by_model(np.concatenate([p.models for p in history]),
+                                   np.concatenate([p.distances for p in history]), n)
+                     if history else np.full(n, np.inf))
+
+    def after(self, which: np.ndarray, distances: np.ndarray) -> Floor | None:
+        """The floor once a population of particles (``which``: their models) has these
+        ``distances``; None without a noise model."""
+        self.best = best_by_model(which, distances, len(self.models), self.best)
+        if self.noise is None:
+            return None
+        return estimate(self.noise, self.models, self.best, np.bincount(which, minlength=len(self.models)) > 0)

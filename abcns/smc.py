@@ -30,7 +30,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from abcns.executor import Executor
-from abcns.filling import Budget, Stopped, draw_inside, fill
+from abcns.filling import Budget, Filled, Stopped, draw_inside, fill
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer, uniform_weights
 from abcns.result import Population, RunEnd
@@ -107,6 +107,23 @@ class KernelProposer:
         return which, theta, redraws
 
 
+def _log_weights(models: Sequence[Model], filled: Filled, kernels: Sequence[Kernel | None], p_model: np.ndarray,
+                 log_box_mass: Sequence[float]) -> np.ndarray:
+    """Each new particle's log importance weight: prior over proposal density (the model's
+    kernel, truncated to the prior box, times its share)."""
+    n_models = len(models)
+    log_w = np.empty(filled.models.shape[0])
+    for m, model in enumerate(models):
+        rows = np.flatnonzero(filled.models == m)
+        if rows.size:
+            kernel = kernels[m]
+            assert kernel is not None  # proposed, so p_model[m] > 0
+            x = filled.theta[rows, : model.n_dim]
+            log_w[rows] = (-np.log(n_models) - model.log_prior_volume() + log_box_mass[m]
+                           - np.log(p_model[m]) - kernel.log_density(x))
+    return log_w
+
+
 def abc_smc(
     models: Sequence[Model],
     executor: Executor,
@@ -169,16 +186,7 @@ def abc_smc(
             filled = fill(KernelProposer(tuple(models), p_model, tuple(kernels), settings.max_redraws),
                           settings.particles, eps, executor, budget,
                           seed=seed, t=pop.t + 1, batch_size=settings.batch_size)
-            log_w = np.empty(filled.models.shape[0])
-            for m, model in enumerate(models):
-                rows = np.flatnonzero(filled.models == m)
-                if rows.size:
-                    kernel = kernels[m]
-                    assert kernel is not None  # proposed, so p_model[m] > 0
-                    x = filled.theta[rows, : model.n_dim]
-                    log_w[rows] = (-np.log(n_models) - model.log_prior_volume() + log_box_mass[m]
-                                   - np.log(p_model[m]) - kernel.log_density(x))
-            w = np.exp(log_w - log_w.max())
+            w = np.exp((log_w := _log_weights(models, filled, kernels, p_model, log_box_mass)) - log_w.max())
             mass = np.bincount(filled.models, weights=w, minlength=n_models)
             norm_w = w / mass[filled.models]
             pop = population_from(

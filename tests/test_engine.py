@@ -24,7 +24,7 @@ from abcns import (
 )
 from abcns.evidence import IMPROBABLE, probabilities
 from abcns.executor import BatchError, SimulatorError, run_draw
-from abcns.nested import apportion, survivor_quotas
+from abcns.variants import apportion, survivor_quotas
 
 ROOT = Path(__file__).resolve().parents[1]
 NS = NSSettings(particles=200, epsilon_initial=2.0, batch_size=50)
