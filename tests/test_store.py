@@ -31,7 +31,9 @@ from service.run.store import (
     StoreError,
     StoreNotFound,
     data_hash,
+    dataset_result,
     model_view,
+    result_from_store,
 )
 from tests.closed_form import line_and_disc, two_models
 
@@ -739,3 +741,26 @@ def test_the_format_is_the_one_written_before_the_schema_was_declared_once(tmp_p
     for pop, back in zip([fixed_population(t) for t in (1, 2, 3)], Store.open(store.path).populations()):
         assert_same_population(pop, back)
         assert back.floor == pop.floor
+
+
+def test_a_store_and_its_dataset_give_one_result_while_the_run_goes_on(tmp_path):
+    """S: the runner and the export built a Result from a store twice, with different
+    fallbacks: a store whose run has not ended (no run information yet) gave 0 simulations
+    and 0 s through the dataset and the store's own counters through the store. One
+    builder (result_of) now: the store's last n_simulations_total and elapsed_s either way.
+    Its models are the spec's, in either form a spec holds (Model.from_dict)."""
+    store = Store.create(tmp_path / "r.zarr", spec={"models": [
+        {"name": "line", "simulator": "toy", "priors": {"a": [0, 1]}},  # a job spec's form
+        abcns.Model("disc", {"a": (0, 1), "b": (-2, 2)}, config={"simulator": "toy"}).config_dict()]},
+        seed=5, model_names=["line", "disc"], parameter_names=[["a"], ["a", "b"]], n_particles=4, data_hash="",
+        algorithm="abc-ns", max_ellipsoids=2)
+    store.append_many([(fixed_population(1), 10), (fixed_population(2), 30)])
+    direct, through = result_from_store(store), dataset_result(store.dataset())
+    for r in (direct, through):
+        assert (r.n_simulations, r.wall_time_s, r.stop_reason) == (30, 1.0, StopReason.CANCELLED)
+        assert [m.config_dict() for m in r.models] == [
+            {"name": "line", "priors": {"a": [0.0, 1.0]}, "fixed": {}, "config": {"simulator": "toy"}},
+            {"name": "disc", "priors": {"a": [0.0, 1.0], "b": [-2.0, 2.0]}, "fixed": {}, "config": {"simulator": "toy"}}]
+    assert repr(direct.summary()) == repr(through.summary())
+    store.set_status("finished", "max_populations", run={"n_simulations": 45, "wall_time_s": 2.5})
+    assert (result_from_store(store).n_simulations, dataset_result(store.dataset()).wall_time_s) == (45, 2.5)

@@ -100,7 +100,9 @@ import abcns
 from abcns.ellipsoid import Ellipsoid, from_matrix
 from abcns.evidence import Evidence
 from abcns.noise import Floor
-from abcns.result import Population
+from abcns.priors import Model
+from abcns.result import Population, Result
+from abcns.settings import StopReason
 
 FORMAT_VERSION = 4  # 4: the noise floor per population (floor_*), simulations and failures per model
 CHUNK_BYTES = 64 * 1024
@@ -852,10 +854,47 @@ def dataset_populations(ds: xr.Dataset) -> list[Population]:
     return [reader._population(arrays, i) for i in range(ds.sizes["population"])]
 
 
+def result_of(attrs: Mapping[str, Any], populations: Sequence[Population], n_simulations_total: int,
+              elapsed_s: float) -> Result:
+    """The :class:`abcns.Result` of a store's (decoded) attributes and populations, finished or
+    not: a run still going, or one a crash ended, has no run information yet (set when the
+    job ends), so its simulations and wall time are the store's last ``n_simulations_total``
+    and ``elapsed_s`` (the caller's), and its stop reason is "cancelled"."""
+    spec, run = attrs["spec"], attrs.get("run") or {}
+    return Result(
+        algorithm=attrs["algorithm"],
+        models=tuple(Model.from_dict(m) for m in spec["models"]),
+        populations=tuple(populations),
+        stop_reason=StopReason(attrs.get("stop_reason") or StopReason.CANCELLED),
+        seed=int(attrs["seed"]),
+        settings={"sampler": spec.get("sampler", {}), "stop": spec.get("stop", {})},
+        epsilon_initial_source=run.get("epsilon_initial_source", ""),
+        n_simulations=int(run.get("n_simulations", n_simulations_total)),
+        n_pilot_simulations=int(run.get("n_pilot_simulations", 0)),
+        wall_time_s=float(run.get("wall_time_s", elapsed_s)),
+        weighted_posterior=attrs["algorithm"] == "abc-smc",
+        notes=tuple(run.get("notes", ())),
+    )
+
+
+def result_from_store(store: Store) -> Result:
+    """The :class:`abcns.Result` of a store (finished or not)."""
+    state = store.run_state()
+    return result_of(store.attrs, store.populations(), state["n_simulations_total"], state["elapsed_s"])
+
+
+def dataset_result(ds: xr.Dataset) -> Result:
+    """The :class:`abcns.Result` a dataset of the store's schema holds (as :func:`result_from_store`)."""
+    last = ds.isel(population=-1) if ds.sizes["population"] else None
+    return result_of(dataset_attrs(ds), dataset_populations(ds),
+                     0 if last is None else int(last["n_simulations_total"]), 0.0 if last is None else float(last["elapsed_s"]))
+
+
 def _union(parameter_names: Sequence[Sequence[str]]) -> list[str]:
     """Every model's parameter names, each once, in first-seen order."""
     return list(dict.fromkeys(name for names in parameter_names for name in names))
 
 
 __all__ = ["FORMAT_VERSION", "FRAMES", "NOTE_CODES", "SCHEMA", "STATUSES", "Store", "StoreError", "StoreIncomplete",
-           "StoreNotFound", "Variable", "data_hash", "ellipsoid_frame", "model_view"]
+           "StoreNotFound", "Variable", "data_hash", "dataset_result", "ellipsoid_frame", "model_view", "result_from_store",
+           "result_of"]
