@@ -27,6 +27,7 @@ from service.run.store import (
     FORMAT_VERSION,
     NOTE_CODES,
     PARTIAL_WARNING,
+    SCHEMA,
     Store,
     StoreError,
     StoreNotFound,
@@ -730,7 +731,8 @@ def test_the_format_is_the_one_written_before_the_schema_was_declared_once(tmp_p
     code before the change: ``python -c 'from tests.test_store import *;
     print(json.dumps(format_snapshot(write_format_store(Path("x.zarr")).path), indent=1,
     sort_keys=True))'``); a store written now holds the same arrays, metadata and content,
-    and reads back as written."""
+    and reads back as written. One text changed since: survivor's description said "kept
+    from the previous population" while survivor marks the particles kept for the next one."""
     store = write_format_store(tmp_path / "f.zarr")
     want = json.loads(FORMAT_SNAPSHOT.read_text())
     got = json.loads(json.dumps(format_snapshot(store.path)))  # JSON's view (NaN fills, tuples as lists)
@@ -764,3 +766,47 @@ def test_a_store_and_its_dataset_give_one_result_while_the_run_goes_on(tmp_path)
     assert repr(direct.summary()) == repr(through.summary())
     store.set_status("finished", "max_populations", run={"n_simulations": 45, "wall_time_s": 2.5})
     assert (result_from_store(store).n_simulations, dataset_result(store.dataset()).wall_time_s) == (45, 2.5)
+
+
+def test_the_descriptions_are_true_of_a_real_run(reference):
+    """S: the store's variables were checked for having a description, not for its being
+    true. Each claim below is read from the description (so a changed text fails here) and
+    checked against a real run (the reference store: 5 populations of two_models, ABC-NS)."""
+    store, pops, totals = reference
+    ds = xr.open_zarr(store.path)
+    a = {name: ds[name].values for name in ds.variables}
+    say = {name: ds[name].attrs["description"] for name in ds.variables}
+    for name in ds.variables:  # the dimensions and dtypes the schema declares
+        v = next(v for v in SCHEMA if v.name == name)
+        assert ds[name].dims == ((("population",) if v.grows and name != "population" else ()) + v.dims or (name,)), name
+    assert "kept for the next population" in say["survivor"]
+    for t in range(4):  # every survivor of t is a particle of t + 1, as it was
+        nxt = {(m, x.tobytes()) for m, x in zip(a["model_index"][t + 1], a["theta"][t + 1])}
+        assert all((m, x.tobytes()) in nxt for m, x in zip(a["model_index"][t][a["survivor"][t]],
+                                                             a["theta"][t][a["survivor"][t]]))
+    assert "sum to 1 within each model" in say["weight"]
+    for t in range(5):
+        for m in range(2):
+            w = a["weight"][t][a["model_index"][t] == m]
+            assert w.size == 0 or abs(w.sum() - 1) < 1e-12
+    assert say["acceptance_rate"] == "accepted / simulated in this population"
+    assert np.array_equal(a["acceptance_rate"], a["n_accepted"] / a["n_simulations"])
+    assert "cumulative" in say["n_simulations_total"] and a["n_simulations_total"].tolist() == totals
+    assert np.array_equal(a["n_simulations_total"], np.cumsum(a["n_simulations"]))  # no pilot: epsilon_initial given
+    assert "accepted under" in say["epsilon"] and all((a["distance"][t] < a["epsilon"][t]).all() for t in range(5))
+    assert "for the next population" in say["epsilon_next"]
+    assert np.array_equal(a["epsilon_next"][:-1], a["epsilon"][1:])
+    assert "split by model" in say["n_simulations_by_model"] and "split by model" in say["n_failed_by_model"]
+    assert np.array_equal(a["n_simulations_by_model"].sum(axis=1), a["n_simulations"])
+    assert np.array_equal(a["n_failed_by_model"].sum(axis=1), a["n_failed"])
+    assert np.allclose(a["model_probability"].sum(axis=1), 1, rtol=0, atol=1e-12)
+    assert "index along the model dimension" in say["model_index"] and set(np.unique(a["model_index"])) <= {0, 1}
+    assert "whether the model infers that parameter" in say["model_has_parameter"]
+    for m in range(2):  # a model's particles have values exactly in its own parameters
+        rows = a["theta"][a["model_index"] == m]
+        assert np.array_equal(~np.isnan(rows).any(axis=0), a["model_has_parameter"][m])
+    assert "wall time from the start of the run" in say["elapsed_s"] and (np.diff(a["elapsed_s"]) > 0).all()
+    units = {name: ds[name].attrs.get("units") for name in ds.variables}
+    assert {name for name, u in units.items() if u == "%"} == {  # the spec's NMSE: the distance's units
+        "distance", "epsilon", "epsilon_next", "floor_best", "floor_noise_variance", "noise_floor", "decision_tolerance"}
+    assert units["elapsed_s"] == "s" and all(units[n] == "1" for n in ("n_accepted", "weight", "model_probability"))

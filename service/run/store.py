@@ -172,7 +172,7 @@ SCHEMA: tuple[Variable, ...] = (
        field="distances"),
     _V("weight", (_N,), "float64", "weight", "normalised to sum to 1 within each model (ABC-NS: survivor selection)", "1",
        field="weights"),
-    _V("survivor", (_N,), "bool", "survivor", "kept from the previous population (ABC-NS)"),
+    _V("survivor", (_N,), "bool", "survivor", "kept for the next population: carried into t+1 as it is (ABC-NS)"),
     _V("epsilon", (), "float64", "tolerance", "the tolerance the population was accepted under", "{distance_units}",
        field="epsilon"),
     _V("epsilon_next", (), "float64", "next tolerance", "the tolerance chosen for the next population (NaN: none, as "
