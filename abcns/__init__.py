@@ -14,7 +14,7 @@ from abcns.run import iterate, run
 from abcns.settings import NSSettings, RejectionSettings, SMCSettings, StopReason, StopRules
 from abcns.smc import abc_smc
 
-__version__ = "0.1.0"
+__version__ = "0.1.0"  # the one place: pyproject.toml reads it (tool.setuptools.dynamic)
 
 __all__ = [
     "DIVERGED", "FAILED", "NMSE", "OK", "Batch", "CallableDistance", "Evaluated", "Model",

@@ -30,7 +30,6 @@ from abcns.settings import Stopped, StopReason
 
 #: simulation status codes
 OK, DIVERGED, FAILED = 0, 1, 2
-STATUS_NAMES = {OK: "ok", DIVERGED: "diverged", FAILED: "failed"}
 
 # propose(n, rng) -> (models (n,), theta (n, d_max), redraws (n,)); picklable (a worker calls it)
 Propose = Callable[[int, np.random.Generator], tuple[np.ndarray, np.ndarray, np.ndarray]]

@@ -125,7 +125,16 @@ class Model:
     def log_prior_volume(self) -> float:
         return float(np.sum(np.log(self.high - self.low)))
 
+    @classmethod
+    def from_dict(cls, desc: Mapping[str, Any]) -> Model:
+        """The model a dict describes: :meth:`config_dict`'s form (``config`` kept as it is) or
+        a job spec's (``name``, ``simulator``, ``priors`` as [low, high], ``fixed``; the
+        simulator's name kept as ``config``). SpecError names the field (``models[name]...``)."""
+        config = desc.get("config") or ({"simulator": desc["simulator"]} if "simulator" in desc else {})
+        return cls(desc["name"], desc["priors"], desc.get("fixed") or {}, config=config)
+
     def config_dict(self) -> dict:
+        """JSON-able, the inverse of :meth:`from_dict`."""
         return {
             "name": self.name,
             "priors": {k: [p.low, p.high] for k, p in self.priors.items()},

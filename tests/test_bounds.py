@@ -28,10 +28,13 @@ def test_two_separate_discs_get_separate_ellipsoids_and_hold_every_point():
     single = bd.fit_union(points, 1.1, 1, FALLBACK)
     assert len(union) >= 2 and len(single) == 1
     assert np.all(bd.n_inside(union, points) > 0)
-    # two discs of radius 0.05 (x f0): ~0.017 in all; one ellipsoid over both is ~9x that
+    # two discs of radius 0.05 (x f0): ~0.017 in all; one ellipsoid over both is ~9x that.
+    # Measured over seeds 1000-1199 (ball() as here): the union is 1.03-1.21 x the discs' area
+    # x f0 (median 1.08), one ellipsoid 8.9-11.0 x; 1.5 leaves a quarter above the largest
+    # and fails a bound of one and a half times the right volume
     total = np.exp(np.logaddexp.reduce([e.log_volume for e in union]))
     assert total < 0.2 * np.exp(single[0].log_volume)
-    assert total < 3 * 2 * np.pi * 0.05**2 * 1.1
+    assert total < 1.5 * 2 * np.pi * 0.05**2 * 1.1
 
 
 def test_a_convex_cloud_stays_one_ellipsoid():
@@ -50,9 +53,11 @@ def test_a_far_outlier_is_left_out_and_a_uniform_cloud_loses_nothing():
     union = bd.fit_union(with_far, 1.1, 8, FALLBACK)
     assert bd.n_inside(union, with_far[-1:])[0] == 0
     assert np.all(bd.n_inside(union, cloud) > 0)
-    # without the outlier the bound is the disc's, not one stretched to the corner
+    # without the outlier the bound is the disc's, not one stretched to the corner: measured
+    # over seeds 1000-1199, 1.00-1.20 x the disc's area x f0 (one stretched to the corner
+    # would be several times larger); 1.5 as above
     total = np.exp(np.logaddexp.reduce([e.log_volume for e in union]))
-    assert total < 3 * np.pi * 0.05**2 * 1.1
+    assert total < 1.5 * np.pi * 0.05**2 * 1.1
 
 
 @pytest.mark.parametrize("seed", [4, 5])

@@ -22,6 +22,7 @@ from abcns import (
     per_model,
     run,
 )
+from abcns.ellipsoid import contains
 from abcns.evidence import IMPROBABLE, probabilities
 from abcns.executor import BatchError, SimulatorError, run_draw
 from abcns.variants import apportion, survivor_quotas
@@ -162,11 +163,19 @@ def test_population_invariants_and_summary():
         assert p.survivors.sum() == NS.n_survivors
         assert np.all(p.weights[p.survivors] > 0)
         assert nxt.n_accepted == NS.n_new
+        carried = {tuple(x) for x in p.theta[p.survivors]}
+        new = np.array([tuple(x) not in carried for x in nxt.theta])
         for m in range(2):
             rows = p.models == m
             if p.survivors[rows].any():
                 assert p.weights[rows].sum() == pytest.approx(1.0)
-                assert p.ellipsoids[m] is not None
+                # model m's bound (evidence variant: in its unit prior box) holds every new
+                # particle of model m at t + 1: they were proposed from it
+                low, width = models[m].low, models[m].high - models[m].low
+                x = (nxt.theta[new & (nxt.models == m), : models[m].n_dim] - low) / width
+                assert len(p.ellipsoids[m]) >= 1 and x.shape[0] > 0
+                inside = np.any([contains(e, x) for e in p.ellipsoids[m]], axis=0)
+                assert inside.all(), (p.t, m, x[~inside])
     s = r.summary()
     json.dumps(s)  # JSON-able
     for key in ("status", "stop_reason", "n_populations", "n_simulations", "wall_time_s", "epsilon",

@@ -133,3 +133,18 @@ def test_pyproject_license_is_an_spdx_string():
     config = tomllib.loads((ROOT / "pyproject.toml").read_text())
     assert isinstance(config["project"]["license"], str)
     assert "setuptools>=77" in config["build-system"]["requires"]
+
+
+def test_the_version_is_written_once():
+    """S: the version stood in pyproject.toml and in abcns/__init__.py, free to disagree. The
+    package's metadata reads abcns.__version__ (setuptools' dynamic version, read without
+    importing abcns), so a plain checkout and an install say the same."""
+    import importlib.metadata
+    import tomllib
+
+    import abcns
+
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert "version" not in config["project"] and "version" in config["project"]["dynamic"]
+    assert config["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "abcns.__version__"}
+    assert importlib.metadata.version("abcns") == abcns.__version__

@@ -1,6 +1,7 @@
 """The zarr result store: exact round trip, resume from a store, crash-safe appends,
 xarray while a job runs, attributes and errors."""
 
+import hashlib
 import json
 import os
 import subprocess
@@ -19,16 +20,21 @@ from zarr.core.array import AsyncArray
 import abcns
 from abcns import NSSettings, Population, SerialExecutor, StopReason, StopRules
 from abcns import ellipsoid as ell
+from abcns.evidence import Evidence
 from abcns.filling import Budget
+from abcns.noise import Floor
 from service.run.store import (
     FORMAT_VERSION,
     NOTE_CODES,
     PARTIAL_WARNING,
+    SCHEMA,
     Store,
     StoreError,
     StoreNotFound,
     data_hash,
+    dataset_result,
     model_view,
+    result_from_store,
 )
 from tests.closed_form import line_and_disc, two_models
 
@@ -662,3 +668,145 @@ def test_plain_xarray_opens_the_store_and_one_model_is_one_call(tmp_path):
     pop = pops[-1]
     store.append(replace(pop, t=4), n_simulations_total=0)
     assert xr.open_zarr(store.path).sizes["population"] == 4
+
+
+# ---------------------------------------------------------------- S: the schema declared once, the format unchanged
+FORMAT_SNAPSHOT = Path(__file__).parent / "data" / "store_format_4.json"
+
+
+def fixed_population(t: int) -> Population:
+    """A population of fixed numbers (no random stream, no linear algebra: the same bytes on
+    any machine) with every part a store holds: particles of two models of 1 and 2
+    parameters, survivors, ellipsoids (one dead model at t = 3), evidence, the noise floor and
+    the per-model counters; t = 2 has none of the optional parts (their fills are stored)."""
+    n, full = 4, t != 2
+    theta = np.array([[0.1 * t, np.nan], [0.2, 0.3], [0.4, 0.5 * t], [0.6, 0.7]])
+    bounds = ((ell.from_matrix(np.array([0.5]), np.array([[0.04 * t]]), "repaired"),) if t != 3 else (),
+              (ell.from_matrix(np.array([0.5, 0.25]), np.diag([0.01, 0.02 * t])),
+               ell.from_matrix(np.array([0.1, 0.9]), np.diag([0.03, 0.01]), "box")))
+    evidence = Evidence(**{name: np.array([-0.5 * t, -1.25]) for name in Evidence.FLOATS},
+                        **{name: np.array([t, 7], dtype=np.int64) for name in Evidence.INTS})
+    return Population(
+        t=t, epsilon=2.0 / t, epsilon_next=1.0 / t, models=np.array([0, 1, 1, 1], dtype=np.int16), theta=theta,
+        distances=np.array([0.5, 0.25, 0.125, 1.0]) / t, weights=np.array([1.0, 0.5, 0.25, 0.25]),
+        n_accepted=n, n_simulations=10 * t, n_failed=t, n_redraws=3, elapsed_s=0.5 * t,
+        survivors=np.array([True, False, True, t == 1]) if full else None, ellipsoids=bounds if full else (),
+        model_probabilities=np.array([0.25, 0.75]), evidence=evidence if full else None,
+        n_simulations_by_model=np.array([4 * t, 6 * t]) if full else np.zeros(0, dtype=np.int64),
+        n_failed_by_model=np.array([0, t]) if full else np.zeros(0, dtype=np.int64),
+        floor=Floor(0.0625, 1, 2, 0.001, 0, 500) if full else None,
+    )
+
+
+def format_snapshot(path: Path) -> dict:
+    """Everything a store's format is: each array's zarr metadata (shape, chunks, dtype, fill,
+    codecs, dimension names, attributes) and its decoded content, and the group attributes
+    but the times and versions."""
+    group = zarr.open_group(str(path), mode="r")
+    arrays = {}
+    for name in sorted(group.array_keys()):
+        meta = json.loads((path / name / "zarr.json").read_text())
+        data = np.asarray(group[name][...])
+        raw = "\x1f".join(data.ravel().tolist()).encode() if data.dtype.kind in "OUT" else data.tobytes()
+        meta["content"] = f"{data.dtype.str}{data.shape} sha256:{hashlib.sha256(raw).hexdigest()}"
+        arrays[name] = meta
+    attrs = {k: v for k, v in group.attrs.asdict().items() if k not in ("created_at", "updated_at", "versions")}
+    return {"attributes": attrs, "arrays": arrays}
+
+
+def write_format_store(path: Path) -> Store:
+    models = [abcns.Model("line", {"a": (0, 1)}), abcns.Model("disc", {"a": (0, 1), "b": (-2, 2)})]
+    spec = {"models": [m.config_dict() for m in models], "sampler": {"particles": 4}}
+    store = Store.create(path, spec=spec, seed=5, model_names=["line", "disc"], parameter_names=[["a"], ["a", "b"]],
+                         n_particles=4, data_hash=data_hash(np.arange(3.0)), algorithm="abc-ns", max_ellipsoids=2)
+    store.append_many([(fixed_population(1), 10), (fixed_population(2), 30)])
+    store.append(fixed_population(3), n_simulations_total=60)
+    store.set_status("finished", "max_populations", run={"n_simulations": 60, "notes": ["fixed"]})
+    return store
+
+
+def test_the_format_is_the_one_written_before_the_schema_was_declared_once(tmp_path):
+    """S: the schema moved into one declaration (SCHEMA) without changing format 4.
+    tests/data/store_format_4.json was written by this test's helpers at commit 61e915e (the
+    code before the change: ``python -c 'from tests.test_store import *;
+    print(json.dumps(format_snapshot(write_format_store(Path("x.zarr")).path), indent=1,
+    sort_keys=True))'``); a store written now holds the same arrays, metadata and content,
+    and reads back as written. One text changed since: survivor's description said "kept
+    from the previous population" while survivor marks the particles kept for the next one."""
+    store = write_format_store(tmp_path / "f.zarr")
+    want = json.loads(FORMAT_SNAPSHOT.read_text())
+    got = json.loads(json.dumps(format_snapshot(store.path)))  # JSON's view (NaN fills, tuples as lists)
+    assert got["attributes"] == want["attributes"]
+    assert sorted(got["arrays"]) == sorted(want["arrays"])
+    for name in want["arrays"]:
+        assert got["arrays"][name] == want["arrays"][name], name
+    for pop, back in zip([fixed_population(t) for t in (1, 2, 3)], Store.open(store.path).populations()):
+        assert_same_population(pop, back)
+        assert back.floor == pop.floor
+
+
+def test_a_store_and_its_dataset_give_one_result_while_the_run_goes_on(tmp_path):
+    """S: the runner and the export built a Result from a store twice, with different
+    fallbacks: a store whose run has not ended (no run information yet) gave 0 simulations
+    and 0 s through the dataset and the store's own counters through the store. One
+    builder (result_of) now: the store's last n_simulations_total and elapsed_s either way.
+    Its models are the spec's, in either form a spec holds (Model.from_dict)."""
+    store = Store.create(tmp_path / "r.zarr", spec={"models": [
+        {"name": "line", "simulator": "toy", "priors": {"a": [0, 1]}},  # a job spec's form
+        abcns.Model("disc", {"a": (0, 1), "b": (-2, 2)}, config={"simulator": "toy"}).config_dict()]},
+        seed=5, model_names=["line", "disc"], parameter_names=[["a"], ["a", "b"]], n_particles=4, data_hash="",
+        algorithm="abc-ns", max_ellipsoids=2)
+    store.append_many([(fixed_population(1), 10), (fixed_population(2), 30)])
+    direct, through = result_from_store(store), dataset_result(store.dataset())
+    for r in (direct, through):
+        assert (r.n_simulations, r.wall_time_s, r.stop_reason) == (30, 1.0, StopReason.CANCELLED)
+        assert [m.config_dict() for m in r.models] == [
+            {"name": "line", "priors": {"a": [0.0, 1.0]}, "fixed": {}, "config": {"simulator": "toy"}},
+            {"name": "disc", "priors": {"a": [0.0, 1.0], "b": [-2.0, 2.0]}, "fixed": {}, "config": {"simulator": "toy"}}]
+    assert repr(direct.summary()) == repr(through.summary())
+    store.set_status("finished", "max_populations", run={"n_simulations": 45, "wall_time_s": 2.5})
+    assert (result_from_store(store).n_simulations, dataset_result(store.dataset()).wall_time_s) == (45, 2.5)
+
+
+def test_the_descriptions_are_true_of_a_real_run(reference):
+    """S: the store's variables were checked for having a description, not for its being
+    true. Each claim below is read from the description (so a changed text fails here) and
+    checked against a real run (the reference store: 5 populations of two_models, ABC-NS)."""
+    store, pops, totals = reference
+    ds = xr.open_zarr(store.path)
+    a = {name: ds[name].values for name in ds.variables}
+    say = {name: ds[name].attrs["description"] for name in ds.variables}
+    for name in ds.variables:  # the dimensions and dtypes the schema declares
+        v = next(v for v in SCHEMA if v.name == name)
+        assert ds[name].dims == ((("population",) if v.grows and name != "population" else ()) + v.dims or (name,)), name
+    assert "kept for the next population" in say["survivor"]
+    for t in range(4):  # every survivor of t is a particle of t + 1, as it was
+        nxt = {(m, x.tobytes()) for m, x in zip(a["model_index"][t + 1], a["theta"][t + 1])}
+        assert all((m, x.tobytes()) in nxt for m, x in zip(a["model_index"][t][a["survivor"][t]],
+                                                             a["theta"][t][a["survivor"][t]]))
+    assert "sum to 1 within each model" in say["weight"]
+    for t in range(5):
+        for m in range(2):
+            w = a["weight"][t][a["model_index"][t] == m]
+            assert w.size == 0 or abs(w.sum() - 1) < 1e-12
+    assert say["acceptance_rate"] == "accepted / simulated in this population"
+    assert np.array_equal(a["acceptance_rate"], a["n_accepted"] / a["n_simulations"])
+    assert "cumulative" in say["n_simulations_total"] and a["n_simulations_total"].tolist() == totals
+    assert np.array_equal(a["n_simulations_total"], np.cumsum(a["n_simulations"]))  # no pilot: epsilon_initial given
+    assert "accepted under" in say["epsilon"] and all((a["distance"][t] < a["epsilon"][t]).all() for t in range(5))
+    assert "for the next population" in say["epsilon_next"]
+    assert np.array_equal(a["epsilon_next"][:-1], a["epsilon"][1:])
+    assert "split by model" in say["n_simulations_by_model"] and "split by model" in say["n_failed_by_model"]
+    assert np.array_equal(a["n_simulations_by_model"].sum(axis=1), a["n_simulations"])
+    assert np.array_equal(a["n_failed_by_model"].sum(axis=1), a["n_failed"])
+    assert np.allclose(a["model_probability"].sum(axis=1), 1, rtol=0, atol=1e-12)
+    assert "index along the model dimension" in say["model_index"] and set(np.unique(a["model_index"])) <= {0, 1}
+    assert "whether the model infers that parameter" in say["model_has_parameter"]
+    for m in range(2):  # a model's particles have values exactly in its own parameters
+        rows = a["theta"][a["model_index"] == m]
+        assert np.array_equal(~np.isnan(rows).any(axis=0), a["model_has_parameter"][m])
+    assert "wall time from the start of the run" in say["elapsed_s"] and (np.diff(a["elapsed_s"]) > 0).all()
+    units = {name: ds[name].attrs.get("units") for name in ds.variables}
+    assert {name for name, u in units.items() if u == "%"} == {  # the spec's NMSE: the distance's units
+        "distance", "epsilon", "epsilon_next", "floor_best", "floor_noise_variance", "noise_floor", "decision_tolerance"}
+    assert units["elapsed_s"] == "s" and all(units[n] == "1" for n in ("n_accepted", "weight", "model_probability"))

@@ -134,7 +134,7 @@ def evaluator(models: Sequence[Model], simulators: Sequence[Simulator], distance
 def model_of(desc: dict, where: str = "models") -> Model:
     """The :class:`abcns.Model` of one spec model description (errors name ``where``)."""
     try:
-        return Model(desc["name"], desc["priors"], desc.get("fixed", {}), config={"simulator": desc["simulator"]})
+        return Model.from_dict(desc)
     except SpecError as err:
         raise SpecError(err.field.replace(f"models[{desc['name']}]", where), err.message) from None
 

@@ -58,7 +58,6 @@ from service.spec import JobSpec, build, cut_to_read
 
 TERMINAL = ("finished", "failed", "cancelled")
 STATUSES = ("queued", "running", *TERMINAL)
-EVENT_TYPES = ("queued", "started", "population", *TERMINAL)
 DATA_FILE = "data.npz"
 RESULT_FILE = "result.json"
 JOB_ID = re.compile(r"[0-9a-f]{32}")

@@ -26,14 +26,13 @@ from pathlib import Path
 
 from distributed import Client
 
-from abcns import Model, Population, Result, SpecError, StopReason
+from abcns import Population, Result, SpecError, StopReason
 from abcns.executor import SerialExecutor
 from abcns.filling import Budget
 from abcns.run import algorithm_name, consume, iterate
 from service.run.dask_executor import DaskExecutor
-from service.run.store import Store, StoreIncomplete, data_hash
+from service.run.store import Store, StoreIncomplete, data_hash, result_from_store
 from service.spec import Job, JobSpec, build, description
-from worker.evaluate import model_of
 
 
 @dataclass
@@ -60,33 +59,6 @@ def stored_job_key(store: Store) -> str | None:
         return job_key(JobSpec.model_validate(a["spec"]), int(a["seed"]), str(a["data_hash"]))
     except (KeyError, TypeError, ValueError):  # pydantic's ValidationError is a ValueError
         return None
-
-
-def models_of(spec: dict) -> tuple[Model, ...]:
-    return tuple(model_of(m) for m in spec["models"])
-
-
-def result_from_store(store: Store) -> Result:
-    """The :class:`abcns.Result` of a store (finished or not)."""
-    a = store.attrs
-    spec = a["spec"]
-    pops = tuple(store.populations())
-    run = a.get("run", {})
-    reason = a.get("stop_reason")
-    return Result(
-        algorithm=a.get("algorithm", "abc-ns"),
-        models=models_of(spec),
-        populations=pops,
-        stop_reason=StopReason(reason) if reason else StopReason.CANCELLED,
-        seed=int(a["seed"]),
-        settings={"sampler": spec.get("sampler", {}), "stop": spec.get("stop", {})},
-        epsilon_initial_source=run.get("epsilon_initial_source", ""),
-        n_simulations=int(run.get("n_simulations", store.run_state()["n_simulations_total"])),
-        n_pilot_simulations=int(run.get("n_pilot_simulations", 0)),
-        wall_time_s=float(run.get("wall_time_s", store.run_state()["elapsed_s"])),
-        weighted_posterior=a.get("algorithm") == "abc-smc",
-        notes=tuple(run.get("notes", ())),
-    )
 
 
 def summary(store: Store) -> dict:

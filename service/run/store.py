@@ -1,32 +1,28 @@
 """The result store: one zarr 3 directory per job, appended population by population.
 
-Layout (every array but the static coordinates grows along ``population``, in chunks of
-at most ~64 KiB: one population of a large particle array, up to 256 of a scalar):
+Layout: every array is declared once, in :data:`SCHEMA` (name, dimensions, dtype, fill,
+``long_name``, ``description``, units); :meth:`Store.create`, the rows an append writes and
+the records read back are derived from it. Every array but the static coordinates grows along
+``population``, in chunks of at most ~64 KiB (one population of a large particle array, up to
+256 of a scalar):
 
-- particle level: ``model_index`` (population, particle) int16 (the particle's model, an
-  index along ``model``), ``theta`` (population, particle, parameter) float64 with one column
-  per parameter *name* (NaN where the particle's model has no such parameter),
-  ``distance``, ``weight`` (population, particle) float64, ``survivor`` (population,
-  particle) bool;
-- population level: ``population`` (the population number t, 1-based; xarray's index),
-  ``epsilon``, ``epsilon_next``, ``acceptance_rate``, ``elapsed_s`` float64, ``n_accepted``,
-  ``n_simulations``, ``n_failed``, ``n_redraws``, ``n_simulations_total`` (cumulative,
-  pilot included) int64, ``has_survivors`` and ``has_ellipsoids`` bool (False for the
-  baselines, whose records carry no survivors and no ellipsoids);
-- per model: ``model_probability`` (population, model); ``n_simulations_by_model`` and
-  ``n_failed_by_model`` (population, model) int64, ``n_simulations`` and ``n_failed`` split
-  by model (-1: not recorded); the bounds: ``ellipsoid_centre``
-  (population, model, ellipsoid, parameter), ``ellipsoid_matrix`` (population, model,
-  ellipsoid, parameter, parameter_b), in the same named columns, NaN where there is none
-  and in the rows and columns of parameters the model does not have, ``ellipsoid_note``
-  (population, model, ellipsoid) int8 (``NOTE_CODES``; -1: none), up to ``max_ellipsoids``
-  per model; the ABC-NS evidence bookkeeping ``evidence_<field>`` (population, model) for
-  every field of :class:`abcns.evidence.Evidence`, and ``has_evidence`` per population;
-- coordinates: ``model`` (model) the model names, ``parameter`` and ``parameter_b``
-  (parameter) the parameter names of all models, in first-seen order,
-  ``model_has_parameter`` (model, parameter) bool, and each model's uniform prior
-  ``prior_low`` and ``prior_width`` (model, parameter) float64 (NaN where the model has no
-  such parameter, or the spec names no prior).
+- particle level (population, particle[, parameter]): ``model_index`` (an index along
+  ``model``), ``theta`` with one column per parameter *name* (NaN where the particle's model
+  has no such parameter), ``distance``, ``weight``, ``survivor``;
+- population level: ``population`` (the population number t, 1-based; xarray's index), the
+  tolerances, counters and elapsed time, ``has_survivors`` and ``has_ellipsoids`` (False for
+  the baselines, whose records carry no survivors and no ellipsoids), the noise floor
+  (``floor_*``, ``noise_floor``, ``decision_tolerance``; ``has_floor``);
+- per model (population, model[, ellipsoid, parameter, parameter_b]): ``model_probability``,
+  the counters split by model (-1: not recorded), the bounds ``ellipsoid_centre``,
+  ``ellipsoid_matrix`` (in the same named columns, NaN where there is none and in the rows
+  and columns of parameters the model does not have) and ``ellipsoid_note`` (``NOTE_CODES``;
+  -1: none), up to ``max_ellipsoids`` per model; the ABC-NS evidence bookkeeping
+  ``evidence_<field>`` for every field of :class:`abcns.evidence.Evidence` (``has_evidence``);
+- coordinates: ``model`` the model names, ``parameter`` and ``parameter_b`` the parameter
+  names of all models, in first-seen order, ``model_has_parameter`` (model, parameter), and
+  each model's uniform prior ``prior_low`` and ``prior_width`` (model, parameter; NaN where
+  the model has no such parameter, or the spec names no prior).
 
 The ellipsoids' geometry (the group attribute ``ellipsoid_frame`` and the two variables'
 descriptions say it too): an ellipsoid is ``{x : (x - c)^T M^-1 (x - c) <= 1}`` with ``c``
@@ -89,6 +85,7 @@ import time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -103,7 +100,9 @@ import abcns
 from abcns.ellipsoid import Ellipsoid, from_matrix
 from abcns.evidence import Evidence
 from abcns.noise import Floor
-from abcns.result import Population
+from abcns.priors import Model
+from abcns.result import Population, Result
+from abcns.settings import StopReason
 
 FORMAT_VERSION = 4  # 4: the noise floor per population (floor_*), simulations and failures per model
 CHUNK_BYTES = 64 * 1024
@@ -126,11 +125,146 @@ FRAMES = ("unit prior box", "parameters")
 CONSOLIDATED_WARNING = "Consolidated metadata is currently not part in the Zarr format 3 specification"
 
 _P, _N, _D, _DB, _M, _E = "population", "particle", "parameter", "parameter_b", "model", "ellipsoid"
-_EVIDENCE = {name: "float64" for name in Evidence.FLOATS} | {name: "int64" for name in Evidence.INTS}
-# the noise floor (abcns.noise.Floor) per population; noise_floor and decision_tolerance are
-# derived (stored for readers of the store)
-_FLOOR_FLOATS = ("floor_best", "floor_noise_variance", "noise_floor", "decision_tolerance")
-_FLOOR_INTS = ("floor_model", "floor_n_parameters", "floor_method", "floor_n_samples")
+
+
+@dataclass(frozen=True)
+class Variable:
+    """One array of the store, declared once: everything else (the arrays :meth:`Store.create`
+    makes, the row :meth:`Store._rows` writes, what :meth:`Store._population` reads back, the
+    attributes xarray shows) is derived from :data:`SCHEMA`.
+
+    ``dims`` follow ``population`` for the arrays that grow (``grows``; the static coordinates
+    have their own); ``fill`` is what an unwritten element reads as (NaN, -1 or False by
+    dtype unless given). ``units`` may say ``{distance_units}`` (filled from the spec's
+    distance: ``%`` for the NMSE of Eq. 7), ``description`` ``{frame}`` (:data:`FRAMES`).
+    ``field`` is the :class:`abcns.Population` attribute the array holds as it is (``"floor.best"``:
+    the attribute ``best`` of ``pop.floor``; fill where that is None); None: built by its own
+    code in ``_rows`` and ``_population``. ``derived``: written for readers only, not read back
+    (it follows from the arrays that are)."""
+
+    name: str
+    dims: tuple[str, ...]
+    dtype: str
+    long_name: str
+    description: str
+    units: str | None = None
+    field: str | None = None
+    fill: Any = None
+    grows: bool = True
+    derived: bool = False
+
+    @property
+    def fill_value(self) -> Any:
+        if self.fill is not None:
+            return self.fill
+        return {"f": np.nan, "i": -1, "b": False}[np.dtype(self.dtype).kind]
+
+
+_V = Variable
+#: every array of the store, in the order :meth:`Store.create` makes them
+SCHEMA: tuple[Variable, ...] = (
+    _V("population", (), "int32", "population", "the population number t (1-based)", field="t", fill=0),
+    _V("model_index", (_N,), "int16", "model of the particle", "index along the model dimension", field="models"),
+    _V("theta", (_N, _D), "float64", "parameter values", "the particle's free parameters, in the units of the spec's "
+       "priors, which are those of the simulator's equations for the data as given (the spec states no units); NaN for "
+       "parameters its model does not have (model_index says whose particle it is; one model: model_view)"),
+    _V("distance", (_N,), "float64", "distance", "the particle's distance to the data", "{distance_units}",
+       field="distances"),
+    _V("weight", (_N,), "float64", "weight", "normalised to sum to 1 within each model (ABC-NS: survivor selection)", "1",
+       field="weights"),
+    _V("survivor", (_N,), "bool", "survivor", "kept for the next population: carried into t+1 as it is (ABC-NS)"),
+    _V("epsilon", (), "float64", "tolerance", "the tolerance the population was accepted under", "{distance_units}",
+       field="epsilon"),
+    _V("epsilon_next", (), "float64", "next tolerance", "the tolerance chosen for the next population (NaN: none, as "
+       "after rejection or at the end of an ABC-SMC schedule)", "{distance_units}", field="epsilon_next"),
+    _V("acceptance_rate", (), "float64", "acceptance rate", "accepted / simulated in this population", "1",
+       field="acceptance_rate", derived=True),
+    _V("elapsed_s", (), "float64", "elapsed time", "wall time from the start of the run to the end of the population",
+       "s", field="elapsed_s"),
+    _V("n_accepted", (), "int64", "accepted simulations", "in this population", "1", field="n_accepted"),
+    _V("n_simulations", (), "int64", "simulations", "in this population (failed ones included)", "1",
+       field="n_simulations"),
+    _V("n_failed", (), "int64", "failed simulations", "diverged or failed in this population (counted rejections)", "1",
+       field="n_failed"),
+    _V("n_redraws", (), "int64", "redraws", "proposals outside the prior box, drawn again without a simulation", "1",
+       field="n_redraws"),
+    _V("n_simulations_total", (), "int64", "simulations so far", "cumulative over the run, pilot included", "1",
+       derived=True),
+    _V("has_survivors", (), "bool", "has survivors", "False for the baselines (SMC, rejection)"),
+    _V("has_ellipsoids", (), "bool", "has ellipsoids", "False for the baselines (SMC, rejection)"),
+    _V("model_probability", (_M,), "float64", "model probability", "p(model | data) at this population", "1",
+       field="model_probabilities"),
+    _V("n_simulations_by_model", (_M,), "int64", "simulations per model", "n_simulations split by model (-1: not "
+       "recorded)", "1", field="n_simulations_by_model"),
+    _V("n_failed_by_model", (_M,), "int64", "failed simulations per model", "n_failed split by model: simulations that "
+       "failed or diverged (counted rejections; -1: not recorded)", "1", field="n_failed_by_model"),
+    _V("ellipsoid_centre", (_M, _E, _D), "float64", "ellipsoid centre", "c of the bounding ellipsoids {x : (x - c)^T "
+       "M^-1 (x - c) <= 1} of each model (unused slots NaN), {frame}"),
+    _V("ellipsoid_matrix", (_M, _E, _D, _DB), "float64", "ellipsoid matrix", "M in {x : (x - c)^T M^-1 (x - c) <= 1} "
+       "(the scaled covariance, not its inverse), in the named columns, {frame}"),
+    _V("ellipsoid_note", (_M, _E), "int8", "ellipsoid note", "codes of ellipsoid_note_codes; -1 none"),
+    _V("has_evidence", (), "bool", "has evidence", "ABC-NS evidence bookkeeping present"),
+    _V("has_floor", (), "bool", "has noise floor", "the run knows its distance's noise model (abcns.noise)"),
+    _V("floor_best", (), "float64", "best distance", "the lowest distance any particle reached up to this population",
+       "{distance_units}", field="floor.best"),
+    _V("floor_noise_variance", (), "float64", "noise per sample", "one sample's noise variance in distance units (v)",
+       "{distance_units}", field="floor.variance"),
+    _V("noise_floor", (), "float64", "noise floor", "floor_best + p v: the distance expected at the true parameters",
+       "{distance_units}", field="floor.floor", derived=True),
+    _V("decision_tolerance", (), "float64", "decision tolerance", "noise_floor + sqrt(2 p) v: model probabilities are "
+       "read at the lowest population tolerance at or above it", "{distance_units}", field="floor.decision", derived=True),
+    _V("floor_model", (), "int64", "best model", "index along model of the model that reached floor_best (-1: no floor)",
+       field="floor.model"),
+    _V("floor_n_parameters", (), "int64", "parameters of the best model", "p, its number of free parameters", "1",
+       field="floor.n_parameters"),
+    _V("floor_method", (), "int64", "noise floor method", "0: v estimated as floor_best / (n - p); 1: v from the spec's "
+       "data.noise_std", field="floor.method"),
+    _V("floor_n_samples", (), "int64", "samples", "n, the samples the distance sums over", "1", field="floor.n_samples"),
+    # the ABC-NS evidence bookkeeping: one per field of abcns.evidence.Evidence (checked below)
+    _V("evidence_log_z", (_M,), "float64", "log ABC evidence", "log Z_m(eps_t), the prior mass of {d < eps_t} "
+       "(-inf: dead)", field="evidence.log_z"),
+    _V("evidence_log_z_se", (_M,), "float64", "standard error of log_z", "", field="evidence.log_z_se"),
+    _V("evidence_log_z_next", (_M,), "float64", "predicted log ABC evidence", "log Z_m(eps_t+1), predicted from this "
+       "population", field="evidence.log_z_next"),
+    _V("evidence_log_z_next_se", (_M,), "float64", "standard error of log_z_next", "", field="evidence.log_z_next_se"),
+    _V("evidence_log_volume", (_M,), "float64", "log bound volume", "log prior mass of the bound proposing model m at "
+       "t+1 (NaN: none)", field="evidence.log_volume"),
+    _V("evidence_log_volume_se", (_M,), "float64", "standard error of log_volume", "", field="evidence.log_volume_se"),
+    _V("evidence_coverage", (_M,), "float64", "bound coverage", "share of the accepted region the bound holds", "1",
+       field="evidence.coverage"),
+    _V("evidence_allocation", (_M,), "float64", "proposal share", "probability that a proposal of population t+1 is of "
+       "model m", "1", field="evidence.allocation"),
+    _V("evidence_n_coverage", (_M,), "int64", "coverage points", "points the coverage was measured on", "1",
+       field="evidence.n_coverage"),
+    _V("evidence_n_proposed", (_M,), "int64", "proposals", "model m's new proposals simulated in this population", "1",
+       field="evidence.n_proposed"),
+    _V("evidence_n_accepted", (_M,), "int64", "accepted proposals", "model m's new proposals accepted in this "
+       "population", "1", field="evidence.n_accepted"),
+    _V("evidence_death", (_M,), "int64", "death code", "why model m has no particles from t+1 on: 0 alive, 1 no "
+       "particles, 2 improbable, 3 dead before, 4 every simulation failed", field="evidence.death"),
+    # the static coordinates (zarr's default fill: nothing is left unwritten)
+    _V("model", (_M,), "str", "model", "the candidate models' names", grows=False),
+    _V("parameter", (_D,), "str", "parameter", "the free parameters of all models, by name", grows=False),
+    _V("parameter_b", (_DB,), "str", "parameter", "second parameter axis of ellipsoid_matrix", grows=False),
+    _V("model_has_parameter", (_M, _D), "bool", "model has parameter", "whether the model infers that parameter",
+       grows=False),
+    _V("prior_low", (_M, _D), "float64", "prior low", "the low end of the model's uniform prior on the parameter (NaN: "
+       "none)", grows=False),
+    _V("prior_width", (_M, _D), "float64", "prior width", "high - low of the model's uniform prior on the parameter "
+       "(NaN: none)", grows=False),
+)
+del _V
+# the groups of a Population stored field by field (None in the Population: has_<name> False)
+_PARTS = {"evidence": Evidence, "floor": Floor}
+_EVIDENCE_ARRAYS = {f"evidence_{name}": dtype for name, dtype in
+                    [(n, "float64") for n in Evidence.FLOATS] + [(n, "int64") for n in Evidence.INTS]}
+assert {v.name: v.dtype for v in SCHEMA if v.name.startswith("evidence_")} == _EVIDENCE_ARRAYS, \
+    "one array per field of abcns.evidence.Evidence, of its dtype"
+# the per-model counters of a Population: empty there when not recorded (-1 in the store)
+_BY_MODEL = ("n_simulations_by_model", "n_failed_by_model")
+# the arrays a Population is read back from
+_POPULATION_ARRAYS = tuple(v.name for v in SCHEMA if v.grows and not v.derived)
+_GROWING = frozenset(v.name for v in SCHEMA if v.grows)
 
 
 class StoreError(Exception):
@@ -223,72 +357,6 @@ def _decode_attrs(attrs: Mapping[str, Any]) -> dict[str, Any]:
             else value for key, value in attrs.items()}
 
 
-# what each variable is (``long_name``, ``description``, ``units``); ``{distance_units}`` is
-# filled from the spec's distance (``%`` for the NMSE of Eq. 7)
-_VARIABLES: dict[str, tuple[str, str, str | None]] = {
-    "population": ("population", "the population number t (1-based)", None),
-    "model_index": ("model of the particle", "index along the model dimension", None),
-    "theta": ("parameter values", "the particle's free parameters, in the units of the spec's priors, which are "
-              "those of the simulator's equations for the data as given (the spec states no units); NaN for "
-              "parameters its model does not have (model_index says whose particle it is; one model: model_view)",
-              None),
-    "distance": ("distance", "the particle's distance to the data", "{distance_units}"),
-    "weight": ("weight", "normalised to sum to 1 within each model (ABC-NS: survivor selection)", "1"),
-    "survivor": ("survivor", "kept from the previous population (ABC-NS)", None),
-    "epsilon": ("tolerance", "the tolerance the population was accepted under", "{distance_units}"),
-    "epsilon_next": ("next tolerance", "the tolerance chosen for the next population (NaN: none, "
-                     "as after rejection or at the end of an ABC-SMC schedule)", "{distance_units}"),
-    "acceptance_rate": ("acceptance rate", "accepted / simulated in this population", "1"),
-    "elapsed_s": ("elapsed time", "wall time from the start of the run to the end of the population", "s"),
-    "n_accepted": ("accepted simulations", "in this population", "1"),
-    "n_simulations": ("simulations", "in this population (failed ones included)", "1"),
-    "n_failed": ("failed simulations", "diverged or failed in this population (counted rejections)", "1"),
-    "n_redraws": ("redraws", "proposals outside the prior box, drawn again without a simulation", "1"),
-    "n_simulations_total": ("simulations so far", "cumulative over the run, pilot included", "1"),
-    "has_survivors": ("has survivors", "False for the baselines (SMC, rejection)", None),
-    "has_ellipsoids": ("has ellipsoids", "False for the baselines (SMC, rejection)", None),
-    "model_probability": ("model probability", "p(model | data) at this population", "1"),
-    "n_simulations_by_model": ("simulations per model", "n_simulations split by model (-1: not recorded)", "1"),
-    "n_failed_by_model": ("failed simulations per model", "n_failed split by model: simulations that failed or "
-                          "diverged (counted rejections; -1: not recorded)", "1"),
-    "ellipsoid_centre": ("ellipsoid centre", "c of the bounding ellipsoids {x : (x - c)^T M^-1 (x - c) <= 1} of "
-                         "each model (unused slots NaN), {frame}", None),
-    "ellipsoid_matrix": ("ellipsoid matrix", "M in {x : (x - c)^T M^-1 (x - c) <= 1} (the scaled covariance, not "
-                         "its inverse), in the named columns, {frame}", None),
-    "ellipsoid_note": ("ellipsoid note", "codes of ellipsoid_note_codes; -1 none", None),
-    "has_evidence": ("has evidence", "ABC-NS evidence bookkeeping present", None),
-    "evidence_log_z": ("log ABC evidence", "log Z_m(eps_t), the prior mass of {d < eps_t} (-inf: dead)", None),
-    "evidence_log_z_se": ("standard error of log_z", "", None),
-    "evidence_log_z_next": ("predicted log ABC evidence", "log Z_m(eps_t+1), predicted from this population", None),
-    "evidence_log_z_next_se": ("standard error of log_z_next", "", None),
-    "evidence_log_volume": ("log bound volume", "log prior mass of the bound proposing model m at t+1 (NaN: none)", None),
-    "evidence_log_volume_se": ("standard error of log_volume", "", None),
-    "evidence_coverage": ("bound coverage", "share of the accepted region the bound holds", "1"),
-    "evidence_n_coverage": ("coverage points", "points the coverage was measured on", "1"),
-    "evidence_allocation": ("proposal share", "probability that a proposal of population t+1 is of model m", "1"),
-    "evidence_n_proposed": ("proposals", "model m's new proposals simulated in this population", "1"),
-    "evidence_n_accepted": ("accepted proposals", "model m's new proposals accepted in this population", "1"),
-    "evidence_death": ("death code", "why model m has no particles from t+1 on: "
-                       "0 alive, 1 no particles, 2 improbable, 3 dead before, 4 every simulation failed", None),
-    "has_floor": ("has noise floor", "the run knows its distance's noise model (abcns.noise)", None),
-    "floor_best": ("best distance", "the lowest distance any particle reached up to this population", "{distance_units}"),
-    "floor_model": ("best model", "index along model of the model that reached floor_best (-1: no floor)", None),
-    "floor_n_parameters": ("parameters of the best model", "p, its number of free parameters", "1"),
-    "floor_noise_variance": ("noise per sample", "one sample's noise variance in distance units (v)",
-                             "{distance_units}"),
-    "floor_method": ("noise floor method", "0: v estimated as floor_best / (n - p); 1: v from the spec's "
-                     "data.noise_std", None),
-    "floor_n_samples": ("samples", "n, the samples the distance sums over", "1"),
-    "noise_floor": ("noise floor", "floor_best + p v: the distance expected at the true parameters", "{distance_units}"),
-    "decision_tolerance": ("decision tolerance", "noise_floor + sqrt(2 p) v: model probabilities are read at the "
-                           "lowest population tolerance at or above it", "{distance_units}"),
-    "model": ("model", "the candidate models' names", None),
-    "parameter": ("parameter", "the free parameters of all models, by name", None),
-    "parameter_b": ("parameter", "second parameter axis of ellipsoid_matrix", None),
-    "model_has_parameter": ("model has parameter", "whether the model infers that parameter", None),
-    "prior_low": ("prior low", "the low end of the model's uniform prior on the parameter (NaN: none)", None),
-    "prior_width": ("prior width", "high - low of the model's uniform prior on the parameter (NaN: none)", None),
-}
 # what {frame} says in the descriptions of ellipsoid_centre and ellipsoid_matrix
 _FRAME_TEXT = {
     "unit prior box": "with x in the model's unit prior box: x = (theta - prior_low) / prior_width",
@@ -383,65 +451,38 @@ class Store:
         frame = ellipsoid_frame(spec, str(algorithm))
         prior_low, prior_width = _priors(spec, model_names, union)
 
-        def meta(name: str) -> dict[str, Any]:
+        def meta(v: Variable) -> dict[str, Any]:
             """A variable's attributes, written with the array (one metadata write each)."""
-            long_name, description, unit = _VARIABLES[name]
-            description = description.replace("{frame}", _FRAME_TEXT[frame])
-            out = {"long_name": long_name, "description": description or long_name}
-            if unit is not None:
-                out["units"] = unit.format(distance_units=units)
-            if name == "model_index":
+            out = {"long_name": v.long_name, "description": v.description.replace("{frame}", _FRAME_TEXT[frame])
+                   or v.long_name}
+            if v.units is not None:
+                out["units"] = v.units.format(distance_units=units)
+            if v.name == "model_index":
                 out["flag_meanings"] = " ".join(model_names)  # CF: index i is model_names[i]
             return out
 
-        def grow(name, tail, dtype, fill, dims):
+        sizes = {_N: n, _M: m, _E: k, _D: d, _DB: d}
+        static = {
+            "model": np.array(model_names, dtype=str),
+            "parameter": np.array(union, dtype=str),
+            "parameter_b": np.array(union, dtype=str),
+            "model_has_parameter": np.array([[u in p for u in union] for p in parameter_names]),
+            "prior_low": prior_low,
+            "prior_width": prior_width,
+        }
+        for v in SCHEMA:
+            if not v.grows:
+                values = static[v.name]
+                arr = group.create_array(v.name, shape=values.shape, dtype=str if v.dtype == "str" else v.dtype,
+                                         dimension_names=list(v.dims), attributes=meta(v))
+                arr[...] = values
+                continue
+            tail = tuple(sizes[dim] for dim in v.dims)
             # rows per chunk along population: a chunk of ~64 KiB at most (one population of
             # theta, 256 of a scalar), so an append of several populations writes few files
-            row_bytes = np.dtype(dtype).itemsize * math.prod(tail)
-            rows = int(np.clip(CHUNK_BYTES // row_bytes, 1, 256))
-            group.create_array(name, shape=(0, *tail), chunks=(rows, *tail), dtype=dtype,
-                               fill_value=fill, dimension_names=[_P, *dims], attributes=meta(name))
-
-        grow("population", (), "int32", 0, [])
-        grow("model_index", (n,), "int16", -1, [_N])
-        grow("theta", (n, d), "float64", np.nan, [_N, _D])
-        grow("distance", (n,), "float64", np.nan, [_N])
-        grow("weight", (n,), "float64", np.nan, [_N])
-        grow("survivor", (n,), "bool", False, [_N])
-        for name in ("epsilon", "epsilon_next", "acceptance_rate", "elapsed_s"):
-            grow(name, (), "float64", np.nan, [])
-        for name in ("n_accepted", "n_simulations", "n_failed", "n_redraws", "n_simulations_total"):
-            grow(name, (), "int64", -1, [])
-        grow("has_survivors", (), "bool", False, [])
-        grow("has_ellipsoids", (), "bool", False, [])
-        grow("model_probability", (m,), "float64", np.nan, [_M])
-        grow("n_simulations_by_model", (m,), "int64", -1, [_M])
-        grow("n_failed_by_model", (m,), "int64", -1, [_M])
-        grow("ellipsoid_centre", (m, k, d), "float64", np.nan, [_M, _E, _D])
-        grow("ellipsoid_matrix", (m, k, d, d), "float64", np.nan, [_M, _E, _D, _DB])
-        grow("ellipsoid_note", (m, k), "int8", -1, [_M, _E])
-        grow("has_evidence", (), "bool", False, [])
-        grow("has_floor", (), "bool", False, [])
-        for name in _FLOOR_FLOATS:
-            grow(name, (), "float64", np.nan, [])
-        for name in _FLOOR_INTS:
-            grow(name, (), "int64", -1, [])
-        for name, dtype in _EVIDENCE.items():
-            grow(f"evidence_{name}", (m,), dtype, np.nan if dtype == "float64" else -1, [_M])
-
-        static = {
-            "model": (np.array(model_names, dtype=str), [_M]),
-            "parameter": (np.array(union, dtype=str), [_D]),
-            "parameter_b": (np.array(union, dtype=str), [_DB]),
-            "model_has_parameter": (np.array([[u in p for u in union] for p in parameter_names]), [_M, _D]),
-            "prior_low": (prior_low, [_M, _D]),
-            "prior_width": (prior_width, [_M, _D]),
-        }
-        for name, (values, dims) in static.items():
-            arr = group.create_array(name, shape=values.shape, dtype=values.dtype if values.dtype.kind != "U" else str,
-                                     dimension_names=dims, attributes=meta(name))
-            arr[...] = values
-        assert set(group.array_keys()) == set(_VARIABLES), "every variable is described"
+            rows = int(np.clip(CHUNK_BYTES // (np.dtype(v.dtype).itemsize * math.prod(tail)), 1, 256))
+            group.create_array(v.name, shape=(0, *tail), chunks=(rows, *tail), dtype=v.dtype, fill_value=v.fill_value,
+                               dimension_names=[_P, *v.dims], attributes=meta(v))
 
         attrs = {
             "spec": spec,
@@ -558,15 +599,26 @@ class Store:
     def _rows(self, pop: Population, n_simulations_total: int) -> dict[str, Any]:
         """The new row of every growing array (validated before anything is written)."""
         n, m, d, du = self._n_particles, self._n_models, self._d_max, self._d_union
-        shapes = {"models": (n,), "theta": (n, d), "distances": (n,), "weights": (n,), "model_probabilities": (m,)}
-        for field, shape in shapes.items():
-            got = np.shape(getattr(pop, field))
-            if got != shape:
-                raise StoreError(f"population {pop.t}: {field} has shape {got}, the store expects {shape}")
+        if np.shape(pop.theta) != (n, d):
+            raise StoreError(f"population {pop.t}: theta has shape {np.shape(pop.theta)}, the store expects {(n, d)}")
         if pop.survivors is not None and np.shape(pop.survivors) != (n,):
             raise StoreError(f"population {pop.t}: survivors has shape {np.shape(pop.survivors)}, expected ({n},)")
         if pop.ellipsoids and len(pop.ellipsoids) != m:
             raise StoreError(f"population {pop.t}: {len(pop.ellipsoids)} bounds for {m} models")
+        sizes = {_N: n, _M: m}
+        row: dict[str, Any] = {}
+        for v in SCHEMA:
+            if v.field is None:
+                continue
+            part, _, name = v.field.rpartition(".")
+            owner = getattr(pop, part) if part else pop
+            shape = tuple(sizes[dim] for dim in v.dims)
+            value = np.full(shape, v.fill_value) if owner is None else np.asarray(getattr(owner, name))
+            if v.name in _BY_MODEL and value.shape == (0,):  # not recorded
+                value = np.full(shape, -1)
+            if value.shape != shape:
+                raise StoreError(f"population {pop.t}: {v.field} has shape {value.shape}, the store expects {shape}")
+            row[v.name] = value.astype(v.dtype)
         kmax = self._n_ellipsoids
         centre = np.full((m, kmax, du), np.nan)
         matrix = np.full((m, kmax, du, du), np.nan)
@@ -583,59 +635,20 @@ class Store:
                 cols = self._columns[i]
                 centre[i, j, cols], note[i, j] = e.centre, NOTE_CODES[e.note]
                 matrix[i, j, cols[:, None], cols[None, :]] = e.matrix
-        evidence = {}
-        for name, dtype in _EVIDENCE.items():
-            value = np.full(m, np.nan if dtype == "float64" else -1)
-            if pop.evidence is not None:
-                value = np.asarray(getattr(pop.evidence, name))
-                if value.shape != (m,):
-                    raise StoreError(f"population {pop.t}: evidence.{name} has shape {value.shape}, expected ({m},)")
-            evidence[f"evidence_{name}"] = value.astype(dtype)
-        floor = pop.floor
-        floors: dict[str, Any] = {name: np.nan for name in _FLOOR_FLOATS} | {name: -1 for name in _FLOOR_INTS}
-        if floor is not None:
-            floors = {"floor_best": floor.best, "floor_noise_variance": floor.variance, "noise_floor": floor.floor,
-                      "decision_tolerance": floor.decision, "floor_model": floor.model,
-                      "floor_n_parameters": floor.n_parameters, "floor_method": floor.method,
-                      "floor_n_samples": floor.n_samples}
-        return {
-            "model_index": np.asarray(pop.models, dtype=np.int16),
+        row |= {
             "theta": self._to_named(np.asarray(pop.models), np.asarray(pop.theta, dtype=np.float64)),
-            "distance": np.asarray(pop.distances, dtype=np.float64),
-            "weight": np.asarray(pop.weights, dtype=np.float64),
             "survivor": np.zeros(n, bool) if pop.survivors is None else np.asarray(pop.survivors, dtype=bool),
-            "epsilon": float(pop.epsilon),
-            "epsilon_next": float(pop.epsilon_next),
-            "acceptance_rate": float(pop.acceptance_rate),
-            "elapsed_s": float(pop.elapsed_s),
-            "n_accepted": int(pop.n_accepted),
-            "n_simulations": int(pop.n_simulations),
-            "n_failed": int(pop.n_failed),
-            "n_redraws": int(pop.n_redraws),
             "n_simulations_total": n_simulations_total,
             "has_survivors": pop.survivors is not None,
             "has_ellipsoids": bool(pop.ellipsoids),
-            "model_probability": np.asarray(pop.model_probabilities, dtype=np.float64),
-            "n_simulations_by_model": self._by_model(pop, "n_simulations_by_model"),
-            "n_failed_by_model": self._by_model(pop, "n_failed_by_model"),
             "ellipsoid_centre": centre,
             "ellipsoid_matrix": matrix,
             "ellipsoid_note": note,
-            "has_evidence": pop.evidence is not None,
-            **evidence,
-            "has_floor": floor is not None,
-            **floors,
-            "population": pop.t,  # last: xarray's index shows t only once the row is written
+            **{f"has_{part}": getattr(pop, part) is not None for part in _PARTS},
         }
-
-    def _by_model(self, pop: Population, field: str) -> np.ndarray:
-        """A per-model counter of ``pop`` (all -1 when the population does not record it)."""
-        value = np.asarray(getattr(pop, field), dtype=np.int64)
-        if value.shape == (0,):
-            return np.full(self._n_models, -1, dtype=np.int64)
-        if value.shape != (self._n_models,):
-            raise StoreError(f"population {pop.t}: {field} has shape {value.shape}, expected ({self._n_models},)")
-        return value
+        row["population"] = row.pop("population")  # last: xarray's index shows t only once the row is written
+        assert set(row) == _GROWING, "every growing array has its row"
+        return row
 
     # ------------------------------------------------------------------ named columns
 
@@ -663,6 +676,17 @@ class Store:
         return {name: np.asarray(group[name][rows]) for name in _POPULATION_ARRAYS if name in names}
 
     def _population(self, a: dict[str, np.ndarray], i: int) -> Population:
+        fields: dict[str, Any] = {}
+        parts: dict[str, dict[str, Any]] = {part: {} for part in _PARTS}
+        for v in SCHEMA:
+            if v.field is None or v.derived or v.name not in a:
+                continue
+            value = a[v.name][i]
+            if v.name in _BY_MODEL and not np.all(value >= 0):  # not recorded
+                continue
+            value = value.copy() if v.dims else int(value) if np.dtype(v.dtype).kind == "i" else float(value)
+            part, _, name = v.field.rpartition(".")
+            (parts[part] if part else fields)[name] = value
         ellipsoids: tuple[tuple[Ellipsoid, ...], ...] = ()
         if a["has_ellipsoids"][i]:
             bounds = []
@@ -675,32 +699,12 @@ class Store:
                     for e in range(codes.shape[0]) if codes[e] >= 0
                 ))
             ellipsoids = tuple(bounds)
-        evidence = None
-        if a["has_evidence"][i]:
-            evidence = Evidence(**{name: a[f"evidence_{name}"][i].copy() for name in _EVIDENCE})
-        floor = None
-        if a["has_floor"][i]:
-            floor = Floor(float(a["floor_best"][i]), int(a["floor_model"][i]), int(a["floor_n_parameters"][i]),
-                          float(a["floor_noise_variance"][i]), int(a["floor_method"][i]), int(a["floor_n_samples"][i]))
         return Population(
-            t=int(a["population"][i]),
-            epsilon=float(a["epsilon"][i]),
-            epsilon_next=float(a["epsilon_next"][i]),
-            models=a["model_index"][i].copy(),
+            **fields,
             theta=self._from_named(a["model_index"][i], a["theta"][i]),
-            distances=a["distance"][i].copy(),
-            weights=a["weight"][i].copy(),
-            n_accepted=int(a["n_accepted"][i]),
-            n_simulations=int(a["n_simulations"][i]),
-            n_failed=int(a["n_failed"][i]),
-            n_redraws=int(a["n_redraws"][i]),
-            elapsed_s=float(a["elapsed_s"][i]),
             survivors=a["survivor"][i].copy() if a["has_survivors"][i] else None,
             ellipsoids=ellipsoids,
-            model_probabilities=a["model_probability"][i].copy(),
-            evidence=evidence,
-            **{name: a[name][i].copy() for name in _BY_MODEL if name in a and np.all(a[name][i] >= 0)},
-            floor=floor,
+            **{part: cls(**parts[part]) if a[f"has_{part}"][i] else None for part, cls in _PARTS.items()},
         )
 
     def populations(self) -> list[Population]:
@@ -837,18 +841,6 @@ def _read_attrs(path: Path) -> dict:
     return dict(attrs)
 
 
-# the per-model counters of a Population (optional: stores written before them lack them)
-_BY_MODEL = ("n_simulations_by_model", "n_failed_by_model")
-# the arrays a Population is read back from
-_POPULATION_ARRAYS = (*_BY_MODEL,
-    "population", "model_index", "theta", "distance", "weight", "survivor", "epsilon", "epsilon_next", "elapsed_s",
-    "n_accepted", "n_simulations", "n_failed", "n_redraws", "has_survivors", "has_ellipsoids", "model_probability",
-    "ellipsoid_centre", "ellipsoid_matrix", "ellipsoid_note", "has_evidence", *(f"evidence_{name}" for name in _EVIDENCE),
-    "has_floor", "floor_best", "floor_model", "floor_n_parameters", "floor_noise_variance", "floor_method",
-    "floor_n_samples",
-)
-
-
 def dataset_attrs(ds: xr.Dataset) -> dict[str, Any]:
     """The attributes of a dataset of the store's schema, decoded (as :attr:`Store.attrs`)."""
     return _decode_attrs(ds.attrs)
@@ -862,10 +854,47 @@ def dataset_populations(ds: xr.Dataset) -> list[Population]:
     return [reader._population(arrays, i) for i in range(ds.sizes["population"])]
 
 
+def result_of(attrs: Mapping[str, Any], populations: Sequence[Population], n_simulations_total: int,
+              elapsed_s: float) -> Result:
+    """The :class:`abcns.Result` of a store's (decoded) attributes and populations, finished or
+    not: a run still going, or one a crash ended, has no run information yet (set when the
+    job ends), so its simulations and wall time are the store's last ``n_simulations_total``
+    and ``elapsed_s`` (the caller's), and its stop reason is "cancelled"."""
+    spec, run = attrs["spec"], attrs.get("run") or {}
+    return Result(
+        algorithm=attrs["algorithm"],
+        models=tuple(Model.from_dict(m) for m in spec["models"]),
+        populations=tuple(populations),
+        stop_reason=StopReason(attrs.get("stop_reason") or StopReason.CANCELLED),
+        seed=int(attrs["seed"]),
+        settings={"sampler": spec.get("sampler", {}), "stop": spec.get("stop", {})},
+        epsilon_initial_source=run.get("epsilon_initial_source", ""),
+        n_simulations=int(run.get("n_simulations", n_simulations_total)),
+        n_pilot_simulations=int(run.get("n_pilot_simulations", 0)),
+        wall_time_s=float(run.get("wall_time_s", elapsed_s)),
+        weighted_posterior=attrs["algorithm"] == "abc-smc",
+        notes=tuple(run.get("notes", ())),
+    )
+
+
+def result_from_store(store: Store) -> Result:
+    """The :class:`abcns.Result` of a store (finished or not)."""
+    state = store.run_state()
+    return result_of(store.attrs, store.populations(), state["n_simulations_total"], state["elapsed_s"])
+
+
+def dataset_result(ds: xr.Dataset) -> Result:
+    """The :class:`abcns.Result` a dataset of the store's schema holds (as :func:`result_from_store`)."""
+    last = ds.isel(population=-1) if ds.sizes["population"] else None
+    return result_of(dataset_attrs(ds), dataset_populations(ds),
+                     0 if last is None else int(last["n_simulations_total"]), 0.0 if last is None else float(last["elapsed_s"]))
+
+
 def _union(parameter_names: Sequence[Sequence[str]]) -> list[str]:
     """Every model's parameter names, each once, in first-seen order."""
     return list(dict.fromkeys(name for names in parameter_names for name in names))
 
 
-__all__ = ["FORMAT_VERSION", "FRAMES", "NOTE_CODES", "STATUSES", "Store", "StoreError", "StoreIncomplete",
-           "StoreNotFound", "data_hash", "ellipsoid_frame", "model_view"]
+__all__ = ["FORMAT_VERSION", "FRAMES", "NOTE_CODES", "SCHEMA", "STATUSES", "Store", "StoreError", "StoreIncomplete",
+           "StoreNotFound", "Variable", "data_hash", "dataset_result", "ellipsoid_frame", "model_view", "result_from_store",
+           "result_of"]
