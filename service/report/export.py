@@ -21,8 +21,8 @@ from typing import Any
 
 import xarray as xr
 
-from abcns import Model, Result, StopReason
-from service.run.store import FORMAT_VERSION, Store, dataset_attrs, dataset_populations
+from abcns import Result
+from service.run.store import FORMAT_VERSION, Store, dataset_result
 
 
 def to_dataset(result: Result) -> xr.Dataset:
@@ -48,26 +48,11 @@ def to_dataset(result: Result) -> xr.Dataset:
         return store.dataset().load()
 
 
-def _model(config: dict[str, Any]) -> Model:
-    priors = {k: tuple(v) for k, v in config["priors"].items()}
-    extra = config.get("config") or ({"simulator": config["simulator"]} if "simulator" in config else {})
-    return Model(config["name"], priors, config.get("fixed", {}), config=extra)
-
-
 def from_dataset(ds: xr.Dataset) -> Result:
     """The :class:`abcns.Result` a dataset of the store's schema holds."""
     if ds.attrs.get("format_version") != FORMAT_VERSION:
         raise ValueError(f"not an abcns result of format {FORMAT_VERSION} (format_version = {ds.attrs.get('format_version')!r})")
-    a = dataset_attrs(ds)
-    spec, run = a["spec"], a.get("run", {})
-    return Result(
-        algorithm=a["algorithm"], models=tuple(_model(c) for c in spec["models"]),
-        populations=tuple(dataset_populations(ds)), stop_reason=StopReason(a["stop_reason"] or "cancelled"),
-        seed=int(a["seed"]), settings={"sampler": spec.get("sampler", {}), "stop": spec.get("stop", {})},
-        epsilon_initial_source=run.get("epsilon_initial_source", ""), n_simulations=int(run.get("n_simulations", 0)),
-        n_pilot_simulations=int(run.get("n_pilot_simulations", 0)), wall_time_s=float(run.get("wall_time_s", 0.0)),
-        weighted_posterior=a["algorithm"] == "abc-smc", notes=tuple(run.get("notes", ())),
-    )
+    return dataset_result(ds)
 
 
 def to_inference_data(result: Result, t: int | None = None) -> dict[str, Any]:
