@@ -81,7 +81,8 @@ def distance_of(spec: dict | None) -> str:
 
 def summary_lines(s: dict, distance: str = "nmse") -> list[str]:
     """The human summary of a job's JSON summary: status, tolerances, model probabilities,
-    the posterior of every model still alive."""
+    the posterior of every model still alive; for a run that stopped before its first
+    population, why (its notes)."""
     unit = percent(distance)
     lines = [f"status {s['status']}  stop {s.get('stop_reason')}  populations {s['n_populations']}  "
              f"simulations {s.get('n_simulations', 0):,}  wall {s.get('wall_time_s') or 0:.1f} s"]
@@ -90,9 +91,12 @@ def summary_lines(s: dict, distance: str = "nmse") -> list[str]:
         lines.append(f"{what} {s['epsilon'][0]:.4g}{unit} -> {s['epsilon'][-1]:.4g}{unit}; "
                      f"mean acceptance {sum(s['acceptance_rate']) / len(s['acceptance_rate']):.2f}")
     se = s.get("model_probability_se") or {}
-    lines.append("model probabilities: " + ", ".join(
-        f"{k} {v:.3f}" + (f" ± {se[k]:.3f}" if se.get(k) is not None and se[k] == se[k] else "")
-        for k, v in s.get("model_probabilities", {}).items()))
+    if s.get("model_probabilities"):
+        lines.append("model probabilities: " + ", ".join(
+            f"{k} {v:.3f}" + (f" ± {se[k]:.3f}" if se.get(k) is not None and se[k] == se[k] else "")
+            for k, v in s["model_probabilities"].items()))
+    if not s.get("n_populations"):  # no population: the run's notes say why it stopped (nothing_accepted)
+        lines += [f"note: {note}" for note in s.get("notes", [])]
     if s.get("dead_models"):
         lines.append("models out: " + "; ".join(f"{k} from population {t} ({death_rule(s, k)})"
                                                  for k, t in s["dead_models"].items()))
