@@ -84,8 +84,8 @@ def summary_lines(s: dict, distance: str = "nmse") -> list[str]:
     the posterior of every model still alive; for a run that stopped before its first
     population, why (its notes)."""
     unit = percent(distance)
-    lines = [f"status {s['status']}  stop {s.get('stop_reason')}  populations {s['n_populations']}  "
-             f"simulations {s.get('n_simulations', 0):,}  wall {s.get('wall_time_s') or 0:.1f} s"]
+    lines = [f"status {s['status']}  stop {s.get('stop_reason') or '-'}  populations {s['n_populations']}  "
+             f"simulations {s.get('n_simulations') or 0:,}  wall {s.get('wall_time_s') or 0:.1f} s"]
     if s.get("epsilon"):
         what = "tolerance (NMSE)" if unit else "tolerance"
         lines.append(f"{what} {s['epsilon'][0]:.4g}{unit} -> {s['epsilon'][-1]:.4g}{unit}; "
@@ -517,7 +517,7 @@ def submit(
             typer.echo(text)
         typer.echo(f"job: {url}/jobs/{job_id}  (full JSON summary: {url}/jobs/{job_id}/result)")
     if end != "finished":
-        _fail(f"the job {end}" + (f": {error}" if error else ""), JOB_FAILED)
+        _fail(f"the job {'was cancelled' if end == 'cancelled' else end}" + (f": {error}" if error else ""), JOB_FAILED)
 
 
 def main() -> None:
