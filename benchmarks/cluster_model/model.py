@@ -226,6 +226,8 @@ class _Task:
 class Replay:
     """One replay of ``trace`` on ``workers`` workers (see the module docstring)."""
 
+    budget = None  # DaskExecutor's run budget: the replayed runs have none (time_cap unbounded)
+
     def __init__(self, trace: Trace, workers: int, sim_seconds: float, costs: Costs, design: Design = Design()):
         self.trace, self.W, self.sim_s, self.c, self.design = trace, workers, sim_seconds, costs, design
         self.env = simpy.Environment()
@@ -437,10 +439,14 @@ class Replay:
         return self.W
 
     def group_size(self, need: int, consumed: int, forced: int | None) -> int:
-        """``DaskExecutor.group_size`` itself (it reads only ``batch_seconds``), or the design's size."""
+        """``DaskExecutor.group_size`` itself (it reads ``batch_seconds`` and ``time_cap``), or the design's size."""
         if forced is not None:
             return forced
         return DaskExecutor.group_size(self, need, consumed, self.W)  # type: ignore[arg-type]
+
+    def time_cap(self) -> int:
+        """``DaskExecutor.time_cap``: the replayed runs have no time budget (unbounded)."""
+        return DaskExecutor.time_cap(self)  # type: ignore[arg-type]
 
     def measured(self, seconds: float, size: int) -> None:
         DaskExecutor._measured(self, seconds, size)  # type: ignore[arg-type]
