@@ -35,7 +35,7 @@ demo: $(RUNTIME)
 	$(BIN)/abcns run examples/authors_demo/evidence.yaml --out out/authors-demo-evidence.zarr --quiet
 	@echo ""
 	@echo "Next: the figures:   $(BIN)/abcns plot out/authors-demo-evidence.zarr --out out/figures --spec examples/authors_demo/evidence.yaml"
-	@echo "      the live page: $(BIN)/abcns serve   (then open http://127.0.0.1:8000/ and send a job: abcns submit SPEC)"
+	@echo "      the live page: $(BIN)/abcns serve   (then open http://127.0.0.1:8000/ and send a job: $(BIN)/abcns submit SPEC)"
 	@echo "      your own data: README.md, \"Your own data in 10 minutes\""
 
 test: $(DEV) browser

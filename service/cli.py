@@ -81,19 +81,23 @@ def distance_of(spec: dict | None) -> str:
 
 def summary_lines(s: dict, distance: str = "nmse") -> list[str]:
     """The human summary of a job's JSON summary: status, tolerances, model probabilities,
-    the posterior of every model still alive."""
+    the posterior of every model still alive; for a run that stopped before its first
+    population, why (its notes)."""
     unit = percent(distance)
-    lines = [f"status {s['status']}  stop {s.get('stop_reason')}  populations {s['n_populations']}  "
-             f"simulations {s.get('n_simulations', 0):,}  wall {s.get('wall_time_s') or 0:.1f} s"]
+    lines = [f"status {s['status']}  stop {s.get('stop_reason') or '-'}  populations {s['n_populations']}  "
+             f"simulations {s.get('n_simulations') or 0:,}  wall {s.get('wall_time_s') or 0:.1f} s"]
     if s.get("epsilon"):
         what = "tolerance (NMSE)" if unit else "tolerance"
         lines.append(f"{what} {s['epsilon'][0]:.4g}{unit} -> {s['epsilon'][-1]:.4g}{unit}; "
                      f"mean acceptance {sum(s['acceptance_rate']) / len(s['acceptance_rate']):.2f}")
     se = s.get("model_probability_se") or {}
-    lines.append("model probabilities: " + ", ".join(
-        f"{k} {v:.3f}" + (f" ± {se[k]:.3f}" if se.get(k) is not None and se[k] == se[k] else "")
-        for k, v in s.get("model_probabilities", {}).items()) + where_decided(s, unit))
-    lines += decision_lines(s, unit)
+    if s.get("model_probabilities"):
+        lines.append("model probabilities: " + ", ".join(
+            f"{k} {v:.3f}" + (f" ± {se[k]:.3f}" if se.get(k) is not None and se[k] == se[k] else "")
+            for k, v in s["model_probabilities"].items()) + where_decided(s, unit))
+        lines += decision_lines(s, unit)
+    if not s.get("n_populations"):  # no population: the run's notes say why it stopped (nothing_accepted)
+        lines += [f"note: {note}" for note in s.get("notes", [])]
     if s.get("dead_models"):
         lines.append("models out: " + "; ".join(f"{k} from population {t} ({death_rule(s, k)})"
                                                  for k, t in s["dead_models"].items()))
@@ -547,7 +551,7 @@ def submit(
             typer.echo(text)
         typer.echo(f"job: {url}/jobs/{job_id}  (full JSON summary: {url}/jobs/{job_id}/result)")
     if end != "finished":
-        _fail(f"the job {end}" + (f": {error}" if error else ""), JOB_FAILED)
+        _fail(f"the job {'was cancelled' if end == 'cancelled' else end}" + (f": {error}" if error else ""), JOB_FAILED)
 
 
 def main() -> None:

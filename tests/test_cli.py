@@ -16,6 +16,7 @@ import sys
 from importlib.metadata import version
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -238,6 +239,26 @@ def test_summary_lines_show_the_uncertainty_the_death_rule_and_every_warning():
     assert "models out: linear from population 2 (no particle below the next tolerance)" in summary_lines(s)
     assert "warning: undecided: cubic (p = 0.55), cubic-quintic (p = 0.45) are all above 0.1" in lines
     assert any("7.87 %" in line for line in lines)  # the NMSE is in percent
+
+
+def test_a_run_that_accepts_nothing_says_why(cluster, tmp_path):
+    """R.2 as a user sees it: a force of 2^62 N (every simulation leaves the divergence
+    guard) stops with nothing_accepted after stop.max_simulations_without_acceptance, and
+    the summary says why in a sentence (before: the status line, then an empty "model
+    probabilities: " and nothing else)."""
+    duffing = ROOT / "examples" / "duffing_41"
+    np.save(tmp_path / "force.npy", np.load(duffing / "force.npy") * 2.0**62)
+    raw = yaml.safe_load((duffing / "spec.yaml").read_text())
+    raw["data"].update(input="force.npy", observed=str(duffing / "displacement.npy"))
+    raw["sampler"].update(particles=200, batch_size=250)
+    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": 2, "max_simulations_without_acceptance": 2000}
+    (tmp_path / "spec.yaml").write_text(yaml.safe_dump(raw))
+    lines = abcns("run", tmp_path / "spec.yaml", "--out", tmp_path / "n.zarr", "--scheduler", cluster,
+                  "--quiet").stdout.splitlines()
+    assert lines[1].startswith("status finished  stop nothing_accepted  populations 0  simulations 2,000"), lines
+    assert lines[2].startswith("note: nothing accepted: population 1 ran 2,000 simulations and none came below"), lines
+    assert not any(line.startswith("model probabilities:") for line in lines), lines
+    assert abcns("summary", tmp_path / "n.zarr").stdout.splitlines() == lines[1:-1]
 
 
 def test_an_impossible_fixed_value_is_refused_before_the_run_with_exit_2(tmp_path):

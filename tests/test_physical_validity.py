@@ -8,6 +8,8 @@ its own reason and says why.
 - input or observed samples beyond ``MAX_MAGNITUDE``, an observed record too small for the
   NMSE's scale;
 - two models of one name;
+- RK4 substeps per sample, given or chosen from the priors and the sample interval, past
+  ``worker.evaluate.MAX_SUBSTEPS``;
 - a population that runs ``stop.max_simulations_without_acceptance`` simulations and keeps
   none stops with ``nothing_accepted`` and a sentence in the run's notes;
 - the records an upload or inline data hold are cut to the samples the job reads, and the
@@ -57,6 +59,12 @@ def refused(spec: dict) -> SpecError:
     (lambda s: s["data"].update(observed=[x * 1e-160 for x in s["data"]["observed"]]), "data.observed",
      "too small for the NMSE"),
     (lambda s: s["models"][1].update(name="cubic"), "models[1].name", "duplicate model name"),
+    # a sampling rate of 1e-300 Hz (interval 1e300 s) with the substeps chosen from the priors:
+    # 7 x 10^301 substeps, which failed at run time (numba: "Int value is too large")
+    (lambda s: s["data"].update(fs=1e-300) or s["models"][0].pop("integrator"), "models[0].integrator.substeps",
+     "sample interval 1e+300 s ask for 6.83e+301 RK4 substeps per sample"),
+    (lambda s: s["models"][1]["integrator"].update(substeps=10**30), "models[1].integrator.substeps",
+     "at most 1e+09 RK4 substeps per sample"),
 ])
 def test_what_no_simulation_can_use_is_refused_naming_the_field(base, change, field, words):
     spec = copy.deepcopy(base)

@@ -23,6 +23,7 @@ from abcns import ellipsoid as ell
 from abcns.evidence import Evidence
 from abcns.filling import Budget
 from abcns.noise import Floor
+from benchmarks.harness import wait_until
 from service.run.store import (
     FORMAT_VERSION,
     NOTE_CODES,
@@ -462,14 +463,15 @@ def test_a_reader_polling_during_appends_sees_only_complete_populations(referenc
     thread = threading.Thread(target=poll)
     thread.start()
     try:
-        for pop, total in zip(pops, totals):
+        for k, (pop, total) in enumerate(zip(pops, totals), start=1):
             store.append(pop, n_simulations_total=total)
-            time.sleep(0.05)
+            # the reader sees this population before the next append (it polls all along)
+            wait_until(lambda: errors or (seen and seen[-1] >= k), 60, f"the reader to see population {k}", 0.005)
     finally:
         done.set()
         thread.join()
     assert not errors, errors
-    assert seen and seen == sorted(seen) and seen[-1] <= 5
+    assert seen == sorted(seen) and seen[-1] == 5
 
 
 def test_the_store_is_self_describing_for_xarray(tmp_path):

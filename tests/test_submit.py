@@ -100,3 +100,22 @@ def test_each_error_is_one_line_with_its_exit_code(service, spec, tmp_path):
         done = abcns(*args, env={"ABCNS_TOKEN": ""})
         assert done.returncode == code, (args, done.stderr[-2000:])
         assert len(done.stderr.strip().splitlines()) == 1 and done.stderr.startswith(start), (args, done.stderr)
+
+
+def test_a_job_cancelled_on_the_service_ends_submit_with_exit_4_and_its_summary(service, spec):
+    """Q.4: the job is cancelled on the service while submit follows it (DELETE, as from the
+    live page or another terminal): submit ends with exit code 4 and one error line, and
+    --json still prints the job's summary, with its status."""
+    svc, _ = service
+    long = yaml.safe_load(spec.read_text())
+    long["stop"]["max_populations"] = 400  # runs until cancelled
+    (spec.parent / "long.yaml").write_text(yaml.safe_dump(long))
+    with subprocess.Popen([BIN / "abcns", "submit", spec.parent / "long.yaml", "--url", svc.url, "--token", TOKEN,
+                           "--quiet", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+        first = proc.stderr.readline()  # type: ignore[union-attr]  # "job ID: URL/jobs/ID/view", once it is queued
+        job_id = first.split("job ", 1)[1].split(":", 1)[0]
+        assert httpx.delete(f"{svc.url}/jobs/{job_id}", headers=AUTH, timeout=60).status_code == 202
+        out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 4, (first, err)
+    assert err.strip().splitlines() == ["error: the job was cancelled"], err
+    assert json.loads(out)["status"] == "cancelled", out

@@ -148,6 +148,18 @@ def _bounds(desc: dict, factory) -> dict[str, tuple[float, float]]:
 
 #: the keywords :func:`simulator_for` offers a factory driven by the input record
 INPUT_KEYWORDS = ("force", "dt", "n_samples", "substeps", "output", "state_bound", "input_interpolation")
+# RK4 substeps per sample, given or chosen: past a billion no simulation ends (a record of
+# 500 samples is 5 x 10^11 steps, hours at the kernels' ~10^8 steps/s), and past 2^63 the
+# kernels cannot even count them (a sampling rate of 1e-300 Hz asked for 7 x 10^301 and
+# failed at run time with numba's TypingError)
+MAX_SUBSTEPS = 10**9
+
+
+def _many(n: int) -> str:
+    try:
+        return f"{float(n):.3g}"
+    except OverflowError:  # past the float range
+        return f"a number of {len(str(n)):,} digits"
 
 
 def _accepted(factory: Callable, offered: dict) -> dict:
@@ -194,9 +206,18 @@ def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observ
                 from worker.kernels import choose_substeps
 
                 try:
-                    integ["substeps"] = choose_substeps(factory.omega_max(_bounds(desc, factory)), dt)
+                    chosen = choose_substeps(factory.omega_max(_bounds(desc, factory)), dt)
                 except (KeyError, ValueError, OverflowError) as err:  # Overflow: dt x omega past any int
                     raise SpecError("integrator.substeps", f"cannot be chosen from the priors ({err}); give it") from None
+                if chosen > MAX_SUBSTEPS:
+                    raise SpecError("integrator.substeps", f"the priors' highest natural frequency and the sample "
+                                    f"interval {dt:.6g} s ask for {_many(chosen)} RK4 substeps per sample, more "
+                                    f"than {MAX_SUBSTEPS:.0e}, which no simulation ends: check data.fs or data.dt (and "
+                                    "decimate), and the priors")
+                integ["substeps"] = chosen
+        elif isinstance(given := integ["substeps"], int) and given > MAX_SUBSTEPS:
+            raise SpecError("integrator.substeps", f"at most {MAX_SUBSTEPS:.0e} RK4 substeps per sample (no simulation of "
+                                                   f"more ends), got {_many(given)}")
         # the divergence guard: 1000 x the observed scale (for a displacement output)
         bound = 1e3 * float(np.max(np.abs(observed))) if integ["output"] == "displacement" else np.inf
         offered = dict(zip(INPUT_KEYWORDS, (force, dt, int(observed.size), integ["substeps"], integ["output"], bound,

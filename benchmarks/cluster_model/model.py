@@ -226,6 +226,8 @@ class _Task:
 class Replay:
     """One replay of ``trace`` on ``workers`` workers (see the module docstring)."""
 
+    budget = None  # DaskExecutor's run budget: the replayed runs have none (time_cap unbounded)
+
     def __init__(self, trace: Trace, workers: int, sim_seconds: float, costs: Costs, design: Design = Design()):
         self.trace, self.W, self.sim_s, self.c, self.design = trace, workers, sim_seconds, costs, design
         self.env = simpy.Environment()
