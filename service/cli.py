@@ -193,9 +193,11 @@ class ProgressLine:
         return self.n_workers
 
     def show(self, t: int, epsilon: float, acceptance: float, simulations: int, elapsed_s: float,
-             probabilities: Mapping[str, float | None], decision: float | None = None) -> None:
+             probabilities: Mapping[str, float | None], decision: float | None = None,
+             efficiency: float | None = None) -> None:
         """``decision``: the decision tolerance as estimated after this population (None
-        while the run knows no noise floor)."""
+        while the run knows no noise floor); ``efficiency``: the workers' share of time spent
+        on the run's simulations over the population (``runner.Progress``; None in-process)."""
         before, self.last = self.last, (simulations, elapsed_s)
         if self.quiet:
             return
@@ -205,7 +207,8 @@ class ProgressLine:
         workers = self.workers_now()
         dec = "" if decision is None else f"  decision {decision:.4g}{self.unit}"
         line = (f"population {t:4d}  eps {epsilon:11.5g}{self.unit}{dec}  acceptance {acceptance:5.2f}  "
-                f"sims {simulations:8d}  {rate} sims/s  {probs}  workers {'-' if workers is None else workers}")
+                f"sims {simulations:8d}  {rate} sims/s  {probs}  workers {'-' if workers is None else workers}"
+                + ("" if efficiency is None else f"  efficiency {efficiency:.2f}"))
         if self.live:
             sys.stdout.write(f"\r\x1b[2K{line}")
             sys.stdout.flush()
@@ -334,7 +337,7 @@ def run(
             pop = p.population
             line.show(pop.t, pop.epsilon, pop.acceptance_rate, p.n_simulations_total, p.elapsed_s,
                       dict(zip(names, pop.model_probabilities.tolist())),
-                      None if pop.floor is None else pop.floor.decision)
+                      None if pop.floor is None else pop.floor.decision, p.efficiency)
 
         try:
             run_job(job_spec, base, out, client, seed=seed, on_population=progress, allow_import=True)
@@ -533,7 +536,7 @@ def submit(
                     probs = info["model_probabilities"]
                     line.show(info["population"], info["epsilon"], info["acceptance_rate"], info["simulations"],
                               info["elapsed_s"], probs if isinstance(probs, dict) else dict(zip(names, probs)),
-                              info.get("decision_tolerance"))
+                              info.get("decision_tolerance"), info.get("efficiency"))
                 elif event in ("finished", "failed", "cancelled"):
                     end, error = event, info.get("error")
         except KeyboardInterrupt:

@@ -161,7 +161,7 @@ def test_the_page_says_where_the_answer_is_read_and_marks_the_floor(browser):
                                       "model_probabilities": {"linear": 0.9 if t <= 3 else 0.1,
                                                               "cubic": 0.1 if t <= 3 else 0.9},
                                       "simulations_per_s": None, "noise_floor": floor[0],
-                                      "decision_tolerance": floor[1]}))
+                                      "decision_tolerance": floor[1], "workers": 2, "efficiency": 0.5 + t / 100}))
     events.append(("finished", {}))
     stream = "".join(f"id: {i}\nevent: {e}\ndata: {json.dumps(d)}\n\n" for i, (e, d) in enumerate(events, 1))
     answers = {f"/jobs/{job}/view": ("text/html", VIEW), f"/jobs/{job}/events": ("text/event-stream", stream),
@@ -185,6 +185,7 @@ def test_the_page_says_where_the_answer_is_read_and_marks_the_floor(browser):
                "the five populations on the page")
     assert page.inner_text("#answer-at") == "population 3, \u03b5 3.333 % (decision tolerance 3.200 %, noise floor 2.800 %)"
     assert page.inner_text("#leader") == "linear (0.90)"
+    assert page.inner_text("#efficiency") == "0.55"  # the last population's (issue O.5)
     assert page.locator("#eps text.mark-label").all_text_contents() == ["decision 3.200 %", "noise floor 2.800 %"]
     assert page.locator("#probs text.mark-label").all_text_contents() == ["answer (population 3)"]
 

@@ -146,6 +146,10 @@ def test_run_prints_populations_then_a_short_summary(spec, cluster, tmp_path):
     lines = abcns("run", spec, "--out", tmp_path / "a.zarr", "--scheduler", cluster).stdout.splitlines()
     pops = [line for line in lines if line.startswith("population ")]
     assert len(pops) == POPULATIONS and all("eps" in p and " %  acceptance" in p for p in pops)
+    # issue O.5: on a cluster each line gives the workers' efficiency over its population, a
+    # share of their time (the workers' compute time of the tasks used over workers x wall)
+    shares = [float(re.search(r"efficiency (\d\.\d\d)$", p).group(1)) for p in pops]  # type: ignore[union-attr]
+    assert all(0 < e <= 1 for e in shares), pops
     rest = lines[len(pops):]
     assert rest[0] == ""  # a blank line, then the summary
     assert_human_summary(rest[1:])

@@ -446,9 +446,12 @@ class JobManager:
             threading.Thread(target=self._run, args=(job,), name=f"abcns-job-{job.id[:8]}", daemon=True).start()
 
     @staticmethod
-    def _progress(pop, models: list[str], n_simulations_total: int, elapsed_s: float, rate: float | None) -> dict:
+    def _progress(pop, models: list[str], n_simulations_total: int, elapsed_s: float, rate: float | None,
+                  workers: int | None = None, efficiency: float | None = None) -> dict:
         """A population event: the model probabilities by model name; the noise floor and the
-        decision tolerance as estimated after the population (null while the run knows none)."""
+        decision tolerance as estimated after the population (null while the run knows none);
+        the cluster's worker threads and their efficiency over the population (runner.Progress;
+        null for a population read back from the store)."""
         floor = pop.floor
         return {
             "population": pop.t, "epsilon": pop.epsilon, "epsilon_next": pop.epsilon_next,
@@ -457,6 +460,7 @@ class JobManager:
             "elapsed_s": float(elapsed_s), "simulations_per_s": rate,
             "noise_floor": None if floor is None else floor.floor,
             "decision_tolerance": None if floor is None else floor.decision,
+            "workers": workers, "efficiency": efficiency,
         }
 
     def _backfill(self, job: JobRecord) -> None:
@@ -521,7 +525,7 @@ class JobManager:
 
         def on_population(p: Progress) -> None:
             job.progress = self._progress(p.population, job.models, p.n_simulations_total, p.elapsed_s,
-                                          p.simulations_per_s)
+                                          p.simulations_per_s, p.workers, p.efficiency)
             job.events.append("population", job.progress)  # type: ignore[union-attr]
 
         try:

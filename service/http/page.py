@@ -182,6 +182,8 @@ function render() {
   if (p) {
     text("population", p.population); text("epsilon", fmt(p.epsilon)); text("eps-unit", unit);
     text("acceptance", p.acceptance_rate.toFixed(3)); text("simulations", p.simulations); text("elapsed", p.elapsed_s.toFixed(1));
+    // the workers' share of time on the run's simulations over the last population (in-process: none)
+    text("efficiency", p.efficiency === null || p.efficiency === undefined ? "-" : p.efficiency.toFixed(2));
   }
   const d = decisionPop(), known = p && p.decision_tolerance !== null && p.decision_tolerance !== undefined;
   if (d) {  // the leading model where the answer is read, and which tolerance that is
@@ -300,7 +302,7 @@ VIEW = ("<!doctype html><html><head><title>abcns job</title>" + _HEAD + r"""</he
 <div class="kv card"><span>status <b id="status">-</b></span><span>population <b id="population">-</b></span>
 <span>tolerance <b id="epsilon">-</b><b id="eps-unit"></b></span><span>acceptance <b id="acceptance">-</b></span>
 <span>simulations <b id="simulations">-</b></span><span>elapsed <b id="elapsed">-</b> s</span>
-<span>leading model <b id="leader">-</b></span><span>answer read at <b id="answer-at">-</b></span><span>workers <b id="workers">-</b></span></div>
+<span>leading model <b id="leader">-</b></span><span>answer read at <b id="answer-at">-</b></span><span>workers <b id="workers">-</b></span><span>efficiency <b id="efficiency">-</b></span></div>
 <ul id="warnings"></ul>
 <div class="grid gap">
  <div class="card"><h2>tolerance per population (log scale)</h2><svg id="eps"></svg></div>

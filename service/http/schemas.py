@@ -26,6 +26,8 @@ class ProgressOut(BaseModel):
     simulations_per_s: float | None = None
     noise_floor: float | None = None  # abcns.noise.Floor.floor after this population; null without a floor
     decision_tolerance: float | None = None  # the floor plus its spread: the answer is read at or above it
+    workers: int | None = None  # the cluster's worker threads after this population (null in-process)
+    efficiency: float | None = None  # their share of time on the run's simulations over the population
 
 
 class JobInfo(BaseModel):

@@ -133,6 +133,9 @@ class DaskExecutor:
                                                 pure=False)
         self.expected: int | None = None  # batches the previous map call consumed
         self.batch_seconds: float | None = None  # compute time per batch on a worker (smoothed)
+        # the compute time on the workers of every task consumed, and its batches, since the
+        # executor opened: the useful work, for the efficiency a user sees (runner.Progress)
+        self.busy_s, self.busy_batches = 0.0, 0
 
     def close(self) -> None:
         """Release the job's data on the cluster."""
@@ -173,6 +176,8 @@ class DaskExecutor:
         return Stream(self, iter(draws))
 
     def _measured(self, seconds: float, size: int) -> None:
+        self.busy_s += seconds
+        self.busy_batches += size
         per = seconds / size
         self.batch_seconds = per if self.batch_seconds is None else 0.7 * self.batch_seconds + 0.3 * per
 

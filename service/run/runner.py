@@ -43,6 +43,11 @@ class Progress:
     n_simulations_total: int
     elapsed_s: float
     simulations_per_s: float
+    # on a Dask cluster: its worker threads now, and the share of their time since the
+    # previous population spent on the simulations the run used (the workers' compute time
+    # of the tasks consumed over workers x wall time); None in the runner's process
+    workers: int | None = None
+    efficiency: float | None = None
 
 
 def job_key(spec: JobSpec, seed: int, dhash: str) -> str:
@@ -221,6 +226,7 @@ def run_job(
                   noise=job.noise)
     start, sims_start = time.monotonic(), budget.n_simulations
     writer = PopulationWriter(store, key, on_population, interval_s)
+    last = [start, 0.0]  # when the previous population ended, the workers' busy seconds then
 
     def written(pop: Population) -> None:
         info = None
@@ -228,9 +234,16 @@ def run_job(
             run_info["epsilon_initial_source"] = "given" if job.settings.epsilon_initial is not None else "pilot"
             run_info["n_pilot_simulations"] = budget.n_simulations - pop.n_simulations
             info = dict(run_info)
-        dt = time.monotonic() - start
+        now = time.monotonic()
+        dt = now - start
+        workers = efficiency = None
+        if isinstance(executor, DaskExecutor):
+            workers = executor.n_workers()
+            wall, busy = now - last[0], executor.busy_s - last[1]
+            efficiency = min(1.0, busy / (workers * wall)) if wall > 0 and workers else None
+            last[:] = [now, executor.busy_s]
         progress = Progress(pop, budget.n_simulations, budget.elapsed(),
-                            (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0)
+                            (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0, workers, efficiency)
         writer.put(pop, budget.n_simulations, info, progress)
 
     try:
