@@ -20,6 +20,7 @@ from the generator it is given.
 from __future__ import annotations
 
 import functools
+import itertools
 
 import numpy as np
 from scipy.special import gammaincinv, logsumexp
@@ -66,7 +67,7 @@ def _tree_sets(points: np.ndarray, max_ellipsoids: int) -> list[np.ndarray] | No
     leaf = max(LEAF_POINTS, min_points(points.shape[1]))
     ok, rows, offsets = compiled.tree_rows(np.ascontiguousarray(points, dtype=float), max_ellipsoids, leaf,
                                            SPLIT_GAIN, KMEANS_ITERATIONS)
-    return [rows[a:b] for a, b in zip(offsets[:-1], offsets[1:])] if ok else None
+    return [rows[a:b] for a, b in itertools.pairwise(offsets)] if ok else None
 
 
 def _radii(points: np.ndarray) -> np.ndarray | None:
@@ -195,7 +196,7 @@ def _place(bound: Union, which: np.ndarray, z: np.ndarray, u: np.ndarray) -> np.
     w = ell.unit_ball_points(z, u)
     grouped = np.empty_like(w)  # the points in ellipsoid order, as the numbers come
     at = 0
-    for e, k in zip(bound, np.bincount(which, minlength=len(bound))):
+    for e, k in zip(bound, np.bincount(which, minlength=len(bound)), strict=True):
         part = grouped[at:at + k]
         np.matmul(w[at:at + k], e.axes.T, out=part)
         part += e.centre  # ellipsoid.in_ellipsoid's centre + w @ axes.T
@@ -291,7 +292,7 @@ def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.rando
     held = 0
     for train, test in (halves, halves[::-1]):
         fold = tuple(ell.enlarge(ell.fit(points[rows], fallback=e), enlargement)
-                     for rows, e in zip(train, bound) if rows.size)
+                     for rows, e in zip(train, bound, strict=True) if rows.size)
         rows = np.concatenate(test)
         rows = rows[uniform[rows]]
         if fold and rows.size:

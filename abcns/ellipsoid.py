@@ -61,7 +61,7 @@ def from_matrices(centres: Sequence[np.ndarray], matrices: Sequence[np.ndarray],
     cs = [np.asarray(c, dtype=float).reshape(-1) for c in centres]
     d = cs[0].shape[0]
     ms = [np.asarray(m, dtype=float) for m in matrices]
-    for c, m in zip(cs, ms):
+    for c, m in zip(cs, ms, strict=True):
         if m.shape != (c.shape[0], c.shape[0]) or c.shape[0] != d:
             raise ValueError(f"matrix has shape {m.shape}, expected ({c.shape[0]}, {c.shape[0]}) for a "
                              f"{c.shape[0]}-d centre")
@@ -75,7 +75,7 @@ def from_matrices(centres: Sequence[np.ndarray], matrices: Sequence[np.ndarray],
     log_det = np.sum(np.log(eigval), axis=1)
     lub = _log_unit_ball(d)
     return [Ellipsoid(c, stack[i].copy(), axes[i].copy(), lub + 0.5 * float(log_det[i]), note)
-            for i, (c, note) in enumerate(zip(cs, notes))]
+            for i, (c, note) in enumerate(zip(cs, notes, strict=True))]
 
 
 def from_box(low: np.ndarray, high: np.ndarray) -> Ellipsoid:
@@ -229,7 +229,7 @@ def _repair(covs: np.ndarray, max_condition: float, scales: Sequence[float]) -> 
     if not finite:
         return out
     eigval, eigvec = np.linalg.eigh(covs[finite])
-    for i, ev, vec in zip(finite, eigval, eigvec):
+    for i, ev, vec in zip(finite, eigval, eigvec, strict=True):
         top = ev[-1]
         if not top > (1e3 * np.finfo(float).eps * scales[i]) ** 2:
             continue
@@ -288,10 +288,10 @@ def fit_many(
     repaired: list[tuple[np.ndarray, bool] | None] = [None] * len(sets)
     if shaped:
         covs = np.stack([_covariance(sets[i], centres[i]).reshape(d, d) for i in shaped])
-        for i, r in zip(shaped, _repair(covs, max_condition, [scales[i] for i in shaped])):
+        for i, r in zip(shaped, _repair(covs, max_condition, [scales[i] for i in shaped]), strict=True):
             repaired[i] = r
     shapes, notes = [], []
-    for p, r in zip(sets, repaired):
+    for p, r in zip(sets, repaired, strict=True):
         if r is None:
             if callable(fallback):
                 fallback = fallback()
@@ -306,7 +306,7 @@ def fit_many(
             notes.append("repaired" if r[1] else "")
     trials = from_matrices(centres, shapes, notes)
     grown = []
-    for p, r, trial, shape in zip(sets, repaired, trials, shapes):
+    for p, r, trial, shape in zip(sets, repaired, trials, shapes, strict=True):
         scale = float(np.max(mahalanobis2(trial, p)))
         if r is None:
             scale = max(1.0, scale)

@@ -211,7 +211,7 @@ class Filling:
                 budget.check()
         finally:
             self.close()
-        models, theta, distances = (np.concatenate(parts) for parts in zip(*kept))
+        models, theta, distances = (np.concatenate(parts) for parts in zip(*kept, strict=True))
         return Filled(models, theta, distances, n_sims, n_failed, n_redraws, np.concatenate(simulated),
                       np.concatenate(failed))
 

@@ -108,7 +108,7 @@ def posterior_summary(theta: np.ndarray, weights: np.ndarray | None, names: Sequ
         mean = float(np.sum(w * x))
         std = float(np.sqrt(np.sum(w * (x - mean) ** 2)))
         q = weighted_quantiles(x, w, QUANTILES)
-        out[name] = {"mean": mean, "std": std, **{f"q{_qname(p)}": float(v) for p, v in zip(QUANTILES, q)}}
+        out[name] = {"mean": mean, "std": std, **{f"q{_qname(p)}": float(v) for p, v in zip(QUANTILES, q, strict=True)}}
     return out
 
 
@@ -153,7 +153,7 @@ class Result:
 
     def model_probabilities(self, t: int | None = None) -> dict[str, float]:
         pop = self.final if t is None else self.populations[t - 1]
-        return {m.name: float(p) for m, p in zip(self.models, pop.model_probabilities)}
+        return {m.name: float(p) for m, p in zip(self.models, pop.model_probabilities, strict=True)}
 
     @property
     def floor(self) -> Floor | None:
@@ -203,7 +203,7 @@ class Result:
         if pop.evidence is None or self.settings.get("sampler", {}).get("variant") != "evidence":
             return {}
         _, se = probabilities(pop.evidence.log_z, pop.evidence.log_z_se)
-        return {m.name: float(v) for m, v in zip(self.models, se)}
+        return {m.name: float(v) for m, v in zip(self.models, se, strict=True)}
 
     def failures(self) -> dict[str, dict[str, float]]:
         """{model: {"failed", "simulations", "share"}}: simulations that failed or diverged
@@ -257,7 +257,7 @@ class Result:
                        f"tolerance of the run (the highest {pop.epsilon:.4g}); the stated noise is larger than the "
                        "data's misfit")
         if pop is not self.final:
-            named = lambda q: ", ".join(f"{m.name} {v:.2f}" for m, v in zip(self.models, q))  # noqa: E731
+            named = lambda q: ", ".join(f"{m.name} {v:.2f}" for m, v in zip(self.models, q, strict=True))
             if np.max(np.abs(self.final.model_probabilities - pop.model_probabilities)) > 0.05:
                 out.append(f"below the noise floor: at the final tolerance {self.final.epsilon:.4g} (population "
                            f"{self.final.t}) the model probabilities are {named(self.final.model_probabilities)}, but "
@@ -299,19 +299,19 @@ class Result:
         return out
 
     def _named(self, values: np.ndarray) -> dict[str, float]:
-        return {m.name: float(v) for m, v in zip(self.models, values)}
+        return {m.name: float(v) for m, v in zip(self.models, values, strict=True)}
 
     def _log_evidence(self, pop: Population) -> dict[str, dict[str, float | None]]:
         ev = pop.evidence
         if ev is None:
             return {}
-        finite = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
+        finite = lambda x: float(x) if np.isfinite(x) else None
         return {m.name: {"log_z": finite(ev.log_z[i]), "se": finite(ev.log_z_se[i])} for i, m in enumerate(self.models)}
 
     def _ellipsoid_counts(self) -> dict[str, object]:
         """Ellipsoids per model in the final bounds, and repairs / fallbacks over the run."""
         notes = [e.note for p in self.populations for bound in p.ellipsoids for e in bound]
-        return {"final": {m.name: len(b) for m, b in zip(self.models, self.final.ellipsoids)},
+        return {"final": {m.name: len(b) for m, b in zip(self.models, self.final.ellipsoids, strict=True)},
                 "repaired": notes.count("repaired"), "fallback": notes.count("fallback")}
 
     def _noise_floor(self) -> dict | None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -252,11 +253,11 @@ class NSSettings:
 
     @property
     def n_drop(self) -> int:
-        return int(round(self.alpha * self.particles))
+        return round(self.alpha * self.particles)
 
     @property
     def n_survivors(self) -> int:
-        return int(round(self.beta * self.particles))
+        return round(self.beta * self.particles)
 
     @property
     def n_new(self) -> int:
@@ -300,7 +301,7 @@ class SMCSettings:
             sched = tuple(float(e) for e in self.schedule)
             _check(len(sched) >= 1 and all(e > 0 and math.isfinite(e) for e in sched), "sampler.schedule",
                    "must hold finite positive tolerances")
-            _check(all(a >= b for a, b in zip(sched, sched[1:])), "sampler.schedule", "must not increase")
+            _check(all(a >= b for a, b in itertools.pairwise(sched)), "sampler.schedule", "must not increase")
             object.__setattr__(self, "schedule", sched)
 
     def check_particles(self, models: Sequence[Model]) -> None:

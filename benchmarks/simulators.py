@@ -134,7 +134,7 @@ def main() -> None:
     for name, what, cls, kwargs, params, flops, goal in setups(rng):
         sim = cls(**kwargs)
         observed = sim.simulate(params[:1]).values[0] + 0.01 * rng.standard_normal(kwargs["force"].size)
-        d, status = sim.distance_nmse(params, observed, 0, observed.size)
+        _d, status = sim.distance_nmse(params, observed, 0, observed.size)
         n_ok = int(np.count_nonzero(status == 0))
         t_nmse = best_time(lambda s=sim, o=observed, p=params: s.distance_nmse(p, o, 0, o.size), args.repeats)
         t_traj = best_time(lambda s=sim, p=params: s.simulate(p), args.repeats)

@@ -14,6 +14,7 @@ surplus work the executor cancelled too late).
 from __future__ import annotations
 
 import time
+from typing import ClassVar
 
 import numpy as np
 
@@ -35,7 +36,7 @@ class SleepyDuffing:
 
     name = NAME
     parameter_names = Duffing.parameter_names
-    defaults = dict(Duffing.defaults)
+    defaults: ClassVar[dict[str, float]] = dict(Duffing.defaults)
 
     def __init__(self, seconds: float = SECONDS, n_samples: int | None = None, **kwargs):
         self.inner = Duffing(**kwargs)  # the oscillator's length is its force's (n_samples: the registry's, unused)

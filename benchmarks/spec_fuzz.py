@@ -142,7 +142,8 @@ def check(raw: dict[str, Any], folder: Path) -> tuple[str, str]:
         spec = parse(raw)
         build(spec, None)
     except SpecError as err:
-        assert err.field and isinstance(err.field, str), f"a SpecError without a field: {err}"
+        if not (err.field and isinstance(err.field, str)):
+            raise AssertionError(f"a SpecError without a field: {err}") from err
         return "refused", err.field.split("[")[0]
     out = folder / f"run-{time.monotonic_ns()}.zarr"
     result = run_to_store(spec, None, out)

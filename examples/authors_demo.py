@@ -29,7 +29,7 @@ def main() -> None:
     start = time.perf_counter()
 
     def progress(pop):
-        probs = " ".join(f"{m.name}={p:.2f}" for m, p in zip(problem.models, pop.model_probabilities))
+        probs = " ".join(f"{m.name}={p:.2f}" for m, p in zip(problem.models, pop.model_probabilities, strict=True))
         print(f"population {pop.t:3d}  eps {pop.epsilon:10.4f}  acceptance {pop.acceptance_rate:.2f}  "
               f"sims {pop.n_simulations:5d}  {probs}", flush=True)
 

@@ -64,7 +64,7 @@ def posterior_figure(runs: list, label: str, truth: dict[str, float], title: str
     fig = Figure(figsize=(10, 3.8), layout="constrained")
     axes = fig.subplots(1, 2)
     keys = [str(k) for k, _ in runs]
-    for j, (ax, name) in enumerate(zip(axes, ("c", "k"))):
+    for j, (ax, name) in enumerate(zip(axes, ("c", "k"), strict=True)):
         means, sds, errs = [], [], []
         for _, res in runs:
             theta = res.particles(0)[0][:, j]

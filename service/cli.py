@@ -188,7 +188,7 @@ class ProgressLine:
             self.asked = now
             try:
                 self.n_workers = self.workers()
-            except Exception:  # noqa: BLE001 - no answer now: the count is unknown, the run goes on
+            except Exception:
                 self.n_workers = None
         return self.n_workers
 
@@ -261,7 +261,7 @@ def dashboard_link(client) -> str | None:
         opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # straight to it, never a proxy
         with opener.open(link, timeout=5) as answer:
             return link if answer.status == 200 and b"needs bokeh" not in answer.read(4096) else None
-    except Exception:  # noqa: BLE001 - no link, an error page or no answer: no dashboard to show
+    except Exception:
         return None
 
 
@@ -273,7 +273,7 @@ def resume_point(out: Path) -> tuple[int, float]:
     try:
         state = Store.open(out).run_state()
         return int(state["n_simulations_total"]), float(state["elapsed_s"])
-    except Exception:  # noqa: BLE001 - no store (yet), or not one: run_job says what is wrong with it
+    except Exception:
         return 0, 0.0
 
 
@@ -336,7 +336,7 @@ def run(
         def progress(p: Progress) -> None:
             pop = p.population
             line.show(pop.t, pop.epsilon, pop.acceptance_rate, p.n_simulations_total, p.elapsed_s,
-                      dict(zip(names, pop.model_probabilities.tolist())),
+                      dict(zip(names, pop.model_probabilities.tolist(), strict=True)),
                       None if pop.floor is None else pop.floor.decision, p.efficiency)
 
         try:
@@ -535,7 +535,7 @@ def submit(
                 if event == "population":
                     probs = info["model_probabilities"]
                     line.show(info["population"], info["epsilon"], info["acceptance_rate"], info["simulations"],
-                              info["elapsed_s"], probs if isinstance(probs, dict) else dict(zip(names, probs)),
+                              info["elapsed_s"], probs if isinstance(probs, dict) else dict(zip(names, probs, strict=True)),
                               info.get("decision_tolerance"), info.get("efficiency"))
                 elif event in ("finished", "failed", "cancelled"):
                     end, error = event, info.get("error")

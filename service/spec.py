@@ -287,7 +287,7 @@ def parse(raw: dict) -> JobSpec:
             close = difflib.get_close_matches(loc[-1], allowed(loc[:-1]), n=1, cutoff=0.6)
             if close:
                 message += f"; did you mean `{close[0]}`?"
-                explained.add(loc[:-1] + (close[0],))
+                explained.add((*loc[:-1], close[0]))
         problems.append((loc, _field(loc), message))
     problems = [p for p in problems if p[0] not in explained or p[0] not in missing] or problems
     first, *rest = problems

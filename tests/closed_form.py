@@ -31,7 +31,7 @@ def two_models(a1=5.0, a2=20.0):
 
 def evidence_two_models(eps, a):
     """Z(eps) = P(|s - S_OBS| < eps) under theta ~ U(-a, a), s ~ N(theta, 1) (quadrature)."""
-    dens = lambda s: (stats.norm.cdf(a - s) - stats.norm.cdf(-a - s)) / (2 * a)  # noqa: E731
+    dens = lambda s: (stats.norm.cdf(a - s) - stats.norm.cdf(-a - s)) / (2 * a)
     return integrate.quad(dens, S_OBS - eps, S_OBS + eps)[0]
 
 

@@ -200,8 +200,8 @@ def test_the_page_says_where_the_answer_is_read_and_marks_the_floor(browser):
     assert decision["w"] > 100 and floor["w"] > 100
     assert curve["y"] < decision["y"] < floor["y"] < curve["y"] + curve["h"]
     (answer,) = box("#probs line.mark")
-    tick = [b for b, label in zip(box("#probs text.lbl"), page.locator("#probs text.lbl").all_text_contents())
-            if label == "3"][0]
+    tick = next(b for b, label in zip(box("#probs text.lbl"), page.locator("#probs text.lbl").all_text_contents())
+            if label == "3")
     assert answer["h"] > 100 and abs(answer["x"] - (tick["x"] + tick["w"] / 2)) < 2
     assert page.eval_on_selector("#eps line.mark", "e => getComputedStyle(e).stroke") == "rgb(0, 0, 0)"
     # the labels are filled text, not outlined in the grid's light grey (the chart's <div class="grid">

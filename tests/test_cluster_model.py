@@ -31,7 +31,7 @@ def test_one_worker_without_overheads_is_fully_efficient(batches):
     assert out.simulations == batches * 10
 
 
-@pytest.mark.parametrize("workers, units", [(1, 31), (4, 31), (8, 31), (14, 31), (14, 28), (64, 31)])
+@pytest.mark.parametrize(("workers", "units"), [(1, 31), (4, 31), (8, 31), (14, 31), (14, 28), (64, 31)])
 def test_a_barrier_per_round_costs_the_last_wave(workers, units):
     """Rounds of ``units`` equal tasks, each round after the last: ceil(units / W) waves each,
     so the efficiency is units / (W x ceil(units / W)) exactly without overheads."""

@@ -51,7 +51,7 @@ def test_engine_benchmark_runs():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("args, expect", [
+@pytest.mark.parametrize(("args", "expect"), [
     (["benchmarks.model_selection", "--seeds", "1", "--processes", "1", "--max-populations", "4"], "right model with p"),
     (["benchmarks.gandk", "--seeds", "1", "--budget", "3000"], "| 1 |"),
 ], ids=["model_selection", "gandk"])

@@ -20,7 +20,7 @@ def demo_run():
 
 
 def test_authors_demo_selects_cubic_with_the_reference_posterior(demo_run):
-    problem, r = demo_run
+    _problem, r = demo_run
     ref = json.loads((DATA / "authors-demo" / "reference_run.json").read_text())
     assert r.model_probabilities()["cubic"] >= 0.99
     post = r.posterior()["cubic"]
@@ -54,7 +54,7 @@ def test_linear_31_posterior_means_at_the_truth_to_monte_carlo_error(linear_runs
     particles (c: 0.067 / 31.6 = 0.0021, k: 6.6 / 31.6 = 0.21). Measured on seeds 1-7:
     -1.2 to +2.1 standard errors; allowed 4. (The 1 % of the truth this replaces was 94 and
     480 standard errors.)"""
-    problem, ns, smc = linear_runs
+    problem, ns, _smc = linear_runs
     theta, _, _ = ns.particles("linear")
     for name, truth in problem.truth["linear"].items():
         post = ns.posterior()["linear"][name]

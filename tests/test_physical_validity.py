@@ -44,7 +44,7 @@ def refused(spec: dict) -> SpecError:
     return err.value
 
 
-@pytest.mark.parametrize("change, field, words", [
+@pytest.mark.parametrize(("change", "field", "words"), [
     (lambda s: s["data"].update(fs=1e308), "data.fs", "sample interval 1/fs is 1e-308"),  # subnormal
     (lambda s: s["data"].update(fs=5e-324), "data.fs", "sample interval 1/fs is inf"),
     (lambda s: s["data"].pop("fs") and s["data"].update(dt=1e306, decimate=1000), "data.dt", "x decimate (1000)"),

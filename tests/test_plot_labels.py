@@ -28,7 +28,7 @@ def two_model_result(n: int = 200, seed: int = 0) -> Result:
     return Result("abc-ns", models, pops, StopReason.MAX_POPULATIONS, 0, {}, "given", 6 * n, 0, 3.0)
 
 
-@pytest.mark.parametrize("unit, label", [("%", "tolerance $\\varepsilon_t$ (%)"), ("", "tolerance $\\varepsilon_t$")])
+@pytest.mark.parametrize(("unit", "label"), [("%", "tolerance $\\varepsilon_t$ (%)"), ("", "tolerance $\\varepsilon_t$")])
 def test_the_tolerance_and_the_distance_carry_their_unit(unit, label):
     result = two_model_result()
     assert tolerance_figure(result, unit).axes[0].get_ylabel() == label

@@ -50,7 +50,7 @@ def refuse(raw, base, field, match=None):
 
 
 @pytest.mark.parametrize(
-    "mutate, field",
+    ("mutate", "field"),
     [
         (lambda r: r["models"][1].update(simulator="nope"), "models[1].simulator"),
         (lambda r: r["models"][1]["priors"].pop("k"), "models[1].priors"),
@@ -147,7 +147,7 @@ def with_sampler(raw, sampler):
     return {**raw, "sampler": sampler}
 
 
-@pytest.mark.parametrize("algorithm, name, value, owners", [
+@pytest.mark.parametrize(("algorithm", "name", "value", "owners"), [
     ("abc-ns", "quantile", 0.3, "abc-smc"), ("abc-ns", "schedule", [2.0, 1.0], "abc-smc"),
     ("abc-smc", "alpha", 0.2, "abc-ns"), ("abc-smc", "variant", "paper", "abc-ns"),
     ("rejection", "beta", 0.5, "abc-ns"), ("rejection", "quantile", 0.3, "abc-smc"),
@@ -167,7 +167,7 @@ def test_a_field_no_algorithm_reads_is_an_unknown_field(raw, algorithm):
         assert err.value.field == f"sampler.{name}"
 
 
-@pytest.mark.parametrize("change, field, match", [
+@pytest.mark.parametrize(("change", "field", "match"), [
     ({"algorithm": "abc-nest"}, "sampler.algorithm", "'abc-ns', 'abc-smc' or 'rejection'"),
     ({"algorithm": "abc-smc", "quantile": "half"}, "sampler.quantile", "valid number"),
     ({"algorithm": "abc-smc", "schedule": [3.0, 5.0]}, "sampler.schedule", "must not increase"),
@@ -286,7 +286,7 @@ def bouc_wen_raw():
     return raw
 
 
-@pytest.mark.parametrize("mutate, field, match", [
+@pytest.mark.parametrize(("mutate", "field", "match"), [
     (lambda m: m["fixed"].update(n=1.5), "models[1].fixed.n", r"must be an integer in 1\.\.4 for simulator bouc_wen"),
     (lambda m: m["fixed"].update(n=5), "models[1].fixed.n", r"integer in 1\.\.4"),
     (lambda m: m["fixed"].update(n=0), "models[1].fixed.n", r"integer in 1\.\.4"),

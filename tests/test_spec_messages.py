@@ -30,7 +30,7 @@ def test_a_misspelt_field_is_named_once_with_the_name_it_should_have(raw):
     assert err.value.field == "models[1].prior"
 
 
-@pytest.mark.parametrize("where, wrong, right", [
+@pytest.mark.parametrize(("where", "wrong", "right"), [
     (("stop",), "min_epsilon_decrase", "min_epsilon_decrease"),
     (("sampler",), "partcles", "particles"),
     (("models", 0), "integrater", "integrator"),

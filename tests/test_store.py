@@ -121,7 +121,7 @@ def test_round_trip_is_bit_identical(reference):
     assert all(len(p.ellipsoids) == 2 for p in back) and all(p.survivors is not None for p in back)
     assert_same_population(store.population(3), pops[2])
     for t in (0, 6):
-        with pytest.raises(IndexError, match="holds populations 1..5"):
+        with pytest.raises(IndexError, match=r"holds populations 1\.\.5"):
             store.population(t)
     g = zarr.open_group(str(store.path), mode="r")
     assert g["n_simulations_total"][:].tolist() == totals
@@ -131,7 +131,7 @@ def test_round_trip_is_bit_identical(reference):
 
 
 def test_resume_from_store_equals_uninterrupted_run(reference, tmp_path):
-    store_a, pops_a, totals_a = reference
+    store_a, _pops_a, totals_a = reference
     models, evaluate = two_models()
     run_into(new_store(tmp_path / "b.zarr", models), 2)
 
@@ -146,9 +146,10 @@ def test_resume_from_store_equals_uninterrupted_run(reference, tmp_path):
         try:
             pop = next(gen)
         except StopIteration as done:
-            assert done.value.reason is StopReason.MAX_POPULATIONS
+            end = done.value
             break
         store_b.append(pop, n_simulations_total=budget.n_simulations)
+    assert end.reason is StopReason.MAX_POPULATIONS
 
     assert store_b.n_populations == 5
     for a, b in zip(store_a.populations(), store_b.populations()):
@@ -343,7 +344,7 @@ def test_open_and_create_errors(tmp_path):
     with pytest.raises(StoreError, match="not a result store"):
         Store.open(tmp_path / "empty")
     zarr.open_group(str(tmp_path / "plain.zarr"), mode="w", zarr_format=3).attrs["x"] = 1
-    with pytest.raises(StoreError, match="not a result store .no format_version"):
+    with pytest.raises(StoreError, match=r"not a result store .no format_version"):
         Store.open(tmp_path / "plain.zarr")
 
     models, _ = two_models()
@@ -774,7 +775,7 @@ def test_the_descriptions_are_true_of_a_real_run(reference):
     """S: the store's variables were checked for having a description, not for its being
     true. Each claim below is read from the description (so a changed text fails here) and
     checked against a real run (the reference store: 5 populations of two_models, ABC-NS)."""
-    store, pops, totals = reference
+    store, _pops, totals = reference
     ds = xr.open_zarr(store.path)
     a = {name: ds[name].values for name in ds.variables}
     say = {name: ds[name].attrs["description"] for name in ds.variables}

@@ -26,7 +26,7 @@ def expect(field, fn, match=None):
 
 
 @pytest.mark.parametrize(
-    "prior, field",
+    ("prior", "field"),
     [((1.0, 0.0), "models[m].priors.c"), ((0.0, np.inf), "models[m].priors.c"), ((np.nan, 1.0), "models[m].priors.c"),
      ((2.0, 2.0), "models[m].priors.c"), ("x", "models[m].priors.c")],
 )
@@ -44,7 +44,7 @@ def test_prior_on_a_fixed_parameter():
 
 
 @pytest.mark.parametrize(
-    "kwargs, field",
+    ("kwargs", "field"),
     [({"alpha": 0.0}, "sampler.alpha"), ({"alpha": 1.0}, "sampler.alpha"), ({"beta": 1.2}, "sampler.beta"),
      ({"beta": 0.0}, "sampler.beta"), ({"alpha": 0.5, "beta": 0.6}, "sampler.beta"),
      ({"particles": 1}, "sampler.particles"), ({"enlargement": 0.5}, "sampler.enlargement"),

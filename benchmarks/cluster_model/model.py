@@ -212,7 +212,7 @@ class _Channel:
 
 
 class _Task:
-    __slots__ = ("id", "prio", "batches", "population", "worker", "state", "cancel", "seconds", "stream", "rows")
+    __slots__ = ("batches", "cancel", "id", "population", "prio", "rows", "seconds", "state", "stream", "worker")
 
     def __init__(self, tid: int, prio: tuple, population: int, batches: list[int], stream: object):
         self.id, self.prio, self.population, self.batches, self.stream = tid, prio, population, batches, stream
@@ -607,7 +607,7 @@ class Replay:
             kept_regular += a
             if kept >= pop.n_needed:
                 missing = pop.n_needed - (kept - a)
-                self.counted += int(math.ceil(missing / a * self.bs)) if a > 0 else self.bs
+                self.counted += math.ceil(missing / a * self.bs) if a > 0 else self.bs
                 break
             self.counted += self.bs
             n_batches += 1

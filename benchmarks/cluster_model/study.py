@@ -129,7 +129,7 @@ def print_sensitivity() -> None:
     cases = [(v, w, eff) for v, s in measured.SIXTEEN.items() for w, (eff, _, _) in s.jobs.items()]
     print("| change | " + " | ".join(f"{v} W={w} ({eff:.2f})" for v, w, eff in cases) + " | rows within 0.05 |")
     print("|---|" + "---:|" * (len(cases) + 1))
-    for label, change in [("none", {})] + SENSITIVITY + SPLITS:
+    for label, change in [("none", {}), *SENSITIVITY, *SPLITS]:
         cells, ok = [], 0
         for v, w, eff in cases:
             base = sixteen_costs(v)

@@ -221,7 +221,7 @@ def main(argv: list[str] | None = None) -> None:
             for tool, fn in (("abcns", run_abcns), ("pyABC", lambda c, s: run_pyabc(c, s, args.db_dir))):
                 try:
                     r = fn(case, seed)
-                except Exception as err:  # noqa: BLE001 - pyABC's own failures; its runs are not reproducible by seed
+                except Exception as err:
                     if tool == "abcns":
                         raise
                     failures.append(f"§{key} pyABC seed {seed}: {type(err).__name__}: {err} (retried once)")

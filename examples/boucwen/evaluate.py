@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--figures", type=Path, default=HERE / "figures")
     args = parser.parse_args(argv)
     # the run's own spec (particles, stop) serves the linear fit too
-    spec, base, store, result, data = open_run(HERE / "spec.yaml", args.out / f"seed{args.seed}.zarr")
+    spec, base, _store, result, data = open_run(HERE / "spec.yaml", args.out / f"seed{args.seed}.zarr")
     probs = result.model_probabilities()
     selected = max(probs, key=probs.get)
 

@@ -486,7 +486,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 await asyncio.sleep(2.0)
                 try:  # the manager's client: a new one when the old gave up on a restarted scheduler
                     app.state.workers = await asyncio.to_thread(count_workers, manager.client)
-                except Exception:  # noqa: BLE001 - no scheduler now: no workers
+                except Exception:
                     app.state.workers = 0
 
         watcher = asyncio.create_task(watch_workers())

@@ -247,7 +247,8 @@ class JobRecord:
         job.progress = job.events.last_population
         if job.progress is not None and isinstance(job.progress.get("model_probabilities"), list):
             # an event of an earlier version: the probabilities in the job's model order
-            job.progress = {**job.progress, "model_probabilities": dict(zip(job.models, job.progress["model_probabilities"]))}
+            probabilities = dict(zip(job.models, job.progress["model_probabilities"], strict=True))
+            job.progress = {**job.progress, "model_probabilities": probabilities}
         job.save_or_log()  # the current layout
         return job
 
@@ -456,7 +457,7 @@ class JobManager:
         return {
             "population": pop.t, "epsilon": pop.epsilon, "epsilon_next": pop.epsilon_next,
             "acceptance_rate": pop.acceptance_rate, "simulations": int(n_simulations_total),
-            "model_probabilities": {name: float(p) for name, p in zip(models, pop.model_probabilities)},
+            "model_probabilities": {name: float(p) for name, p in zip(models, pop.model_probabilities, strict=True)},
             "elapsed_s": float(elapsed_s), "simulations_per_s": rate,
             "noise_floor": None if floor is None else floor.floor,
             "decision_tolerance": None if floor is None else floor.decision,
@@ -497,7 +498,7 @@ class JobManager:
     def _scheduler_id(self) -> str | None:
         try:
             return self.client.scheduler_info(n_workers=0).get("id")
-        except Exception:  # noqa: BLE001 - not connected
+        except Exception:
             return None
 
     def _lost_scheduler(self, started_on: str | None) -> bool:
@@ -541,7 +542,7 @@ class JobManager:
                 self._end(job, "cancelled" if result.stop_reason.value == "cancelled" else "finished", None)
         except (SpecError, StoreError) as err:
             self._end(job, "failed", str(err))
-        except Exception as err:  # noqa: BLE001 - a job's failure must not take the service down
+        except Exception as err:
             if not self.stopping and self._lost_scheduler(started_on):
                 # the scheduler died under the job: back to the front of the queue, resumed from
                 # its last complete population once a scheduler answers again

@@ -113,7 +113,7 @@ def marginals_figure(result: Result, model: int | str, truth: Mapping[str, float
     fig = Figure(figsize=(3.2 * ncol, 2.8 * nrow), layout="constrained")
     axes = np.atleast_1d(fig.subplots(nrow, ncol)).ravel()
     weights = w if result.weighted_posterior else None
-    for j, (name, tv) in enumerate(zip(m.parameter_names, _truth(m.parameter_names, truth))):
+    for j, (name, tv) in enumerate(zip(m.parameter_names, _truth(m.parameter_names, truth), strict=True)):
         ax = axes[j]
         ax.hist(theta[:, j], bins=bins, weights=weights, color=model_colour(i), alpha=0.8)
         q = np.quantile(theta[:, j], [0.025, 0.975]) if weights is None else None
@@ -244,7 +244,7 @@ def predictive_figure(pred: Predictive, observed: np.ndarray, dt: float | None, 
     axes = np.atleast_1d(fig.subplots(1, len(windows), squeeze=False)).ravel()
     b = pred.bands
     scale = dt if dt is not None else 1.0
-    for ax, (label, (a, z)) in zip(axes, windows):
+    for ax, (label, (a, z)) in zip(axes, windows, strict=True):
         x = np.arange(a, z) * scale
         ax.fill_between(x, b["lower_99"][a:z], b["upper_99"][a:z], color="tab:blue", alpha=0.25, lw=0, label="99 % band")
         ax.fill_between(x, b["lower_50"][a:z], b["upper_50"][a:z], color="tab:blue", alpha=0.45, lw=0, label="50 % band")
@@ -271,7 +271,7 @@ def confusion_figure(conf: Confusion, log: bool = True) -> Figure:
     norm = LogNorm(max(lo, 1e-6), max(hi, lo * 10, 1e-5)) if log else None
     im = None
     cmap = colormaps["viridis"].with_extremes(bad="0.85")  # grey: the model died in that fit, or its simulation failed
-    for ax, name in zip(axes, conf.models):
+    for ax, name in zip(axes, conf.models, strict=True):
         mat = conf.matrices[name]
         im = ax.imshow(np.where(np.isfinite(mat), mat, np.nan), cmap=cmap, norm=norm)
         for (r, c), v in np.ndenumerate(mat):

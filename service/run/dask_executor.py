@@ -314,5 +314,5 @@ class Stream:
     def __del__(self) -> None:  # a stream dropped without close() still frees the cluster
         try:
             self.close()
-        except Exception:  # noqa: BLE001 - the client may be gone at interpreter exit
+        except Exception:
             pass

@@ -312,7 +312,7 @@ def _git_commit() -> str | None:
     if not (root / ".git").exists():
         return None
     try:
-        out = subprocess.run(["git", "-C", str(root), "describe", "--always", "--dirty", "--abbrev=12"],
+        out = subprocess.run(["git", "-C", str(root), "describe", "--always", "--dirty", "--abbrev=12"],  # noqa: S603, S607 - no shell, fixed arguments
                              capture_output=True, text=True, timeout=5, check=True)
     except (OSError, subprocess.SubprocessError):
         return None
@@ -576,7 +576,7 @@ class Store:
         group = await zarr.api.asynchronous.open_group(store=str(self.path), mode="r+", zarr_format=3)
         arrays = await asyncio.gather(*(group.getitem(name) for name in rows))
         await asyncio.gather(*(arr.resize((n + k, *arr.shape[1:])) for arr in arrays))
-        await asyncio.gather(*(arr.setitem(slice(n, n + k), value) for arr, value in zip(arrays, rows.values())))
+        await asyncio.gather(*(arr.setitem(slice(n, n + k), value) for arr, value in zip(arrays, rows.values(), strict=True)))
 
     def _commit(self, n_populations: int) -> None:
         """Consolidate the metadata (the arrays' new shapes), then bump the counter: the
