@@ -442,6 +442,10 @@ class Replay:
             return forced
         return DaskExecutor.group_size(self, need, consumed, self.W)  # type: ignore[arg-type]
 
+    def time_cap(self) -> int:
+        """``DaskExecutor.time_cap``: a replayed run has no time budget, so no cap."""
+        return 2**62
+
     def measured(self, seconds: float, size: int) -> None:
         DaskExecutor._measured(self, seconds, size)  # type: ignore[arg-type]
 
