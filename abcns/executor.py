@@ -237,7 +237,9 @@ def per_model(functions: Sequence[SimulateDistance] | Sequence[SimulateDistanceE
     ``functions[m](theta, rng) -> (distances, status)`` receives the rows of model ``m``
     without padding, shape (n_m, d_m); with ``pass_epsilon`` it is called as
     ``functions[m](theta, rng, epsilon=batch.epsilon)`` (for early rejection). One generator
-    seeded from ``batch.seed`` is used for the models in index order.
+    seeded from ``batch.seed`` is used for the models in index order; a function with the
+    attribute ``uses_rng = False`` (it never draws a random number) is passed None instead,
+    and the generator is made only for the first model that may use it.
 
     A failure belongs to its row. When a function raises a numerical error
     (:data:`NUMERICAL_ERRORS`: ``ArithmeticError``, i.e. ZeroDivisionError, OverflowError,
@@ -279,16 +281,23 @@ def per_model(functions: Sequence[SimulateDistance] | Sequence[SimulateDistanceE
             d[i], s[i] = np.asarray(d_r).reshape(-1)[0], np.asarray(s_r).reshape(-1)[0]
         return d, s
 
+    # a function marked ``uses_rng = False`` is passed no generator (the generator is made
+    # only when a model that may use it comes: making it costs ~30 µs a batch, and a function
+    # that leaves it untouched leaves the next model the same stream)
+    uses_rng = [getattr(f, "uses_rng", True) for f in functions]
+
     def evaluate(batch: Batch) -> Evaluated:
-        rng = np.random.default_rng(batch.seed)
+        rng: np.random.Generator | None = None
         distances = np.full(len(batch), np.inf)
         status = np.full(len(batch), FAILED, dtype=np.int8)
         for m in map(int, np.unique(batch.models)):
             rows = np.flatnonzero(batch.models == m)
             theta = batch.theta[rows]
             theta = theta[:, ~np.all(np.isnan(theta), axis=0)]
+            if rng is None and uses_rng[m]:
+                rng = np.random.default_rng(batch.seed)
             try:
-                d, s = call(m, theta, rng, batch.epsilon)
+                d, s = call(m, theta, rng, batch.epsilon)  # type: ignore[arg-type]
             except NUMERICAL_ERRORS:
                 d, s = one_at_a_time(m, theta, rows, batch)
             distances[rows] = d

@@ -93,8 +93,12 @@ def geometry_rng(seed: int, t: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(t, 0, 1)))
 
 
-#: Monte Carlo draws per model for the volume of its bound
-VOLUME_DRAWS = 20_000
+#: Monte Carlo draws per model for the volume of its bound. 10,000 (20,000 until issue 24's
+#: cheap-kernel work): the log volume's standard error is ~0.005 on §4.1 (0.0035 at 20,000,
+#: 0.007 at 5,000; medians over seeds 1-20), far below the evidence's other errors (~0.05, the
+#: acceptance's binomial error), and it enters log Z's standard error. The volume was the
+#: largest single cost of a cheap population's step (docs/benchmarks.md, issue 24's notes).
+VOLUME_DRAWS = 10_000
 
 
 #: a model's bound geometry (log prior mass, its standard error, coverage, points tested)

@@ -298,7 +298,7 @@ def kernel_alone(spec: JobSpec, base: Path, repeats: int) -> dict:
         t = time.perf_counter()
         job.evaluate(batch)
         best = min(best, time.perf_counter() - t)
-    walls, spent = [], []
+    walls, spent, cpus = [], [], []
     for _ in range(3):
         spent.append(0.0)
 
@@ -308,12 +308,13 @@ def kernel_alone(spec: JobSpec, base: Path, repeats: int) -> dict:
             spent[-1] += time.perf_counter() - t
             return out
 
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         r = run(job.models, timed, job.settings, job.stop, job.seed)
         walls.append(time.perf_counter() - t)
+        cpus.append(time.process_time() - c)
     n = r.n_simulations
     return {"one_batch": len(batch.theta) / best, "own_batches": n / min(spent), "serial": n / min(walls),
-            "simulations": n}
+            "serial_us": 1e6 * cpus[int(np.argmin(walls))] / n, "simulations": n}
 
 
 def d41_table(counts: list[int], populations: int, tmp: Path) -> None:
@@ -324,7 +325,7 @@ def d41_table(counts: list[int], populations: int, tmp: Path) -> None:
     print(f"kernel alone, this process: {k['one_batch']:.0f} sims/s on one batch of prior draws (epsilon = inf, best of "
           f"20 calls); {k['own_batches']:.0f} sims/s on a serial in-process run's own batches (early rejection; "
           f"{k['simulations']} simulations; best of 3 runs); that serial run end to end (engine, no Dask, no store): "
-          f"{k['serial']:.0f} sims/s")
+          f"{k['serial']:.0f} sims/s, {k['serial_us']:.1f} µs of CPU per simulation")
     print("| workers | simulations | wall s | sims/s end to end | runner CPU µs/sim | workers CPU µs/sim | "
           "end to end / (N x kernel alone) | same, vs the run's own batches | load |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|", flush=True)

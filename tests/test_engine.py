@@ -228,6 +228,33 @@ def test_raising_simulator_marks_rows_failed_but_bugs_propagate():
     assert isinstance(err.value.__cause__, KeyError)
 
 
+def test_a_model_that_draws_no_random_number_is_passed_no_generator():
+    """per_model makes the batch's generator (~30 µs) only for a model that may use it: a
+    function marked ``uses_rng = False`` gets None, and the next model gets the generator a
+    fresh ``default_rng(batch.seed)`` is, as when every model was passed it."""
+    got: list = []
+
+    def deterministic(theta, rng):
+        got.append(rng)
+        return theta[:, 0], np.full(theta.shape[0], OK, np.int8)
+
+    def stochastic(theta, rng):
+        got.append(rng.random(3))
+        return theta[:, 0], np.full(theta.shape[0], OK, np.int8)
+
+    from abcns.filling import draws
+    from abcns.rejection import prior_proposer
+
+    deterministic.uses_rng = False  # type: ignore[attr-defined]
+    models = [Model("a", {"x": (0.0, 1.0)}), Model("b", {"x": (0.0, 1.0)})]
+    b = next(draws(prior_proposer(models), seed=0, t=1, epsilon=1.0, batch_size=16)).batch()
+    assert set(b.models) == {0, 1}
+    out = per_model([deterministic, stochastic])(b)
+    assert got[0] is None
+    np.testing.assert_array_equal(got[1], np.random.default_rng(b.seed).random(3))
+    np.testing.assert_array_equal(out.distances, b.theta[:, 0])
+
+
 @pytest.mark.parametrize("numerical", [ZeroDivisionError, OverflowError, FloatingPointError, np.linalg.LinAlgError])
 def test_a_failure_belongs_to_its_row(numerical):
     """P.1: a function that raises a numerical error for a batch holding any x > 0.5: the

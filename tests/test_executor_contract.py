@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -225,6 +226,22 @@ def test_dask_keeps_at_most_two_tasks_per_worker_thread_in_flight(job, client):
     finally:
         results.close()
         executor.close()
+
+
+def test_a_cheap_population_goes_to_every_worker():
+    """Batches of 1 ms (a cheap kernel: §4.1's are ~1-3 ms): a task holds at least 20 ms of
+    compute where the need allows, but never so many batches that fewer tasks than workers
+    hold the need, so every worker has its part of a small population."""
+    cheap = SimpleNamespace(batch_seconds=0.001, time_cap=lambda: 2**62)
+
+    def size(need: int, workers: int) -> int:
+        return DaskExecutor.group_size(cheap, need=need, consumed=0, n_workers=workers)  # type: ignore[arg-type]
+
+    assert size(10, 2) == 5  # two workers, five batches each
+    assert size(10, 1) == 10  # one worker: one task
+    assert size(12, 4) == 3
+    assert size(40, 2) == 20  # the 20 ms floor, where the need allows it
+    assert size(10_000, 2) == 100  # the 100 ms ceiling
 
 
 def test_cluster_settings_reach_a_stock_process_through_the_environment():

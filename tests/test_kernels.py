@@ -10,7 +10,7 @@ from scipy.integrate import solve_ivp
 
 from abcns.distances import NMSE
 from abcns.executor import DIVERGED, FAILED, OK, Batch
-from abcns.priors import Model
+from abcns.priors import Model, SpecError
 from worker.evaluate import evaluator
 from worker.kernels import choose_substeps
 from worker.simulators import BoucWen, Duffing, Linear
@@ -325,6 +325,36 @@ def test_evaluator_uses_in_kernel_nmse_with_early_rejection():
     np.testing.assert_array_equal(fast.distances < eps, generic.distances < eps)
     np.testing.assert_allclose(slow.distances, generic.distances, rtol=1e-9)
     assert 0 < np.count_nonzero(fast.distances < eps) < 64
+
+
+def test_the_in_kernel_nmse_checks_its_record_once(monkeypatch):
+    """An evaluator passes the same record on every call: its NMSE (finite values, window,
+    variance: ~60 µs) is built once per record. A record written into since is checked
+    again: its distances are a fresh simulator's, and a non-finite value is refused."""
+    import worker.simulators as sims
+
+    built = []
+    real = sims._nmse
+    monkeypatch.setattr(sims, "_nmse", lambda *args: built.append(args) or real(*args))
+    rng = np.random.default_rng(9)
+    f = rng.standard_normal(100)
+    params = np.array([[1.0, 2.0, 1e3, 0.0, 1e5, 0.0], [1.0, 0.5, 8e2, 0.0, 2e5, 0.0]])
+    observed = Duffing(f, 0.01, substeps=2).simulate(params[:1]).values[0] + 0.01 * rng.standard_normal(100)
+    sim = Duffing(f, 0.01, substeps=2)
+    first = sim.distance_nmse(params, observed, 10, 90)
+    again = sim.distance_nmse(params, observed, 10, 90)
+    assert len(built) == 1
+    np.testing.assert_array_equal(first[0], again[0])
+    observed *= 2.0  # the same array, other values: checked again
+    changed = sim.distance_nmse(params, observed, 10, 90)
+    assert len(built) == 2
+    np.testing.assert_array_equal(changed[0], Duffing(f, 0.01, substeps=2).distance_nmse(params, observed, 10, 90)[0])
+    assert not np.array_equal(changed[0], first[0])
+    sim.distance_nmse(params, observed, 0, 90)  # another window: checked again
+    assert len(built) == 4
+    observed[20] = np.nan
+    with pytest.raises(SpecError, match="non-finite"):
+        sim.distance_nmse(params, observed, 10, 90)
 
 
 # ---------------------------------------------------------------- build properties

@@ -108,6 +108,8 @@ def model_function(model: Model, simulator: Simulator, distance: Distance) -> Si
             d[ok] = distance(out.values[ok])
         return d, out.status
 
+    # the in-kernel NMSE is deterministic: the batch's generator need not be made for it
+    simulate_distance.uses_rng = nmse is None or capable is None  # type: ignore[attr-defined]
     return simulate_distance
 
 

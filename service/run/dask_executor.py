@@ -13,7 +13,9 @@ seen, which changes only the cut, never a result:
 - a task's group is one batch until a batch's compute time has been measured, then about
   ``need / (2 x workers)`` batches, kept between ``MIN_TASK_SECONDS`` and
   ``MAX_TASK_SECONDS`` of compute time, so a cheap batch does not pay a round trip each
-  and a dear one does not hold a worker long past the population's end.
+  and a dear one does not hold a worker long past the population's end; the floor never
+  exceeds ``need / workers`` batches, so a cheap population still goes to every worker
+  (one task each).
 
 Tasks go to the scheduler in bulk (one ``client.map``, one scheduler message, for all the
 tasks a hint asks for) and are queued there: a run's tasks form one task group that the
@@ -157,10 +159,15 @@ class DaskExecutor:
         and no more than fit into the run's seconds left (:meth:`time_cap`)."""
         if self.batch_seconds is None:
             return 1
-        size = math.ceil(max(need, consumed) / (2 * n_workers))
+        need = max(need, consumed)
+        size = math.ceil(need / (2 * n_workers))
         if self.batch_seconds > 0:
             most = max(1, int(MAX_TASK_SECONDS / self.batch_seconds))
-            least = min(most, math.ceil(MIN_TASK_SECONDS / self.batch_seconds))
+            # the floor of a task's compute time, but never so large that fewer tasks than
+            # workers cover the need: a cheap population is shared by every worker, each its
+            # part in one task (a floor of 20 ms made one task of a whole population, and a
+            # surplus, on a kernel of ~1 ms a batch: a second worker had nothing to do)
+            least = min(most, math.ceil(MIN_TASK_SECONDS / self.batch_seconds), math.ceil(need / n_workers))
             size = min(max(size, least), most, self.time_cap())
         return max(1, size)
 
