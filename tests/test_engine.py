@@ -132,7 +132,7 @@ def test_cancel():
 
 
 @pytest.mark.parametrize(
-    "stop, reason",
+    ("stop", "reason"),
     [(StopRules(max_populations=3), StopReason.MAX_POPULATIONS),
      (StopRules(min_epsilon_decrease=None, epsilon_target=0.5), StopReason.EPSILON_TARGET),
      (StopRules(min_epsilon_decrease=0.5), StopReason.MIN_EPSILON_DECREASE)],

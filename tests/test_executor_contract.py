@@ -196,7 +196,7 @@ def test_dask_queues_a_run_s_batches_on_the_scheduler_oldest_first(job, client, 
         keys = [task.key for task, _ in results.pending]
         assert len(keys) == 13 and keys[:2] == first
         priorities = [p for p, _ in scheduler_view(keys)]
-        assert all(a < b for a, b in zip(priorities, priorities[1:])), priorities
+        assert all(a < b for a, b in itertools.pairwise(priorities)), priorities
         got = [next(results) for _ in range(13)]
         for draw, result in zip(itertools.islice(stream(built.models), 13), got):
             np.testing.assert_array_equal(result.distances, run_draw(built.evaluate, draw).distances)

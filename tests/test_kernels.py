@@ -102,7 +102,7 @@ def test_choose_substeps():
     assert choose_substeps(100.0, 0.01, 1e-6) > choose_substeps(100.0, 0.01, 1e-4)
     # the record-length form divides the tolerance by the radians turned over the record
     assert choose_substeps(100.0, 0.01, 1e-4, n_samples=100) == choose_substeps(100.0, 0.01, 1e-4 / 100.0)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="omega_max must be finite and non-negative"):
         choose_substeps(-1.0, 0.01)
 
 
@@ -381,9 +381,9 @@ def test_backend_and_window_validation():
     assert sim.config()["backend"] == "numba" and Linear(f, 0.01).config()["backend"] == "numba"
     p = np.array([[1.0, 1.0, 100.0, 0.0, 0.0, 0.0]])
     for window in ((0, 51), (10, 11), (-1, 20)):
-        with pytest.raises(ValueError):
+        with pytest.raises(ValueError, match=r"data\.fit: "):
             sim.distance_nmse(p, f, *window)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="is constant on the fit window"):
         sim.distance_nmse(p, np.zeros(50), 0, 50)  # constant observed: NMSE undefined
 
 

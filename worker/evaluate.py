@@ -119,7 +119,7 @@ def evaluator(models: Sequence[Model], simulators: Sequence[Simulator], distance
     if len(models) != len(simulators):
         raise ValueError(f"{len(models)} models but {len(simulators)} simulators")
     n_observed = int(np.size(distance.observed))
-    for i, (model, sim) in enumerate(zip(models, simulators)):
+    for i, (model, sim) in enumerate(zip(models, simulators, strict=True)):
         check_model(model, sim, f"models[{i}]")
         check_ranges(model, sim, f"models[{i}]")
         if sim.n_samples != n_observed:
@@ -128,9 +128,9 @@ def evaluator(models: Sequence[Model], simulators: Sequence[Simulator], distance
                 f"has {n_observed} samples but model {model.name!r} simulates {sim.n_samples} "
                 "(input and observed records must have the same length)",
             )
-    return per_model([model_function(m, s, distance) for m, s in zip(models, simulators)], pass_epsilon=early_rejection,
-                     names=[f"model {m.name!r} (simulator {m.config.get('simulator', s.name)!r})"
-                            for m, s in zip(models, simulators)])
+    pairs = list(zip(models, simulators, strict=True))
+    return per_model([model_function(m, s, distance) for m, s in pairs], pass_epsilon=early_rejection,
+                     names=[f"model {m.name!r} (simulator {m.config.get('simulator', s.name)!r})" for m, s in pairs])
 
 
 def model_of(desc: dict, where: str = "models") -> Model:

@@ -464,7 +464,7 @@ class BoucWen(_RK4Oscillator):
         n = params[:, 6]
         if not np.all(np.isin(n, BOUC_WEN_EXPONENTS)):  # refused by the spec's validation (ranges) before a run
             raise SpecError("fixed.n", f"Bouc-Wen n must be an integer in 1..4, got {np.unique(n)}")
-        return tuple(params[:, j] for j in range(6)) + (n.astype(np.int64),)
+        return (*tuple(params[:, j] for j in range(6)), n.astype(np.int64))
 
     def _work(self, params):
         K = _kernels()
@@ -506,7 +506,7 @@ class BoucWen(_RK4Oscillator):
         return np.where(ok, zmax, np.inf)
 
     def extra_bad(self, p, state) -> np.ndarray:
-        m, c, k, alpha, beta, A, n = p
+        _m, _c, _k, alpha, beta, A, n = p
         return np.abs(state[2]) > self.z_bound(alpha, beta, A, n)
 
     def derivative(self, p, state, f):

@@ -258,7 +258,7 @@ class Stream:
         # each call's first task would jump ahead of the previous call's later ones)
         tasks = self.ex.client.map(evaluate_on_worker, [self.ex.job_key] * n, [self.ex.payload] * n,
                                    [pack_draws(g) for g in groups], key=keys, pure=False, fifo_timeout=0)
-        self.pending.extend(zip(tasks, map(len, groups)))
+        self.pending.extend(zip(tasks, map(len, groups), strict=True))
         self.completed.update(tasks)
 
     def _oldest(self) -> tuple[bytes, float]:
@@ -321,5 +321,5 @@ class Stream:
     def __del__(self) -> None:  # a stream dropped without close() still frees the cluster
         try:
             self.close()
-        except Exception:
+        except Exception:  # noqa: S110 - a destructor must not raise, and has no one to tell
             pass
