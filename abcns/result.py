@@ -311,7 +311,7 @@ class Result:
     def _ellipsoid_counts(self) -> dict[str, object]:
         """Ellipsoids per model in the final bounds, and repairs / fallbacks over the run."""
         notes = [e.note for p in self.populations for bound in p.ellipsoids for e in bound]
-        return {"final": {m.name: len(b) for m, b in zip(self.models, self.final.ellipsoids, strict=True)},
+        return {"final": {m.name: len(b) for m, b in zip(self.models, self.final.ellipsoids, strict=False)},  # () without bounds
                 "repaired": notes.count("repaired"), "fallback": notes.count("fallback")}
 
     def _noise_floor(self) -> dict | None:
