@@ -129,12 +129,13 @@ class Service:
         raise RuntimeError("no VmRSS")
 
 
-def duffing_spec(max_populations: int = 8, particles: int = 500) -> dict:
-    """Paper §4.1 (examples/duffing_41) with inline data, shortened."""
+def duffing_spec(max_populations: int = 8, particles: int = 500, noise_floor: bool = True) -> dict:
+    """Paper §4.1 (examples/duffing_41) with inline data, shortened; ``noise_floor=False``:
+    a run that does not stop at the noise floor either (one that runs until cancelled)."""
     raw = yaml.safe_load((ROOT / "examples" / "duffing_41" / "spec.yaml").read_text())
     folder = ROOT / "examples" / "duffing_41"
     raw["data"]["input"] = np.load(folder / "force.npy").tolist()
     raw["data"]["observed"] = np.load(folder / "displacement.npy").tolist()
     raw["sampler"].update(particles=particles, batch_size=250)
-    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": max_populations}
+    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": max_populations, "noise_floor": noise_floor}
     return raw

@@ -231,7 +231,7 @@ def test_the_queue_limit_holds_under_thirty_concurrent_submissions(cluster, tmp_
     job list holds exactly the accepted ones."""
     service = Service(tmp_path / "jobs", cluster.address, env={"ABCNS_MAX_QUEUED": "3"})
     try:
-        spec = json.dumps(duffing_spec(max_populations=10_000, particles=200)).encode()  # runs until cancelled
+        spec = json.dumps(duffing_spec(max_populations=10_000, particles=200, noise_floor=False)).encode()  # runs until cancelled
 
         async def burst() -> list[httpx.Response]:
             async with httpx.AsyncClient(timeout=120) as http:

@@ -662,7 +662,7 @@ def test_a_full_queue_answers_429_with_retry_after(cluster, tmp_path):
     with 429 and Retry-After; nothing is left of it."""
     service = Service(tmp_path / "jobs", cluster.address, env={"ABCNS_MAX_QUEUED": "1", "ABCNS_RETRY_AFTER_S": "7"})
     try:
-        spec = duffing_spec(max_populations=10_000, particles=200)  # runs until cancelled
+        spec = duffing_spec(max_populations=10_000, particles=200, noise_floor=False)  # runs until cancelled
         running = post(service, spec).json()["id"]
         wait_until(lambda: get(service, f"/jobs/{running}").json()["status"] == "running", 60, "the first job to run")
         waiting = post(service, spec)
