@@ -100,11 +100,11 @@ def test_confusion_of_two_runs(stores):
             assert mat[i, 0] == pytest.approx(float(nmse(values[0], data.observed, (500, 1000))), rel=1e-9)
     # the known answer for these two short runs (6 populations of 200, seeds 1 and 2): the
     # cubic-quintic posterior is still wide (k5 spans two decades of prior) and its mean
-    # predicts worse than the cubic's, NMSE 21 and 41 against 54 and 188 (means 31 and 121,
-    # measured), so the cubic model is best; nothing is eliminated
+    # predicts worse than the cubic's (means 61 and 113, measured with issue 25's evidence
+    # rules; 31 and 121 before), so the cubic model is best; nothing is eliminated
     assert conf.eliminated == () and conf.best == "cubic"
     assert conf.mean["cubic"] == pytest.approx(np.mean(conf.matrices["cubic"]))
-    assert 2 * conf.mean["cubic"] < conf.mean["cubic-quintic"]
+    assert 1.5 * conf.mean["cubic"] < conf.mean["cubic-quintic"]
 
 
 def png_ok(path: Path) -> bool:
