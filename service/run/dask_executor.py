@@ -219,8 +219,10 @@ class Stream:
         return self
 
     def expect(self, batches: float, at_least: bool = False) -> None:
-        """The caller expects to consume about ``batches`` more (``at_least``: no fewer); tasks
-        for that many, 10 % more, are submitted now."""
+        """The caller expects to consume about ``batches`` more; tasks for that many, 10 % more,
+        are submitted now. With ``at_least`` (a lower bound, when a population opens): the
+        previous population's need (its consumption, 10 % more) when that is larger, else
+        twice the bound or a task per worker, whichever is larger."""
         if at_least and self.consumed == 0:
             # the previous call's need, if known (never below the bound); else twice the bound
             least = math.ceil(batches)
