@@ -100,8 +100,8 @@ def local_cluster(n_workers: int, dashboard: bool = False) -> LocalCluster:
     """The embedded cluster: ``n_workers`` single-threaded worker processes on this machine.
 
     It never asks for a fixed port: the scheduler listens on a free port, and so does its
-    HTTP server, which Dask starts even without a dashboard (``dashboard_address=None``
-    would mean Dask's default, 8787, which a user's own Dask dashboard often holds). With
+    HTTP server, which Dask starts even without a dashboard (left unset, its address would
+    be Dask's default port, which a user's own Dask dashboard often holds). With
     ``dashboard`` the dashboard is served there, on every interface; without, the HTTP
     server is on 127.0.0.1 with no dashboard."""
     with dask.config.set(CLUSTER_CONFIG):
