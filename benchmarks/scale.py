@@ -67,7 +67,6 @@ from service.spec import JobSpec, build, load, parse
 
 DEMO = ROOT / "examples" / "authors_demo" / "spec.yaml"
 D41 = ROOT / "examples" / "duffing_41" / "spec.yaml"
-IDEAL_PER_WORKER = 1.0 / sleepy.SECONDS  # simulations/s of one worker that only sleeps
 
 # the workers import the plugin by name: LocalCluster's spawned processes inherit this
 # process's sys.path, the stock cluster's processes get PYTHONPATH (set below for both)
@@ -261,7 +260,7 @@ def engine_alone(spec: JobSpec, base: Path) -> tuple[float, float]:
 
 
 def sleepy_table(title: str, cluster: Callable, counts: list[int], spec: JobSpec, base: Path, tmp: Path,
-                 stock: bool) -> None:
+                 stock: bool, skip_floor: bool = False) -> None:
     print(f"\n## {title}")
     engine, kernel = engine_alone(spec, base)
     print(f"the same job in this process with the plain Duffing (engine + kernel, no sleep, no Dask, no store): "
@@ -276,9 +275,9 @@ def sleepy_table(title: str, cluster: Callable, counts: list[int], spec: JobSpec
         with cluster(n) as (client, pids, startup):
             r = measure(client, pids, spec, base, tmp)
             units = round(r["simulations"] / (r["populations"] * spec.sampler.batch_size))
-            floor, floor_runner, floor_workers = dask_floor(client, pids, units, r["populations"],
-                                                            spec.sampler.batch_size * sleepy.SECONDS)
-        ideal = n * IDEAL_PER_WORKER
+            floor, floor_runner, floor_workers = (np.nan,) * 3 if skip_floor else dask_floor(
+                client, pids, units, r["populations"], spec.sampler.batch_size * sleepy.SECONDS)
+        ideal = n / sleepy.SECONDS  # simulations/s of n workers that only sleep
         extra = f" {r['other_us']:.0f} |" if stock else ""
         print(f"| {n} | {r['simulations']} | {r['executed']} | {r['wall']:.2f} | {r['rate']:.0f} | {ideal:.0f} | "
               f"{r['rate'] / ideal:.2f} | {r['steady'] / ideal:.2f} | {floor:.2f} | {r['runner_us']:.0f} |{extra} "
@@ -350,13 +349,19 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=None, help="override the sleepy job's sampler.batch_size")
     parser.add_argument("--variant", choices=["paper", "evidence"], default=None,
                         help="the sleepy job's ABC-NS variant (default: the demo's, paper)")
+    parser.add_argument("--sleep-ms", type=float, default=None,
+                        help="the sleepy simulator's sleep per simulation (default 2 ms)")
     parser.add_argument("--d41-workers", type=_counts, default=[1, 2])
     parser.add_argument("--d41-populations", type=int, default=6)
     parser.add_argument("--skip-local", action="store_true")
     parser.add_argument("--skip-stock", action="store_true")
     parser.add_argument("--skip-d41", action="store_true")
+    parser.add_argument("--skip-floor", action="store_true", help="no Dask floor column (half the time per row)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: 1 population, 1-2 workers")
     args = parser.parse_args()
+    if args.sleep_ms is not None:  # before any worker starts: they inherit the variable
+        os.environ["ABCNS_SLEEPY_MS"] = str(args.sleep_ms)
+        sleepy.SECONDS = args.sleep_ms / 1e3
     if args.quick:
         args.workers, args.stock_workers, args.populations = [1, 2], [1], 1
         args.d41_workers, args.d41_populations = [1, 2], 1
@@ -369,10 +374,11 @@ def main() -> None:
         tmp = Path(tmpdir)
         if not args.skip_local:
             sleepy_table("latency-bound, LocalCluster (scheduler in the runner's process)", local_cluster,
-                         args.workers, spec, base, tmp, stock=False)
+                         args.workers, spec, base, tmp, stock=False, skip_floor=args.skip_floor)
         if not args.skip_stock:
             sleepy_table("latency-bound, stock `dask scheduler` + `dask worker --nworkers N --nthreads 1`",
-                         lambda n: stock_cluster(n, tmp), args.stock_workers, spec, base, tmp, stock=True)
+                         lambda n: stock_cluster(n, tmp), args.stock_workers, spec, base, tmp, stock=True,
+                         skip_floor=args.skip_floor)
         if not args.skip_d41:
             d41_table(args.d41_workers, args.d41_populations, tmp)
 

@@ -1,7 +1,7 @@
 """A latency-bound plugin simulator for the scale-out benchmark (benchmarks/scale.py).
 
 ``benchmarks.sleepy:factory`` in a spec (CLI or ``run_job(..., allow_import=True)``; never
-HTTP) gives the built-in Duffing oscillator that then sleeps ``SECONDS`` (2 ms) per
+HTTP) gives the built-in Duffing oscillator that then sleeps ``SECONDS`` (2 ms by default) per
 simulation, ``time.sleep(SECONDS * n_rows)`` per batch: the stand-in for an expensive model
 whose cost is wall time, not this machine's cores, so many workers on few cores still scale.
 
@@ -13,6 +13,7 @@ surplus work the executor cancelled too late).
 
 from __future__ import annotations
 
+import os
 import time
 from typing import ClassVar
 
@@ -20,7 +21,9 @@ import numpy as np
 
 from worker.simulators import Duffing, SimOutput
 
-SECONDS = 0.002  # sleep per simulation
+#: sleep per simulation: 2 ms, or ABCNS_SLEEPY_MS (``benchmarks.scale --sleep-ms`` sets it before any
+#: worker starts; the worker processes inherit it)
+SECONDS = float(os.environ.get("ABCNS_SLEEPY_MS", "2")) / 1e3
 NAME = "benchmarks.sleepy:factory"
 
 _simulated = 0
@@ -38,9 +41,9 @@ class SleepyDuffing:
     parameter_names = Duffing.parameter_names
     defaults: ClassVar[dict[str, float]] = dict(Duffing.defaults)
 
-    def __init__(self, seconds: float = SECONDS, n_samples: int | None = None, **kwargs):
+    def __init__(self, seconds: float | None = None, n_samples: int | None = None, **kwargs):
         self.inner = Duffing(**kwargs)  # the oscillator's length is its force's (n_samples: the registry's, unused)
-        self.seconds = float(seconds)
+        self.seconds = SECONDS if seconds is None else float(seconds)
 
     @property
     def n_samples(self) -> int:
