@@ -45,6 +45,17 @@ SIXTEEN = {
         units=28),  # round(6978 / (10 x 25))
 }
 
+#: the second 16-core session (benchmarks/measurements/2026-11-25-16-cores-b.md: the compiled
+#: step, evidence variant, LocalCluster, one run each), measured after the model had predicted
+#: it from the traces re-recorded with that step (docs/benchmarks.md):
+#: (trace, ms per simulation, workers) -> (efficiency, executed rows)
+PREDICTED_THEN_MEASURED = {
+    ("evidence-1000-cheap-step", 2.0, 1): (0.87, 7125), ("evidence-1000-cheap-step", 2.0, 8): (0.58, 7600),
+    ("evidence-1000-cheap-step", 2.0, 14): (0.45, 8175),
+    ("evidence-1000-cheap-step", 20.0, 8): (0.79, 7650), ("evidence-1000-cheap-step", 20.0, 14): (0.72, 8095),
+    ("evidence-1000-b5-cheap-step", 20.0, 8): (0.91, 6900), ("evidence-1000-b5-cheap-step", 20.0, 14): (0.86, 6985),
+}
+
 #: (workers, task seconds) -> (tasks completed in 8 s, efficiency)
 FED = {(1, 0.05): (156, 0.97), (1, 0.01): (570, 0.71), (8, 0.05): (1186, 0.91), (8, 0.01): (1381, 0.21),
        (14, 0.05): (1368, 0.60), (14, 0.01): (1404, 0.12)}
