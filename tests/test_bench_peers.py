@@ -1,5 +1,6 @@
 """The side-by-side benchmark against pyABC (benchmarks/peers) as a smoke run: the command
-with --quick writes its table. Only where the optional extra .[bench] (pyABC) is installed."""
+with --quick writes its table. Marked ``peers``: `make bench-peers` runs it after installing the
+optional extra .[bench] (pyABC), before the benchmark itself; `make test` deselects it."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = [
     pytest.mark.slow,
+    pytest.mark.peers,
     pytest.mark.skipif(importlib.util.find_spec("pyabc") is None, reason="pyABC not installed (pip install -e '.[bench]')"),
 ]
 
