@@ -23,6 +23,8 @@ import math
 import numpy as np
 from numba import njit, objmode
 
+from abcns.ellipsoid import log_unit_ball
+
 
 @njit(cache=True, error_model="numpy")
 def _invert(a: np.ndarray, out: np.ndarray) -> bool:
@@ -160,12 +162,22 @@ def _count(xt: np.ndarray, inv: np.ndarray, inv_norm: np.ndarray, centres: np.nd
     return True
 
 
+#: ``ellipsoid.log_unit_ball``, the same function, compiled
+_log_unit_ball = njit(cache=True, error_model="numpy")(log_unit_ball)
+
+
 @njit(cache=True, error_model="numpy")
 def _node(points: np.ndarray, rows: np.ndarray, cov: np.ndarray, y: np.ndarray) -> tuple[bool, float]:
-    """``bounds._node`` of ``points[rows]``: (ok, log volume); fills ``cov`` (d, d) and the
-    whitened points ``y`` (len(rows), d). Not ok when the covariance is not positive
-    definite (Cholesky fails, as LAPACK's dpotrf does: a pivot <= 0 or NaN) or every
-    point sits at the mean."""
+    """The covariance ellipsoid of ``points[rows]`` scaled to hold them all (the shape
+    ``ellipsoid.fit`` makes when it needs no repair), measured for the split tree only:
+    (ok, its log volume); fills ``cov`` (d, d) and the whitened points ``y`` (len(rows), d).
+    Not ok when the covariance is not positive definite (Cholesky fails, as LAPACK's dpotrf
+    does: a pivot <= 0 or NaN) or every point sits at the mean.
+
+    Not a second ``fit``: no ellipsoid is made from these numbers. The tree compares their
+    volumes and clusters the whitened points (in the kernel's own rounding: see the
+    module's docstring); each ellipsoid of a bound is then made by ``ellipsoid.fit_many``
+    from the rows the tree chose, with fit's repair and fallback."""
     n = rows.shape[0]
     d = points.shape[1]
     mean = np.zeros(d)
@@ -211,13 +223,12 @@ def _node(points: np.ndarray, rows: np.ndarray, cov: np.ndarray, y: np.ndarray) 
         r2 = max(r2, q)
     if not r2 > 0.0:
         return False, 0.0
-    log_unit_ball = 0.5 * d * math.log(math.pi) - math.lgamma(0.5 * d + 1.0)
-    return True, log_unit_ball + log_det + 0.5 * d * math.log(r2)
+    return True, _log_unit_ball(d) + log_det + 0.5 * d * math.log(r2)
 
 
 @njit(cache=True, error_model="numpy")
 def radii(points: np.ndarray) -> tuple[bool, np.ndarray]:
-    """(ok, squared whitened radius of each point) of ``bounds._node(points)``."""
+    """(ok, squared whitened radius of each point) of :func:`_node` of all ``points``."""
     n, d = points.shape
     y = np.empty((n, d))
     ok, _ = _node(points, np.arange(n), np.empty((d, d)), y)
