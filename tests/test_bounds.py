@@ -38,7 +38,8 @@ def test_two_separate_discs_get_separate_ellipsoids_and_hold_every_point():
 
 
 def test_a_convex_cloud_stays_one_ellipsoid():
-    """A split must halve the volume by chance fluctuations alone: a uniform disc is not split."""
+    """Halves replace a node only when they hold less than ``SPLIT_GAIN`` (0.8) of its volume,
+    which the chance fluctuations of a uniform disc do not reach: it stays one ellipsoid."""
     rng = np.random.default_rng(2)
     points = ball((0.5, 0.5), 0.2, 700, rng)
     assert len(bd.fit_union(points, 1.1, 8, FALLBACK)) == 1
