@@ -26,6 +26,7 @@ import numpy as np
 from scipy.special import gammaincinv, logsumexp
 
 from abcns import ellipsoid as ell
+from abcns.priors import Model, in_box
 
 Union = tuple[ell.Ellipsoid, ...]
 #: halves replace a node only when their ellipsoids' total volume is below this share of it
@@ -304,15 +305,17 @@ def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.rando
 class Frame:
     """The coordinates a model's bound lives in: its unit prior box ``(theta - low) / width``
     (so that a condition-number cap and a volume mean the same for every parameter), or the
-    raw parameters (the paper variant: ``unit=False``, no arithmetic on the way)."""
+    raw parameters (the paper variant: ``unit=False``, no arithmetic on the way). The box
+    and its volume are the model's (``Model.low``, ``Model.high``, ``Model.in_prior``'s
+    test, ``Model.log_prior_volume``), held as arrays for the proposals' loops."""
 
-    def __init__(self, low: np.ndarray, high: np.ndarray, unit: bool):
+    def __init__(self, model: Model, unit: bool):
         self.unit = unit
-        self.low = np.asarray(low, float)
-        self.width = np.asarray(high, float) - self.low
-        self.high = np.asarray(high, float)
+        self.low = model.low
+        self.high = model.high
+        self.width = self.high - self.low
         #: log volume of the prior box in these coordinates
-        self.log_box_volume = 0.0 if unit else float(np.sum(np.log(self.width)))
+        self.log_box_volume = 0.0 if unit else model.log_prior_volume()
 
     def to_frame(self, theta: np.ndarray) -> np.ndarray:
         return (theta - self.low) / self.width if self.unit else theta
@@ -327,11 +330,9 @@ class Frame:
         return (np.zeros(d), np.ones(d)) if self.unit else (self.low, self.high)
 
     def in_prior(self, theta: np.ndarray) -> np.ndarray:
-        """Which rows of ``theta`` (raw parameters) lie inside the prior box: the test of
-        ``Model.in_prior``, compiled."""
-        from abcns import compiled
-
-        return compiled.in_box(np.ascontiguousarray(theta, dtype=float), self.low, self.high)
+        """Which rows of ``theta`` (raw parameters) lie inside the prior box: ``Model.in_prior``
+        (``priors.in_box``) on the arrays held here."""
+        return in_box(theta, self.low, self.high)
 
     def box_ellipsoid(self) -> ell.Ellipsoid:
         """The ellipsoid through the prior box's corners (the first fallback shape)."""

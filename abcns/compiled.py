@@ -23,6 +23,8 @@ import math
 import numpy as np
 from numba import njit, objmode
 
+from abcns.ellipsoid import log_unit_ball
+
 
 @njit(cache=True, error_model="numpy")
 def _invert(a: np.ndarray, out: np.ndarray) -> bool:
@@ -160,12 +162,22 @@ def _count(xt: np.ndarray, inv: np.ndarray, inv_norm: np.ndarray, centres: np.nd
     return True
 
 
+#: ``ellipsoid.log_unit_ball``, the same function, compiled
+_log_unit_ball = njit(cache=True, error_model="numpy")(log_unit_ball)
+
+
 @njit(cache=True, error_model="numpy")
 def _node(points: np.ndarray, rows: np.ndarray, cov: np.ndarray, y: np.ndarray) -> tuple[bool, float]:
-    """``bounds._node`` of ``points[rows]``: (ok, log volume); fills ``cov`` (d, d) and the
-    whitened points ``y`` (len(rows), d). Not ok when the covariance is not positive
-    definite (Cholesky fails, as LAPACK's dpotrf does: a pivot <= 0 or NaN) or every
-    point sits at the mean."""
+    """The covariance ellipsoid of ``points[rows]`` scaled to hold them all (the shape
+    ``ellipsoid.fit`` makes when it needs no repair), measured for the split tree only:
+    (ok, its log volume); fills ``cov`` (d, d) and the whitened points ``y`` (len(rows), d).
+    Not ok when the covariance is not positive definite (Cholesky fails, as LAPACK's dpotrf
+    does: a pivot <= 0 or NaN) or every point sits at the mean.
+
+    Not a second ``fit``: no ellipsoid is made from these numbers. The tree compares their
+    volumes and clusters the whitened points (in the kernel's own rounding: see the
+    module's docstring); each ellipsoid of a bound is then made by ``ellipsoid.fit_many``
+    from the rows the tree chose, with fit's repair and fallback."""
     n = rows.shape[0]
     d = points.shape[1]
     mean = np.zeros(d)
@@ -211,13 +223,12 @@ def _node(points: np.ndarray, rows: np.ndarray, cov: np.ndarray, y: np.ndarray) 
         r2 = max(r2, q)
     if not r2 > 0.0:
         return False, 0.0
-    log_unit_ball = 0.5 * d * math.log(math.pi) - math.lgamma(0.5 * d + 1.0)
-    return True, log_unit_ball + log_det + 0.5 * d * math.log(r2)
+    return True, _log_unit_ball(d) + log_det + 0.5 * d * math.log(r2)
 
 
 @njit(cache=True, error_model="numpy")
 def radii(points: np.ndarray) -> tuple[bool, np.ndarray]:
-    """(ok, squared whitened radius of each point) of ``bounds._node(points)``."""
+    """(ok, squared whitened radius of each point) of :func:`_node` of all ``points``."""
     n, d = points.shape
     y = np.empty((n, d))
     ok, _ = _node(points, np.arange(n), np.empty((d, d)), y)
@@ -291,16 +302,34 @@ def _two_means(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.nda
 @njit(cache=True, error_model="numpy")
 def tree_rows(points: np.ndarray, max_ellipsoids: int, leaf: int, split_gain: float,
               iterations: int) -> tuple[bool, np.ndarray, np.ndarray]:
-    """``bounds._tree`` from the root ``points``, its best set of at most ``max_ellipsoids``:
-    (ok, rows of the sets one after the other, each ascending, the sets' start offsets and
-    the end). Not ok when the root has no covariance ellipsoid.
+    """``bounds._tree_sets`` from the root ``points``, its best set of at most
+    ``max_ellipsoids``: (ok, rows of the sets one after the other, each ascending, the sets'
+    start offsets and the end). Not ok when the root has no covariance ellipsoid.
 
-    The nodes are made breadth first, with one call of numpy's ``eigh`` per level for the
-    split axes (so LAPACK's dsyevd as numpy calls it gives their signs); a node's rows are a
-    segment of ``perm``, split (stably) into its halves' segments. ``total[v, k]`` / ``choice[v, k]`` are the dynamic
-    programme of ``_tree``: the least total volume (relative to the root's) of at most k
-    ellipsoids for node v, and how: -1 its own ellipsoid, -2 as with k - 1, else k1 (k1
-    for the first half, k - k1 for the second)."""
+    Three steps: :func:`_grow` makes the tree (each node a segment of a permutation of the
+    rows), :func:`_best_sets` finds each node's best set of at most k ellipsoids, and
+    :func:`_emit_sets` writes the root's."""
+    n = points.shape[0]
+    ok, n_nodes, start, stop, budget, child, log_volume, perm = _grow(points, max_ellipsoids, leaf, iterations)
+    if not ok:
+        return False, perm[:0], np.zeros(1, np.int64)
+    choice = _best_sets(log_volume[:n_nodes], child, budget, max_ellipsoids, split_gain)
+    out, offsets = _emit_sets(choice, child, start, stop, perm, n, max_ellipsoids)
+    return True, out, offsets
+
+
+@njit(cache=True, error_model="numpy")
+def _grow(points: np.ndarray, max_ellipsoids: int, leaf: int, iterations: int) -> tuple[
+        bool, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The split tree of :func:`tree_rows`: (ok, the number of nodes, ``start``, ``stop``,
+    ``budget``, ``child``, ``log_volume``, ``perm``). Node v's rows are ``perm[start[v]:stop[v]]``;
+    ``budget[v]`` is the most ellipsoids it may be split into, ``child[v]`` its halves (-1: none),
+    ``log_volume[v]`` the log volume of its covariance ellipsoid (:func:`_node`). Node 0 is
+    the root; not ok when it has no ellipsoid.
+
+    The nodes are made breadth first, a level after the other, with one call of numpy's
+    ``eigh`` per level for the split axes (:func:`_split_axes`); a node's segment of
+    ``perm`` is split (stably) into its halves' segments (:func:`_split_level`)."""
     n, d = points.shape
     cap = 1 + 2 * max_ellipsoids * (n // max(2 * leaf, 1) + 1)
     start = np.zeros(cap, np.int64)
@@ -315,61 +344,119 @@ def tree_rows(points: np.ndarray, max_ellipsoids: int, leaf: int, split_gain: fl
 
     ok, lv = _node(points, perm, covs[0], ybuf)
     if not ok:
-        return False, perm[:0], np.zeros(1, np.int64)
+        return False, 0, start, stop, budget, child, log_volume, perm
     start[0], stop[0], budget[0], log_volume[0] = 0, n, max_ellipsoids, lv
     n_nodes = 1
     lo_level, hi_level = 0, 1  # the nodes of a level of the tree are made one after the other
     while lo_level < hi_level:  # breadth first: one eigh call (numpy's) per level of the tree
-        todo = np.empty(hi_level - lo_level, np.int64)
-        n_todo = 0
-        for v in range(lo_level, hi_level):
-            if budget[v] >= 2 and stop[v] - start[v] >= 2 * leaf:
-                todo[n_todo] = v
-                n_todo += 1
+        todo = _splittable(start, stop, budget, lo_level, hi_level, leaf)
         lo_level = hi_level
-        if n_todo == 0:
+        if todo.shape[0] == 0:
             break
-        stacked = np.empty((n_todo, d, d))
-        for i in range(n_todo):
-            for a in range(d):
-                for b in range(d):
-                    stacked[i, a, b] = covs[todo[i], a, b]
-        with objmode(axes="float64[:, :]"):
-            axes = np.ascontiguousarray(np.linalg.eigh(stacked)[1][:, :, -1])
-        for i in range(n_todo):
-            v = todo[i]
-            s, e = start[v], stop[v]
-            rows = perm[s:e]
-            second = _two_means(points, rows, ybuf[s:e], axes[i], iterations)
-            n1 = 0
-            for r in range(e - s):
-                n1 += second[r]
-            n0 = e - s - n1
-            if min(n0, n1) < max(leaf, d + 1):
-                continue
-            a, b = 0, n0  # stable partition: the first half's rows, then the second's
-            for r in range(e - s):
-                if second[r]:
-                    work[b] = rows[r]
-                    b += 1
-                else:
-                    work[a] = rows[r]
-                    a += 1
-            ok0, lv0 = _node(points, work[:n0], covs[n_nodes], ybuf[s:s + n0])
-            if not ok0:
-                continue
-            ok1, lv1 = _node(points, work[n0:e - s], covs[n_nodes + 1], ybuf[s + n0:e])
-            if not ok1:
-                continue
-            start[n_nodes], stop[n_nodes], log_volume[n_nodes] = s, s + n0, lv0
-            start[n_nodes + 1], stop[n_nodes + 1], log_volume[n_nodes + 1] = s + n0, e, lv1
-            budget[n_nodes] = budget[n_nodes + 1] = budget[v] - 1
-            for r in range(e - s):
-                perm[s + r] = work[r]
-            child[v, 0], child[v, 1] = n_nodes, n_nodes + 1
-            n_nodes += 2
+        axes = _split_axes(covs, todo)
+        n_nodes = _split_level(points, todo, axes, leaf, iterations, n_nodes, start, stop, budget, child,
+                               log_volume, covs, perm, ybuf, work)
         hi_level = n_nodes
+    return True, n_nodes, start, stop, budget, child, log_volume, perm
 
+
+@njit(cache=True, error_model="numpy")
+def _splittable(start: np.ndarray, stop: np.ndarray, budget: np.ndarray, lo: int, hi: int,
+                leaf: int) -> np.ndarray:
+    """The nodes lo, ..., hi - 1 (a level of the tree) that may be split: a budget of at
+    least 2 ellipsoids and at least 2 ``leaf`` rows."""
+    todo = np.empty(hi - lo, np.int64)
+    n_todo = 0
+    for v in range(lo, hi):
+        if budget[v] >= 2 and stop[v] - start[v] >= 2 * leaf:
+            todo[n_todo] = v
+            n_todo += 1
+    return todo[:n_todo]
+
+
+@njit(cache=True, error_model="numpy")
+def _split_axes(covs: np.ndarray, todo: np.ndarray) -> np.ndarray:
+    """The split axis of each node of ``todo``: the leading eigenvector of its covariance
+    (``covs[v]``), from one call of numpy's ``eigh`` on their stack (so LAPACK's dsyevd as
+    numpy calls it gives their signs, which order the halves)."""
+    n_todo = todo.shape[0]
+    d = covs.shape[1]
+    stacked = np.empty((n_todo, d, d))
+    for i in range(n_todo):
+        for a in range(d):
+            for b in range(d):
+                stacked[i, a, b] = covs[todo[i], a, b]
+    with objmode(axes="float64[:, :]"):
+        axes = np.ascontiguousarray(np.linalg.eigh(stacked)[1][:, :, -1])
+    return axes
+
+
+@njit(cache=True, error_model="numpy")
+def _split_level(points: np.ndarray, todo: np.ndarray, axes: np.ndarray, leaf: int, iterations: int,
+                 n_nodes: int, start: np.ndarray, stop: np.ndarray, budget: np.ndarray, child: np.ndarray,
+                 log_volume: np.ndarray, covs: np.ndarray, perm: np.ndarray, ybuf: np.ndarray,
+                 work: np.ndarray) -> int:
+    """Split each node v of ``todo`` along ``axes[i]`` into two new nodes (appended after the
+    first ``n_nodes``), when :func:`_halves` keeps both and both have an ellipsoid; the
+    halves' rows take v's segment of ``perm``, the first half's first. Returns the new
+    number of nodes."""
+    for i in range(todo.shape[0]):
+        v = todo[i]
+        s, e = start[v], stop[v]
+        n0 = _halves(points, perm[s:e], ybuf[s:e], axes[i], leaf, iterations, work)
+        if n0 < 0:
+            continue
+        ok0, lv0 = _node(points, work[:n0], covs[n_nodes], ybuf[s:s + n0])
+        if not ok0:
+            continue
+        ok1, lv1 = _node(points, work[n0:e - s], covs[n_nodes + 1], ybuf[s + n0:e])
+        if not ok1:
+            continue
+        start[n_nodes], stop[n_nodes], log_volume[n_nodes] = s, s + n0, lv0
+        start[n_nodes + 1], stop[n_nodes + 1], log_volume[n_nodes + 1] = s + n0, e, lv1
+        budget[n_nodes] = budget[n_nodes + 1] = budget[v] - 1
+        for r in range(e - s):
+            perm[s + r] = work[r]
+        child[v, 0], child[v, 1] = n_nodes, n_nodes + 1
+        n_nodes += 2
+    return n_nodes
+
+
+@njit(cache=True, error_model="numpy")
+def _halves(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.ndarray, leaf: int, iterations: int,
+            work: np.ndarray) -> int:
+    """The 2-means split (:func:`_two_means`) of a node's ``rows`` (whitened points ``y``):
+    the number n0 of the first half's rows, with ``work`` = the first half's rows then the
+    second's, each in the order of ``rows`` (a stable partition); -1 when a half would keep
+    fewer than ``leaf`` or d + 1 rows."""
+    second = _two_means(points, rows, y, axis, iterations)
+    m = rows.shape[0]
+    n1 = 0
+    for r in range(m):
+        n1 += second[r]
+    n0 = m - n1
+    if min(n0, n1) < max(leaf, points.shape[1] + 1):
+        return -1
+    a, b = 0, n0
+    for r in range(m):
+        if second[r]:
+            work[b] = rows[r]
+            b += 1
+        else:
+            work[a] = rows[r]
+            a += 1
+    return n0
+
+
+@njit(cache=True, error_model="numpy")
+def _best_sets(log_volume: np.ndarray, child: np.ndarray, budget: np.ndarray, max_ellipsoids: int,
+               split_gain: float) -> np.ndarray:
+    """The dynamic programme of ``bounds._tree_sets`` over the nodes of :func:`_grow`:
+    ``choice[v, k]``, how node v's best set of at most k ellipsoids is made: -1 its own
+    ellipsoid, -2 as with k - 1, else k1 (k1 for the first half, k - k1 for the second).
+    ``total[v, k]`` is that set's volume relative to the root's; the halves' sets replace
+    the best set of at most k - 1 only when they hold less than ``split_gain`` of it."""
+    n_nodes = log_volume.shape[0]
     total = np.zeros((n_nodes, max_ellipsoids + 1))
     choice = np.zeros((n_nodes, max_ellipsoids + 1), np.int64)
     for v in range(n_nodes - 1, -1, -1):  # children after parents: reverse order is bottom-up
@@ -387,7 +474,15 @@ def tree_rows(points: np.ndarray, max_ellipsoids: int, leaf: int, split_gain: fl
                     best_k1, best_t = k1, t
             if best_t < split_gain * total[v, k - 1]:
                 total[v, k], choice[v, k] = best_t, best_k1
+    return choice
 
+
+@njit(cache=True, error_model="numpy")
+def _emit_sets(choice: np.ndarray, child: np.ndarray, start: np.ndarray, stop: np.ndarray, perm: np.ndarray,
+               n: int, max_ellipsoids: int) -> tuple[np.ndarray, np.ndarray]:
+    """The root's best set of at most ``max_ellipsoids`` (:func:`_best_sets`' ``choice``),
+    first half before second: (the rows of its nodes one after the other, each ascending,
+    the start offsets and the end)."""
     out = np.empty(n, np.int64)
     member = np.zeros(n, np.bool_)
     offsets = np.zeros(max_ellipsoids + 1, np.int64)
@@ -416,7 +511,7 @@ def tree_rows(points: np.ndarray, max_ellipsoids: int, leaf: int, split_gain: fl
             todo_v[n_todo], todo_k[n_todo] = child[v, 1], k - k1
             todo_v[n_todo + 1], todo_k[n_todo + 1] = child[v, 0], k1
             n_todo += 2
-    return True, out[:offsets[n_sets]], offsets[:n_sets + 1]
+    return out[:offsets[n_sets]], offsets[:n_sets + 1]
 
 
 @njit(cache=True, error_model="numpy")
@@ -449,26 +544,45 @@ def mixture_weights(which: np.ndarray, z: np.ndarray, u: np.ndarray, centres: np
     (d + 2 roundings), the power (libm's, or numpy's SIMD one: a few ulp; 32 allowed; here a
     square root for d = 2 and 4), the product and quotient (2), the matrix product (d), the
     sum (1), on ``|u^(1/d) z / |z|| <= 1``, with room to spare. A box face is decided when
-    the point is farther than ``2 e_i`` from it; an ellipsoid as in :func:`_count`, the
-    distance moved by ``1.01 |inv|_F |2 e|`` (the point's shift through the inverse axes)
-    and by the relative error m of the fast distances (``count_inside``'s bound)."""
+    the point is farther than ``2 e_i`` from it (:func:`_place_in_box`); an ellipsoid as in
+    :func:`_count`, the distance moved by ``1.01 |inv|_F |2 e|`` (the point's shift through
+    the inverse axes) and by the relative error m of the fast distances (``count_inside``'s
+    bound)."""
     n, d = z.shape
-    k = centres.shape[0]
     w = np.zeros(n)
-    eps = 2.220446049250313e-16
     inv, inv_norm, m = _inverses(axes)
     if count and not m <= 1e-3:
         return w, False
-    t = 1.0 + slack
-    rel = (4 * d + 128) * eps
-    start = np.zeros(k + 1, np.int64)  # where each ellipsoid's draws begin in z and u
-    for i in range(n):
-        start[which[i] + 1] += 1
-    for j in range(k):
-        start[j + 1] += start[j]
     xt = np.empty((d, n))  # the points, transposed (the loops below run over points, innermost)
     shift = np.empty(n)  # a bound on |numpy's point - this one|
     held = np.zeros(n, np.bool_)
+    if not _place_in_box(which, z, u, centres, axes, low, high, xt, shift, held):
+        return w, False
+    if not count:
+        for i in range(n):
+            w[i] = 1.0 if held[i] else 0.0
+        return w, True
+    holders = np.zeros(n, np.int64)
+    if not _count(xt, inv, inv_norm, centres, shift, held, m, 1.0 + slack, holders):
+        return w, False
+    for i in range(n):
+        if held[i]:
+            if holders[i] == 0:
+                return w, False  # numpy's 1 / 0: its own path says what that gives
+            w[i] = 1.0 / holders[i]
+    return w, True
+
+
+@njit(cache=True, error_model="numpy")
+def _place_in_box(which: np.ndarray, z: np.ndarray, u: np.ndarray, centres: np.ndarray, axes: np.ndarray,
+                  low: np.ndarray, high: np.ndarray, xt: np.ndarray, shift: np.ndarray, held: np.ndarray) -> bool:
+    """The points of :func:`mixture_weights` (columns of ``xt`` (d, n)), the bound ``shift[i]``
+    on the distance of point i from numpy's (``|2 e|``, e the margins of
+    :func:`mixture_weights`), and whether it lies in the box [``low``, ``high``] (``held``);
+    False as soon as a ``z`` row is zero or a point is within ``2 e_i`` of a face."""
+    n, d = z.shape
+    rel = (4 * d + 128) * 2.220446049250313e-16  # np.finfo(float).eps
+    start = _draw_starts(which, centres.shape[0])
     for i in range(n):
         q = which[i]
         at = start[q]
@@ -477,16 +591,8 @@ def mixture_weights(which: np.ndarray, z: np.ndarray, u: np.ndarray, centres: np
         for b in range(d):
             norm2 += z[at, b] * z[at, b]
         if not norm2 > 0.0:
-            return w, False
-        if d == 1:
-            radius = u[at]
-        elif d == 2:
-            radius = math.sqrt(u[at])
-        elif d == 4:
-            radius = math.sqrt(math.sqrt(u[at]))
-        else:
-            radius = u[at] ** (1.0 / d)
-        scale = radius / math.sqrt(norm2)
+            return False
+        scale = _unit_radius(u[at], d) / math.sqrt(norm2)
         inside = True
         shift2 = 0.0
         for a in range(d):
@@ -499,24 +605,37 @@ def mixture_weights(which: np.ndarray, z: np.ndarray, u: np.ndarray, centres: np
             err = 2.0 * rel * bound
             shift2 += err * err
             if abs(v - low[a]) <= err or abs(v - high[a]) <= err:
-                return w, False  # too close to a face to call
+                return False  # too close to a face to call
             if not (v >= low[a] and v <= high[a]):
                 inside = False
         held[i] = inside
         shift[i] = math.sqrt(shift2)
-    if not count:
-        for i in range(n):
-            w[i] = 1.0 if held[i] else 0.0
-        return w, True
-    holders = np.zeros(n, np.int64)
-    if not _count(xt, inv, inv_norm, centres, shift, held, m, t, holders):
-        return w, False
-    for i in range(n):
-        if held[i]:
-            if holders[i] == 0:
-                return w, False  # numpy's 1 / 0: its own path says what that gives
-            w[i] = 1.0 / holders[i]
-    return w, True
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _draw_starts(which: np.ndarray, k: int) -> np.ndarray:
+    """Where each of the k ellipsoids' draws begin (in ellipsoid order) for the labels
+    ``which``: the cumulative counts, from 0."""
+    start = np.zeros(k + 1, np.int64)
+    for i in range(which.shape[0]):
+        start[which[i] + 1] += 1
+    for j in range(k):
+        start[j + 1] += start[j]
+    return start
+
+
+@njit(cache=True, error_model="numpy")
+def _unit_radius(u: float, d: int) -> float:
+    """``u^(1/d)``, the radius of a point uniform in the unit ball (a square root, or two,
+    for d = 2 and 4)."""
+    if d == 1:
+        return u
+    if d == 2:
+        return math.sqrt(u)
+    if d == 4:
+        return math.sqrt(math.sqrt(u))
+    return u ** (1.0 / d)
 
 
 @njit(cache=True, error_model="numpy")

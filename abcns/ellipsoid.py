@@ -44,9 +44,13 @@ class Ellipsoid:
         return int(self.centre.shape[0])
 
 
-@functools.lru_cache(maxsize=64)
-def _log_unit_ball(d: int) -> float:
+def log_unit_ball(d: int) -> float:
+    """log of the volume of the unit ball in d dimensions (plain Python, so that
+    ``abcns.compiled`` compiles this same function for its kernels)."""
     return 0.5 * d * math.log(math.pi) - math.lgamma(0.5 * d + 1.0)
+
+
+_log_unit_ball = functools.lru_cache(maxsize=64)(log_unit_ball)
 
 
 def from_matrix(centre: np.ndarray, matrix: np.ndarray, note: str = "") -> Ellipsoid:

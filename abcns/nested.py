@@ -345,7 +345,7 @@ class _Run:
         self.budget = budget
         self.source, self.n_pilot = "resumed" if history else "given", 0
         self.notes: list[str] = []
-        self.frames = [bd.Frame(m.low, m.high, unit=settings.evidence) for m in models]
+        self.frames = [bd.Frame(m, unit=settings.evidence) for m in models]
         self.floors = Tracker(noise, models, history)
         self.at_floor = settings.evidence and stop.noise_floor and noise is not None
         self.pending: Filling | None = None  # the next population, started

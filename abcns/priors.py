@@ -46,6 +46,18 @@ class Uniform:
         return self.high - self.low
 
 
+def in_box(theta: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """Which rows of ``theta`` (..., d) lie in the box: ``np.all((theta >= low) & (theta <= high),
+    axis=-1)`` (faces included, NaN outside), compiled (``abcns.compiled.in_box``): the prior
+    box test of :meth:`Model.in_prior` and of the proposals (``bounds.Frame.in_prior``)."""
+    from abcns import compiled
+
+    x = np.asarray(theta, dtype=float)
+    if x.ndim == 0 or x.shape[-1] != low.shape[0]:
+        raise ValueError(f"theta has shape {x.shape}; a box in {low.shape[0]} dimensions needs (..., {low.shape[0]})")
+    return compiled.in_box(np.ascontiguousarray(x.reshape(-1, x.shape[-1])), low, high).reshape(x.shape[:-1])
+
+
 @dataclass(frozen=True)
 class Model:
     """A candidate model: its free parameters with uniform priors, and fixed values.
@@ -119,10 +131,11 @@ class Model:
         return self.low + (self.high - self.low) * rng.random((n, self.n_dim))
 
     def in_prior(self, theta: np.ndarray) -> np.ndarray:
-        """Boolean mask of the rows of ``theta`` (n, n_dim) inside the prior box."""
-        return np.all((theta >= self.low) & (theta <= self.high), axis=-1)
+        """Boolean mask of the rows of ``theta`` (n, n_dim) inside the prior box (:func:`in_box`)."""
+        return in_box(theta, self.low, self.high)
 
     def log_prior_volume(self) -> float:
+        """log of the prior box's volume, the sum of the log widths ``high - low``."""
         return float(np.sum(np.log(self.high - self.low)))
 
     @classmethod

@@ -38,7 +38,8 @@ def test_two_separate_discs_get_separate_ellipsoids_and_hold_every_point():
 
 
 def test_a_convex_cloud_stays_one_ellipsoid():
-    """A split must halve the volume by chance fluctuations alone: a uniform disc is not split."""
+    """Halves replace a node only when they hold less than ``SPLIT_GAIN`` (0.8) of its volume,
+    which the chance fluctuations of a uniform disc do not reach: it stays one ellipsoid."""
     rng = np.random.default_rng(2)
     points = ball((0.5, 0.5), 0.2, 700, rng)
     assert len(bd.fit_union(points, 1.1, 8, FALLBACK)) == 1
@@ -206,3 +207,25 @@ def test_mixture_picks_ellipsoids_as_generator_choice_does():
         logv = np.array([e.log_volume for e in bound])
         expected = np.random.default_rng(seed).choice(len(bound), size=n, p=np.exp(logv - logsumexp(logv)))
         assert np.array_equal(which, expected)
+
+
+def test_a_frame_takes_its_box_and_volume_from_the_model():
+    """The prior box test and its log volume are the model's, one implementation: the frame
+    holds the model's arrays, ``Model.in_prior`` and the frame's test are ``priors.in_box``,
+    which is numpy's ``all((theta >= low) & (theta <= high))`` (faces in, NaN out)."""
+    from abcns.priors import Model
+
+    model = Model("m", {"a": (0.0, 1.0), "b": (-2.0, 3.0), "c": (1e-3, 2e-3)})
+    raw, unit = bd.Frame(model, unit=False), bd.Frame(model, unit=True)
+    assert raw.log_box_volume == model.log_prior_volume() and unit.log_box_volume == 0.0
+    theta = np.random.default_rng(4).uniform(-3.0, 3.0, (500, 3)) * np.array([1.0, 1.0, 1e-3])
+    theta[:5] = [[0.0, -2.0, 1e-3], [1.0, 3.0, 2e-3], [np.nan, 0.0, 1.5e-3], [0.5, np.inf, 1.5e-3], [-0.0, 0.0, 1.5e-3]]
+    want = np.all((theta >= model.low) & (theta <= model.high), axis=-1)
+    assert want[[0, 1, 4]].all() and not want[[2, 3]].any()
+    for frame in (raw, unit):
+        np.testing.assert_array_equal(frame.in_prior(theta), want)
+    np.testing.assert_array_equal(model.in_prior(theta), want)
+    np.testing.assert_array_equal(model.in_prior(theta.reshape(25, 20, 3)), want.reshape(25, 20))
+    assert model.in_prior(theta[0]) and not model.in_prior(theta[2])
+    with pytest.raises(ValueError, match="needs"):
+        model.in_prior(theta[:, :2])

@@ -114,7 +114,7 @@ def test_a_draw_that_cannot_be_drawn_returns_its_stop_reason_in_place(make_execu
     """A bound far outside the prior box: the proposals run out of redraws on the worker."""
     _, built = job
     models = tuple(built.models)
-    frames = tuple(Frame(m.low, m.high, unit=True) for m in models)
+    frames = tuple(Frame(m, unit=True) for m in models)
     outside = tuple((ell.from_box(np.full(m.n_dim, 5.0), np.full(m.n_dim, 6.0)),) for m in models)
     exhausted = BoundProposer(models, frames, outside, None, max_redraws=1)
     good = list(itertools.islice(stream(built.models), 2))

@@ -239,7 +239,7 @@ def _proposer(job, pops: list, t: int):
     if t == 1:
         return prior_proposer(job.models)
     s = job.settings
-    frames = tuple(bd.Frame(m.low, m.high, unit=s.evidence) for m in job.models)
+    frames = tuple(bd.Frame(m, unit=s.evidence) for m in job.models)
     prev = pops[t - 2]
     allocation = prev.evidence.allocation if s.evidence else None
     return nested.BoundProposer(tuple(job.models), frames, prev.ellipsoids, allocation, s.max_redraws)
@@ -254,7 +254,7 @@ def _inside_next(job, pops: list, t: int, which: np.ndarray, theta: np.ndarray) 
         rows = np.flatnonzero(which == m)
         if rows.size == 0 or not bounds[m]:
             continue
-        frame = bd.Frame(model.low, model.high, unit=s.evidence)
+        frame = bd.Frame(model, unit=s.evidence)
         inside[rows] = bd.n_inside(bounds[m], frame.to_frame(theta[rows, : model.n_dim])) > 0
     return inside
 
