@@ -101,7 +101,7 @@ def _warm_worker() -> int:
     """Import the plugin and what a task imports, and load the Duffing kernel (numba's
     cache) on a worker: once per worker process, as on a long-lived cluster."""
     import abcns.nested  # noqa: F401 - what unpickling a task's proposer imports
-    import worker.evaluate  # noqa: F401
+    import worker.tasks  # noqa: F401
     from benchmarks import sleepy as plugin
     from worker.simulators import Duffing
 

@@ -15,7 +15,7 @@ import numpy as np
 from abcns import NMSE, Model, NSSettings, StopRules, SummaryEuclidean
 from abcns.executor import Evaluate
 from examples import make_data
-from worker.evaluate import evaluator
+from worker.compose import evaluator
 from worker.simulators import Duffing, GAndK, Linear
 
 DATA = Path(__file__).resolve().parents[1] / "data"  # the committed data sets, one folder each (data/README.md)

@@ -36,7 +36,8 @@ from abcns.distances import NMSE, check_window
 from abcns.executor import Evaluate
 from abcns.noise import Noise
 from abcns.run import check_models
-from worker.evaluate import evaluator, job_parts
+from worker.compose import evaluator
+from worker.description import job_parts
 from worker.simulators import Simulator
 
 Window = tuple[int, int]

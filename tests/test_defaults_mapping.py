@@ -6,7 +6,7 @@ with a prior on k simulated k = 0 whatever was proposed."""
 import numpy as np
 
 from abcns import NMSE, Batch, Model
-from worker.evaluate import evaluator
+from worker.compose import evaluator
 from worker.simulators import BoucWen
 
 

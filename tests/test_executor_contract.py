@@ -277,7 +277,7 @@ def test_summary_distances_on_workers_equal_the_runner_s(client):
 
 def test_unaligned_data_give_the_aligned_distances(job):
     """The cause of the test above, without Dask: the same observed record at an odd byte offset."""
-    from worker.evaluate import job_parts
+    from worker.description import job_parts
 
     raw = yaml.safe_load((ROOT / "examples" / "gandk_32" / "spec.yaml").read_text())
     spec = parse(raw)

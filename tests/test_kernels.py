@@ -11,7 +11,7 @@ from scipy.integrate import solve_ivp
 from abcns.distances import NMSE
 from abcns.executor import DIVERGED, FAILED, OK, Batch
 from abcns.priors import Model, SpecError
-from worker.evaluate import evaluator
+from worker.compose import evaluator
 from worker.kernels import choose_substeps
 from worker.simulators import BoucWen, Duffing, Linear
 

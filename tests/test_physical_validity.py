@@ -9,7 +9,7 @@ its own reason and says why.
   NMSE's scale;
 - two models of one name;
 - RK4 substeps per sample, given or chosen from the priors and the sample interval, past
-  ``worker.evaluate.MAX_SUBSTEPS``;
+  ``worker.description.MAX_SUBSTEPS``;
 - a population that runs ``stop.max_simulations_without_acceptance`` simulations and keeps
   none stops with ``nothing_accepted`` and a sentence in the run's notes;
 - the records an upload or inline data hold are cut to the samples the job reads, and the

@@ -8,11 +8,13 @@ import pytest
 
 from abcns import Model, SpecError
 from abcns.distances import NMSE, CallableDistance, SummaryEuclidean
-from worker import evaluate as evaluate_module
+from worker import description as description_module
 from worker import registry
-from worker.evaluate import job_evaluator, model_function, simulator_for
+from worker.compose import model_function
+from worker.description import simulator_for
 from worker.kernels import choose_substeps
 from worker.simulators import BoucWen, Duffing, GAndK, Linear, NMSECapable, Oscillator, Simulator
+from worker.tasks import job_evaluator
 
 
 def description(simulator="duffing", integrator=None, priors=None):
@@ -29,13 +31,13 @@ ARRAYS = {"force": np.sin(np.arange(200) * 0.1), "observed": np.cos(np.arange(20
 
 def built_simulators(monkeypatch) -> list:
     """The simulators job_evaluator builds, recorded on their way out of simulator_for."""
-    built, build = [], evaluate_module.simulator_for
+    built, build = [], description_module.simulator_for
 
     def record(*args, **kwargs):
         built.append(build(*args, **kwargs))
         return built[-1]
 
-    monkeypatch.setattr(evaluate_module, "simulator_for", record)
+    monkeypatch.setattr(description_module, "simulator_for", record)
     return built
 
 

@@ -5,7 +5,7 @@ import pytest
 
 from abcns import NMSE, Model, NSSettings, SMCSettings, SpecError, StopRules, Uniform, run
 from abcns.executor import OK, Evaluated
-from worker.evaluate import evaluator
+from worker.compose import evaluator
 from worker.simulators import Duffing, GAndK
 
 

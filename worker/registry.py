@@ -17,7 +17,7 @@ False: called as ``factory(n_samples=...)`` (the observed record's length); True
 is required, and the factory is called with those of the keywords ``force``, ``dt``,
 ``n_samples``, ``substeps``, ``output`` and ``state_bound`` its signature names (all with
 ``**kwargs``); absent: as True, but ``force`` may be None (no input given). See
-``worker/simulators.py`` for four examples and :func:`worker.evaluate.simulator_for`.
+``worker/simulators.py`` for four examples and :func:`worker.description.simulator_for`.
 """
 
 from __future__ import annotations

@@ -2,10 +2,10 @@
 
 The protocol a simulator (built-in or user) follows is :class:`Simulator`; a simulator
 that can compute the NMSE itself also follows :class:`NMSECapable` (the evaluator's fast
-path, :mod:`worker.evaluate`). A factory (the class, or a plugin's callable) may declare
+path, :mod:`worker.compose`). A factory (the class, or a plugin's callable) may declare
 ``needs_input``: True (the oscillators) when it is driven by the input record, False
 (g-and-k) when it only needs the observed record's length; see
-:func:`worker.evaluate.simulator_for` for the keywords each kind is called with.
+:func:`worker.description.simulator_for` for the keywords each kind is called with.
 
 Forced oscillators (:class:`Oscillator`) take the excitation sampled every ``dt``; between
 samples it is held (``input_interpolation="hold"``, the default: ``force[i]`` constant over

@@ -24,7 +24,7 @@ from abcns.distances import gk_summaries
 from abcns.executor import OK, Evaluate
 from examples.paper import gandk_32, linear_31
 from service.spec import build, load
-from worker.evaluate import simulator_for
+from worker.description import simulator_for
 from worker.simulators import GAndK, Linear
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -56,7 +56,7 @@ class Case:
 
 def full_row(model: Model, simulator, pars: dict) -> np.ndarray:
     """A model's parameter dict -> the simulator's full parameter row (1, p): free values,
-    fixed values, then the simulator's defaults (as worker.evaluate does for a batch)."""
+    fixed values, then the simulator's defaults (as worker.compose does for a batch)."""
     const = {**simulator.defaults, **model.fixed}
     return np.array([[float(pars[p]) if p in model.priors else float(const[p]) for p in simulator.parameter_names]])
 

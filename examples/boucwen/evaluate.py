@@ -24,7 +24,7 @@ from matplotlib.figure import Figure
 from abcns.analysis import bands, point_estimates
 from examples.boucwen.prepare import FS, NOISE_RMS, load
 from service.report.analysis import JobData, fit_alone, open_run
-from worker.evaluate import simulator_for
+from worker.description import simulator_for
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]

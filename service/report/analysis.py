@@ -24,7 +24,8 @@ from abcns import OK, Model, Result
 from abcns.analysis import Confusion, Predictive, confusion, fit_test_nmse, nmse, predictive
 from service.run.store import Store, data_hash
 from service.spec import JobSpec, load_data, parse
-from worker.evaluate import check_model, full_parameters, model_of, simulator_for
+from worker.compose import check_model, full_parameters
+from worker.description import model_of, simulator_for
 from worker.simulators import Simulator
 
 

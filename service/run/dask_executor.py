@@ -58,7 +58,7 @@ from distributed import Client, Future, LocalCluster, as_completed
 from abcns.executor import Draw, Simulated, pack_draws, unpack_results
 from abcns.filling import Budget
 from abcns.settings import Stopped
-from worker.evaluate import anchor, evaluate_on_worker, job_payload
+from worker.tasks import anchor, evaluate_on_worker, job_payload
 
 #: compute time of a task, at least (a task costs ~1-2 ms of CPU in the client, scheduler and
 #: worker together) and at most (a worker busy with a surplus task starts the next population late)
