@@ -5,11 +5,12 @@ no-op that keeps a run's task group queued; :func:`evaluate_on_worker` runs a gr
 draws. ``job_evaluator(description, arrays)`` builds a job's batch evaluator from its
 JSON-able description (:func:`worker.description.job_parts`, then
 :func:`worker.compose.evaluator`); a worker builds it once per process and job and keeps it
-in a small cache.
+in a small cache, which a lock guards (a Dask worker runs tasks on several threads).
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import OrderedDict
 
@@ -27,6 +28,9 @@ def job_evaluator(description: dict, arrays: dict, allow_import: bool = False) -
 
 _CACHE: OrderedDict[str, Evaluate] = OrderedDict()
 _CACHE_SIZE = 8
+# held while a job's evaluator is looked up or built: the threads of one worker that ask for
+# the same job at once build it once, and the cache's order is never changed by two at a time
+_CACHE_LOCK = threading.Lock()
 
 
 def job_payload(description: dict, arrays: dict, allow_import: bool = False) -> dict:
@@ -52,13 +56,23 @@ def evaluate_on_worker(job_key: str, payload: dict, draws: bytes) -> tuple[bytes
     ``payload`` (the result of :func:`job_payload`, sent once per job) is turned into an
     evaluator once per worker process and kept for the job's later batches."""
     start = time.perf_counter()
-    evaluate = _CACHE.get(job_key)
-    if evaluate is None:
+    evaluate = cached_evaluator(job_key, payload)
+    results = [run_draw(evaluate, draw) for draw in unpack_draws(draws)]
+    return pack_results(results), time.perf_counter() - start
+
+
+def cached_evaluator(job_key: str, payload: dict) -> Evaluate:
+    """Job ``job_key``'s evaluator, built from ``payload`` (:func:`job_payload`) on its first
+    use in this process and kept for the :data:`_CACHE_SIZE` jobs used last. Thread-safe: a
+    thread that asks while another builds the same job's evaluator waits for that one (and
+    one that asks for another job waits too: a build comes once per job and process)."""
+    with _CACHE_LOCK:
+        evaluate = _CACHE.get(job_key)
+        if evaluate is not None:
+            _CACHE.move_to_end(job_key)
+            return evaluate
         _, evaluate = job_evaluator(payload["description"], payload["arrays"], payload.get("allow_import", False))
         _CACHE[job_key] = evaluate
         while len(_CACHE) > _CACHE_SIZE:
             _CACHE.popitem(last=False)
-    else:
-        _CACHE.move_to_end(job_key)
-    results = [run_draw(evaluate, draw) for draw in unpack_draws(draws)]
-    return pack_results(results), time.perf_counter() - start
+        return evaluate
