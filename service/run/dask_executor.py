@@ -39,7 +39,7 @@ of the random stream and is never split). A result used is never affected: a sto
 or cancel ends the run at the population being filled, whose batches are dropped.
 
 The job's description and data go to the cluster once, as the task :func:`job_payload` that
-every batch depends on. The scheduler keeps its inputs, so if every worker holding it dies
+every batch depends on (the tasks are in :mod:`worker.tasks`). The scheduler keeps its inputs, so if every worker holding it dies
 (or all workers are restarted) it is recomputed and the waiting batches go on.
 """
 
