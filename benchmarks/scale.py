@@ -3,8 +3,9 @@
     python -m benchmarks.scale [--workers 1,2,4,8,16,32] [--stock-workers 1,8] [--populations 10]
                                [--batch-size B] [--d41-workers 1,2] [--d41-populations 6]
                                [--skip-local] [--skip-stock] [--skip-d41] [--quick]
+                               [--sleep-ms MS] [--pyabc-workers 8,14] [--pyabc-generations 8]
 
-Figures only (nothing is asserted about speed). Three parts:
+Figures only (nothing is asserted about speed). Four parts (the fourth only when asked for):
 
 1. **Latency-bound, LocalCluster.** The authors' demo (examples/authors_demo/spec.yaml), the
    cubic model only, its sampler settings (1000 particles) with the default batch size (25), run
@@ -20,6 +21,23 @@ Figures only (nothing is asserted about speed). Three parts:
    called in this process on one batch of prior draws (epsilon = inf: every simulation runs
    to the end), best of several calls; and, for reference, the evaluator's own time on the
    run's batches in a serial in-process run (early rejection at each population's epsilon).
+4. **pyABC on the same machine and pattern** (``--pyabc-workers``, none by default; needs
+   pyABC, the optional extra ``.[bench]``, and prints a line saying it is skipped when pyABC
+   cannot be imported): ``pyabc.ABCSMC`` with ``MulticoreEvalParallelSampler(n_procs=W)``
+   (W forked worker processes), population size 1000, ``--pyabc-generations`` generations
+   (``max_nr_populations``; default 8) after pyABC's calibration sample, otherwise its
+   defaults (MedianEpsilon, MultivariateNormalTransition), its history in a sqlite file in
+   the run's temporary directory. The model (:func:`pyabc_model`): two parameters ``a``,
+   ``b`` with independent uniform priors on [-5, 5]; one simulation sleeps
+   ``benchmarks.sleepy.SECONDS`` (2 ms, or ``--sleep-ms``: the same cost as the sleepy
+   plugin's per simulation) and returns ``y = (a, b) + N(0, 0.5^2 I)``; observed ``y =
+   (1, -0.5)``; distance the squared Euclidean ``|y - y_obs|^2``. *simulations*: pyABC's own
+   count, ``History.total_nr_simulations`` (the sum of its populations' ``nr_samples``, the
+   calibration sample's 1000 included): every simulation its workers started, those still
+   running when a population filled too, so it compares with the sleepy table's *executed*
+   rather than its *simulations*. *wall*: ``ABCSMC.new`` (the sqlite file) and ``run``.
+   *efficiency*: simulations per second over W / ``SECONDS``, as the sleepy table's. pyABC's
+   workers reseed from the OS: runs are not reproducible, and the count varies a little.
 
 Columns. *simulations*: what the algorithm used (the result's serial-equivalent count; the
 same for every N, the run being deterministic). *executed*: rows the workers actually
@@ -41,6 +59,8 @@ workers with 1 population (a smoke run, under a minute).
 from __future__ import annotations
 
 import argparse
+import functools
+import logging
 import os
 import shutil
 import subprocess
@@ -337,6 +357,60 @@ def d41_table(counts: list[int], populations: int, tmp: Path) -> None:
               flush=True)
 
 
+# -- pyABC on the same pattern (optional: pyABC is imported here only) ---------------------
+
+PYABC_OBSERVED = (1.0, -0.5)
+PYABC_NOISE = 0.5
+
+
+def pyabc_model(parameter: dict, seconds: float) -> dict:
+    """One simulation of part 4's model: sleep ``seconds``, then ``(a, b)`` plus Gaussian
+    noise of standard deviation ``PYABC_NOISE`` (numpy's global generator: pyABC reseeds it
+    in each worker)."""
+    time.sleep(seconds)
+    return {"y": np.array([parameter["a"], parameter["b"]]) + PYABC_NOISE * np.random.standard_normal(2)}  # noqa: NPY002
+
+
+def pyabc_distance(x: dict, x0: dict) -> float:
+    """Squared Euclidean distance between simulated and observed ``y``."""
+    return float(np.sum((x["y"] - x0["y"]) ** 2))
+
+
+def pyabc_table(counts: list[int], generations: int, tmp: Path) -> None:
+    """Part 4: pyABC's ABC-SMC on ``W`` forked processes for each ``W`` in ``counts``."""
+    try:
+        import pyabc
+        from pyabc.sampler import MulticoreEvalParallelSampler
+    except ImportError as exc:
+        print(f"\n## pyABC: skipped, pyABC cannot be imported ({exc}); pip install 'pyabc>=0.13' "
+              f"or the extra .[bench]", flush=True)
+        return
+    logging.getLogger("ABC").setLevel(logging.ERROR)  # pyABC logs every generation at INFO
+    print(f"\n## pyABC {pyabc.__version__}, ABCSMC with MulticoreEvalParallelSampler(n_procs=W), population size "
+          f"1000, {generations} generations after the calibration sample, 2-parameter Gaussian location model, "
+          f"{1e3 * sleepy.SECONDS:g} ms sleep per simulation, history in sqlite")
+    print("| workers | simulations | wall s | sims/s | ideal sims/s | efficiency | final epsilon | load |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|", flush=True)
+    prior = pyabc.Distribution(a=pyabc.RV("uniform", -5, 10), b=pyabc.RV("uniform", -5, 10))
+    model = functools.partial(pyabc_model, seconds=sleepy.SECONDS)
+    for n in counts:
+        db = Path(tempfile.mkdtemp(dir=tmp)) / "pyabc.db"
+        try:
+            abc = pyabc.ABCSMC(model, prior, pyabc_distance, population_size=1000,
+                               sampler=MulticoreEvalParallelSampler(n_procs=n))
+            t0 = time.perf_counter()
+            abc.new(f"sqlite:///{db}", {"y": np.array(PYABC_OBSERVED)})
+            history = abc.run(max_nr_populations=generations)
+            wall = time.perf_counter() - t0
+            sims = int(history.total_nr_simulations)
+            eps = float(history.get_all_populations().sort_values("t")["epsilon"].iloc[-1])
+        finally:
+            shutil.rmtree(db.parent, ignore_errors=True)
+        ideal = n / sleepy.SECONDS
+        print(f"| {n} | {sims} | {wall:.2f} | {sims / wall:.0f} | {ideal:.0f} | {sims / wall / ideal:.2f} | "
+              f"{eps:.3g} | {os.getloadavg()[0]:.1f} |", flush=True)
+
+
 def _counts(text: str) -> list[int]:
     return [int(x) for x in text.split(",") if x.strip()]
 
@@ -357,6 +431,9 @@ def main() -> None:
     parser.add_argument("--skip-stock", action="store_true")
     parser.add_argument("--skip-d41", action="store_true")
     parser.add_argument("--skip-floor", action="store_true", help="no Dask floor column (half the time per row)")
+    parser.add_argument("--pyabc-workers", type=_counts, default=[],
+                        help="pyABC MulticoreEvalParallelSampler sizes, e.g. 8,14 (default: none; needs pyabc)")
+    parser.add_argument("--pyabc-generations", type=int, default=8, help="pyABC generations (max_nr_populations)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: 1 population, 1-2 workers")
     args = parser.parse_args()
     if args.sleep_ms is not None:  # before any worker starts: they inherit the variable
@@ -381,6 +458,8 @@ def main() -> None:
                          skip_floor=args.skip_floor)
         if not args.skip_d41:
             d41_table(args.d41_workers, args.d41_populations, tmp)
+        if args.pyabc_workers:
+            pyabc_table(args.pyabc_workers, args.pyabc_generations, tmp)
 
 
 if __name__ == "__main__":

@@ -41,3 +41,24 @@ def test_scale_benchmark_runs():
     assert done.returncode == 0, done.stderr
     assert "| workers | simulations | executed | wall s | sims/s | ideal sims/s | efficiency |" in done.stdout
     assert "end to end / (N x kernel alone)" in done.stdout
+
+
+def test_pyabc_part_is_off_by_default_and_skipped_without_pyabc(monkeypatch, capsys):
+    from benchmarks import scale
+
+    monkeypatch.setitem(sys.modules, "pyabc", None)  # import pyabc raises ImportError
+    monkeypatch.setattr(sys, "argv", ["scale", "--skip-local", "--skip-stock", "--skip-d41"])
+    scale.main()
+    assert "pyABC" not in capsys.readouterr().out
+    monkeypatch.setattr(sys, "argv", ["scale", "--skip-local", "--skip-stock", "--skip-d41", "--pyabc-workers", "1"])
+    scale.main()
+    assert "## pyABC: skipped, pyABC cannot be imported" in capsys.readouterr().out
+
+
+def test_pyabc_model_and_distance():
+    from benchmarks import scale
+
+    np.random.seed(0)  # noqa: NPY002
+    x = scale.pyabc_model({"a": 1.0, "b": -0.5}, seconds=0.0)
+    assert x["y"].shape == (2,)
+    assert scale.pyabc_distance(x, {"y": np.array(scale.PYABC_OBSERVED)}) == float(np.sum((x["y"] - [1.0, -0.5]) ** 2))
