@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import figure_checks as figs
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -107,11 +108,8 @@ def test_confusion_of_two_runs(stores):
     assert 1.5 * conf.mean["cubic"] < conf.mean["cubic-quintic"]
 
 
-def png_ok(path: Path) -> bool:
-    return path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 5000
-
-
-def test_cli_plot_writes_every_figure(stores, tmp_path):
+def test_cli_plot_writes_every_figure(stores, tmp_path, monkeypatch):
+    saved = figs.record_saved(monkeypatch)  # the figures behind the PNG files, checked below
     runner = CliRunner()
     done = runner.invoke(app, ["plot", str(stores[0]), "--out", str(tmp_path / "one"), "--spec", str(SPEC),
                                "--truth", "k=50", "--truth", "k3=1000"])
@@ -123,18 +121,53 @@ def test_cli_plot_writes_every_figure(stores, tmp_path):
         n = result.models[i].name
         expected |= {f"marginals_{n}.png", f"pairs_{n}.png", f"predictive_{n}.png"}
     assert names == expected
-    assert all(png_ok(tmp_path / "one" / n) for n in names if n.endswith(".png"))
-    assert set(json.loads((tmp_path / "one" / "nmse.json").read_text())) == {result.models[i].name for i in result.alive()}
+    assert all(figs.is_png(tmp_path / "one" / n) for n in names if n.endswith(".png"))
+    scores = json.loads((tmp_path / "one" / "nmse.json").read_text())
+    assert set(scores) == {result.models[i].name for i in result.alive()}
+    # what each figure shows: the NMSE's tolerances in %, the truth given on the command
+    # line, the predictive bands of every particle (the CLI's default draws and seed)
+    fig = {p.name: f for p, f in saved.items() if p.parent == tmp_path / "one"}
+    assert set(fig) == names - {"nmse.json"}
+    truth = {"k": 50.0, "k3": 1000.0}
+    figs.check_tolerance_figure(fig["tolerance.png"], result, "%")
+    figs.check_model_probability_figure(fig["model_probabilities.png"], result, "%")
+    data = store_job_data(Store.open(stores[0]), SPEC.parent)
+    preds, _ = predictions(result, data)
+    for i in result.alive():
+        n = result.models[i].name
+        figs.check_marginals_figure(fig[f"marginals_{n}.png"], result, n, truth)
+        figs.check_pairs_figure(fig[f"pairs_{n}.png"], result, n, truth)
+        figs.check_predictive_figure(fig[f"predictive_{n}.png"], data.observed, data.dt,
+                                     {"fit": data.fit, "test": data.test}, preds[n],
+                                     "displacement (unit of data.observed)")
+        test_title = fig[f"predictive_{n}.png"].axes[1].get_title()
+        assert f"NMSE mean {scores[n]['posterior_mean']['test']:.3g} %" in test_title
     # two stores: per-store directories and the confusion matrices
     done = runner.invoke(app, ["plot", *map(str, stores), "--out", str(tmp_path / "two"), "--spec", str(SPEC),
                                "--spec", str(SPEC)])
     assert done.exit_code == 0, done.output
-    assert png_ok(tmp_path / "two" / "confusion.png") and "confusion: best" in done.output
+    assert figs.is_png(tmp_path / "two" / "confusion.png") and "confusion: best" in done.output
+    results = [result_from_store(Store.open(p)) for p in stores]
+    conf = confusion_of(results, [store_job_data(Store.open(p), SPEC.parent) for p in stores], [p.stem for p in stores])
+    figs.check_confusion_figure(saved[tmp_path / "two" / "confusion.png"], conf)
+    assert f"confusion: best {conf.best}" in done.output
     # without --spec: no predictive figures; bad --truth is a usage error
     done = runner.invoke(app, ["plot", str(stores[0]), "--out", str(tmp_path / "nospec")])
     assert done.exit_code == 0 and not list((tmp_path / "nospec").glob("predictive_*"))
     done = runner.invoke(app, ["plot", str(stores[0]), "--out", str(tmp_path / "x"), "--truth", "k"])
     assert done.exit_code == 2 and "NAME=VALUE" in done.output
+
+
+def test_model_probability_figure_marks_an_earlier_decision_population():
+    """The run above answers at its final population; this toy result answers at population
+    3 of 5, so the bars carry the decision line and the legend both probabilities."""
+    from toy_results import floored_result
+
+    from service.report.plots import model_probability_figure
+
+    result = floored_result()
+    assert result.decision_population().t == 3
+    figs.check_model_probability_figure(model_probability_figure(result, "%"), result, "%")
 
 
 def narrow_result(n: int = 300, seed: int = 0):
@@ -207,7 +240,7 @@ def test_pairs_figure_axes_labels_and_ticks():
                 assert not boxes[a].overlaps(boxes[b]), (a, b)
 
 
-def test_cli_plot_with_the_spec_of_a_gandk_store(tmp_path):
+def test_cli_plot_with_the_spec_of_a_gandk_store(tmp_path, monkeypatch):
     """P.8: ``abcns plot STORE --spec`` on a g-and-k store crashed (the analysis simulated
     with no generator). It now simulates with a seeded one and compares order statistics:
     the observed record sorted, each simulated record sorted, so the predictive band holds
@@ -228,13 +261,20 @@ def test_cli_plot_with_the_spec_of_a_gandk_store(tmp_path):
     (tmp_path / "spec.yaml").write_text(yaml.safe_dump(spec))
     loaded, base = load(tmp_path / "spec.yaml")
     run_to_store(loaded, base, tmp_path / "gk.zarr")
+    saved = figs.record_saved(monkeypatch)
     done = CliRunner().invoke(app, ["plot", str(tmp_path / "gk.zarr"), "--out", str(tmp_path / "fig"),
                                     "--spec", str(tmp_path / "spec.yaml")])
     assert done.exit_code == 0, done.output
-    assert png_ok(tmp_path / "fig" / "predictive_gandk.png")
+    assert figs.is_png(tmp_path / "fig" / "predictive_gandk.png")
     store = Store.open(tmp_path / "gk.zarr")
     data = store_job_data(store, tmp_path)
     assert data.sorted_samples and np.array_equal(data.observed, np.sort(observed))
+    # the figure: the sorted observed record as dots, the bands of the sorted simulated
+    # records (the CLI's seed 0), one panel (the spec has no test window)
+    assert data.test is None
+    preds, _ = predictions(result_from_store(store), data)
+    figs.check_predictive_figure(saved[tmp_path / "fig" / "predictive_gandk.png"], data.observed, data.dt,
+                                 {"fit": data.fit}, preds["gandk"], "observed value")
     values, status = data.simulate("gandk")(truth[:, :4])
     assert status[0] == 0 and np.all(np.diff(values[0]) >= 0)
     # at the truth the sorted records agree: NMSE 0.9-10.8 % over 20 pairs of seeds (heavy
