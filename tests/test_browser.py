@@ -228,6 +228,66 @@ def test_the_page_says_where_the_answer_is_read_and_marks_the_floor(browser):
     assert strokes and set(strokes) == {"none"}, set(strokes)
 
 
+def test_the_legend_stays_while_populations_come(browser):
+    """The live page makes its legend again only when the models change, not on every event:
+    the legend's elements that a reader holds (a person's selection, a test reading their
+    colours) stay in the page while populations come. Served by Playwright's routing: the
+    first event stream ends after two populations, so the page reconnects (Last-Event-ID);
+    that request is held until the legend's elements are taken, then answered with two more
+    populations and the end."""
+    from service.http.page import CSP, VIEW
+
+    origin, job, models = "http://abcns.test", "0123456789abcdef", ["linear", "cubic"]
+
+    def population(t: int) -> dict:
+        return {"population": t, "epsilon": 10.0 / t, "epsilon_next": 10.0 / (t + 1), "acceptance_rate": 0.5,
+                "simulations": 1000 * t, "elapsed_s": float(t), "model_probabilities": {"linear": 0.6, "cubic": 0.4},
+                "simulations_per_s": None, "noise_floor": None, "decision_tolerance": None, "workers": 2,
+                "efficiency": 0.5}
+
+    def stream(first_id: int, events: list) -> str:
+        return "".join(f"id: {i}\nevent: {e}\ndata: {json.dumps(d)}\n\n" for i, (e, d) in enumerate(events, first_id))
+
+    first = stream(1, [("queued", {"id": job, "name": "toy", "models": models, "distance": "nmse"}),
+                       ("population", population(1)), ("population", population(2))])
+    rest = stream(4, [("population", population(3)), ("population", population(4)), ("finished", {})])
+    answers = {f"/jobs/{job}/view": ("text/html", VIEW),
+               f"/jobs/{job}": ("application/json", json.dumps({"id": job, "name": "toy", "models": models,
+                                                                "status": "running"})),
+               f"/jobs/{job}/result": ("application/json", json.dumps({"warnings": []})),
+               "/health": ("application/json", json.dumps({"workers": 2}))}
+    streams: list = []  # the requests for the events, in order
+
+    def serve(route):
+        path = route.request.url[len(origin):]
+        if path == f"/jobs/{job}/events":
+            streams.append(route)
+            if len(streams) == 1:
+                route.fulfill(status=200, content_type="text/event-stream", body=first, headers={"Content-Security-Policy": CSP})
+        elif path in answers:
+            kind, body = answers[path]
+            route.fulfill(status=200, content_type=kind, body=body, headers={"Content-Security-Policy": CSP})
+        else:
+            route.fulfill(status=404, body="")
+
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    page.route(f"{origin}/**", serve)
+    page.goto(f"{origin}/jobs/{job}/view")
+    wait_until(lambda: page.inner_text("#population") == "2", 30, "the first two populations on the page")
+    legend = page.evaluate_handle("() => Array.from(document.querySelectorAll('#legend .model'))")
+    # (the predicate calls the page, so Playwright answers its routes meanwhile)
+    wait_until(lambda: page.inner_text("#population") and len(streams) == 2, 30, "the page to ask for the events again")
+    assert streams[1].request.headers.get("last-event-id") == "3"
+    streams[1].fulfill(status=200, content_type="text/event-stream", body=rest, headers={"Content-Security-Policy": CSP})
+    wait_until(lambda: page.inner_text("#status") == "finished" and page.inner_text("#population") == "4", 30,
+               "the last populations on the page")
+    from service.report.colours import model_colour
+
+    assert legend.evaluate("ss => ss.map(s => s.isConnected)") == [True, True]  # the same elements, still shown
+    assert legend.evaluate("ss => ss.map(s => getComputedStyle(s).color)") == [rgb(model_colour(i)) for i in range(2)]
+    assert read_all(page, "#legend .model", "s => s.textContent.trim()") == [f"\u25a0 {m}" for m in models]
+
+
 XSS = '<img src=x onerror="document.title=\'pwned:\'+sessionStorage.getItem(\'abcns-token\')">'
 
 
