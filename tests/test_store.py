@@ -595,6 +595,33 @@ def test_a_store_an_earlier_version_made_for_the_job_is_this_jobs(tmp_path):
         run_job(parse({**raw, "seed": 5}), Path("/"), path, None)
 
 
+def test_a_store_marked_finished_without_a_stop_reason_is_resumed_not_called_cancelled(tmp_path):
+    """What a service killed inside set_status("finished", ...) left while a status change was
+    one write per key: the store "finished", no stop reason, the run information of
+    population 1. run_job returned it as the job's result, with the stop reason "cancelled"
+    (result_of's word for a run that has none), and the service ended the job cancelled (CI's
+    chaos run). Such a store is resumed: the run ends at once (its populations are all
+    there) and records why, as the uninterrupted run did."""
+    from service.run.runner import run_job
+    from service.spec import parse
+
+    demo = Path(__file__).resolve().parents[1] / "data" / "authors-demo" / "demo_data.npz"
+    raw = {"name": "torn", "data": {"dt": 0.01, "input": f"{demo}:force", "observed": f"{demo}:displacement"},
+           "models": [{"name": "linear", "simulator": "duffing", "fixed": {"m": 1, "k3": 0, "k5": 0},
+                       "priors": {"c": [0.002, 0.2], "k": [20, 80]}, "integrator": {"substeps": 1}}],
+           "sampler": {"particles": 50, "batch_size": 25, "epsilon_initial": 100}, "stop": {"max_populations": 2}}
+    spec, path = parse(raw), tmp_path / "torn.zarr"
+    first = run_job(spec, Path("/"), path, None)
+    store = Store.open(path)
+    run = {k: store.attrs["run"][k] for k in ("epsilon_initial_source", "n_pilot_simulations")}  # population 1's
+    store._update_attrs({"status": "finished", "stop_reason": None, "run": run})
+    again = run_job(spec, Path("/"), path, None)
+    assert again.stop_reason is first.stop_reason is StopReason.MAX_POPULATIONS
+    a = Store.open(path).attrs
+    assert (a["status"], a["stop_reason"], a["run"]["n_simulations"]) == ("finished", "max_populations", first.n_simulations)
+    assert len(again.populations) == 2 and same_bits(again.populations[1].theta, first.populations[1].theta)
+
+
 def test_zarrs_warning_about_a_half_written_metadata_file_is_ignored_by_dataset_only(tmp_path):
     """zarr writes each metadata file through a temporary ``zarr.<uuid>.partial``; a reader
     listing the group meanwhile (xarray.open_zarr) meets it and warns. Store.dataset ignores
