@@ -533,6 +533,29 @@ def test_a_service_killed_in_a_jobs_final_status_write_resumes_it_to_finished(tm
         again.shutdown(10)
 
 
+def test_a_run_that_says_cancelled_when_nobody_cancelled_the_job_fails_saying_so(tmp_path, monkeypatch):
+    """The service ends a job "cancelled" only when it was cancelled. A run whose result says
+    "cancelled" otherwise (as run_job's did for a store left "finished" with no stop reason)
+    fails, and its error says why, instead of ending cancelled in silence."""
+    import dataclasses
+
+    from abcns import StopReason
+    from service.http import jobs
+    from service.run.runner import run_job
+
+    def says_cancelled(*args, **kwargs):
+        return dataclasses.replace(run_job(*args, **kwargs), stop_reason=StopReason.CANCELLED)
+
+    manager = idle_manager(tmp_path / "jobs")
+    job = duffing_job(manager, populations=1)
+    take(manager, job)
+    monkeypatch.setattr(jobs, "run_job", says_cancelled)
+    manager._run(job)
+    events = [json.loads(line) for line in (job.folder / "events.jsonl").read_text().splitlines()]
+    assert job.status == "failed" and events[-1]["event"] == "failed", (job.status, events[-1])
+    assert "nobody cancelled" in (job.error or ""), job.error
+
+
 # ---------------------------------------------------------------------------- Q.4, Q.12
 def test_an_upload_takes_a_yaml_spec(service, tmp_path):
     """Q.4: the spec part of an upload may be YAML (what `abcns run` reads), by its file
