@@ -47,10 +47,27 @@ def service(tmp_path_factory):
     cluster.close()
 
 
+def read_all(page, selector: str, read: str) -> list:
+    """``read`` (a JavaScript function of an element) of every element ``selector`` matches,
+    queried and read in one evaluation, one task of the page's script. The live page
+    replaces its charts, bars and legend as events come: a query and a read in two steps
+    (``eval_on_selector_all``, ``locator.all_text_contents``) can read elements replaced in
+    between (detached: no computed style, a box of zero height)."""
+    return page.evaluate(f"() => Array.from(document.querySelectorAll({json.dumps(selector)}), {read})")
+
+
 def drawn_bars(page) -> int:
     """The marginals' bars a person sees: <rect> elements drawn with a height on screen."""
-    heights = page.eval_on_selector_all("#hists svg rect", "rs => rs.map(r => r.getBoundingClientRect().height)")
-    return sum(h > 0 for h in heights)
+    return sum(h > 0 for h in read_all(page, "#hists svg rect", "r => r.getBoundingClientRect().height"))
+
+
+def marginals(page) -> tuple[int, int, int]:
+    """The marginals' charts, their bars and the bars drawn with a height, read at once (the
+    leading model, and with it the number of charts, may change with the next population)."""
+    return tuple(page.evaluate("""() => {
+        const charts = document.querySelectorAll("#hists svg"), bars = document.querySelectorAll("#hists svg rect");
+        return [charts.length, bars.length, Array.from(bars).filter(r => r.getBoundingClientRect().height > 0).length];
+    }"""))
 
 
 def rgb(hex_colour: str) -> str:
@@ -76,18 +93,18 @@ def test_live_page_follows_a_running_job(browser, service, tmp_path):
 
         wait_until(appearing, 120, "three populations and the marginals' bars on the live page")
         page.screenshot(path=str(tmp_path / "running.png"))
-        n_params = page.locator("#hists svg").count()
-        assert page.locator("#hists svg rect").count() == 20 * n_params and drawn_bars(page) >= 2 * n_params
+        n_params, n_bars, n_drawn = marginals(page)
+        assert n_bars == 20 * n_params and n_drawn >= 2 * n_params, (n_params, n_bars, n_drawn)
         # the charts are labelled along their axes: titles, and tick values on both axes
         for chart, ylabel in (("#eps", "tolerance \u03b5 (%)"), ("#acc", "acceptance rate"), ("#probs", "model probability")):
-            titles = page.locator(f"{chart} text.axis-title").all_text_contents()
+            titles = read_all(page, f"{chart} text.axis-title", "t => t.textContent")
             assert titles == ["population", ylabel], (chart, titles)
             assert page.locator(f"{chart} text.lbl").count() >= 4, chart
         assert page.inner_text("#eps-unit").strip() == "%"
         # each model in its abcns plot colour, and the cluster's workers
         from service.report.colours import model_colour
 
-        colours = page.eval_on_selector_all("#legend .model", "ss => ss.map(s => getComputedStyle(s).color)")
+        colours = read_all(page, "#legend .model", "s => getComputedStyle(s).color")
         assert colours == [rgb(model_colour(i)) for i in range(len(spec["models"]))]
         wait_until(lambda: page.inner_text("#workers") == "2", 10, "the workers on the page")
         # ended: the page shows the last population, its numbers are the API's
@@ -99,7 +116,8 @@ def test_live_page_follows_a_running_job(browser, service, tmp_path):
         wait_until(lambda: re.search(rf"population {last}\b", page.inner_text("#hists")), 10,
                    "the histograms of the last population")
         page.screenshot(path=str(tmp_path / "ended.png"), full_page=True)
-        assert drawn_bars(page) >= 2 * page.locator("#hists svg").count()
+        n_params, _, n_drawn = marginals(page)
+        assert n_drawn >= 2 * n_params
         assert int(page.inner_text("#simulations")) == api["simulations"]
         assert float(page.inner_text("#acceptance")) == pytest.approx(api["acceptance_rate"], abs=5e-4)
         assert float(page.inner_text("#epsilon")) == pytest.approx(api["epsilon"], rel=1e-3)
@@ -109,7 +127,7 @@ def test_live_page_follows_a_running_job(browser, service, tmp_path):
         assert page.inner_text("#leader").startswith(leader)
         assert page.locator("#eps path").count() == 1 and page.locator("#probs path").count() == 2
         lead = spec["models"][[m["name"] for m in spec["models"]].index(leader)]
-        assert page.locator(".hist text.axis-title").all_text_contents() == list(lead["priors"])  # each bar chart's parameter
+        assert read_all(page, ".hist text.axis-title", "t => t.textContent") == list(lead["priors"])  # each chart's parameter
         index = browser.new_page()
         index.goto(f"{service.url}/#token={TOKEN}")
         wait_until(lambda: job_id[:8] in index.inner_text("#jobs"), 10, "the job on the index page")
@@ -140,7 +158,8 @@ def test_the_page_says_when_a_run_is_undecided(browser, service):
     last = str(len(result["epsilon"]))
     wait_until(lambda: re.search(rf"population {last}\b", page.inner_text("#hists")), 10,
                "the histograms of the last population")
-    assert drawn_bars(page) >= 2 * page.locator("#hists svg").count() > 0
+    n_params, _, n_drawn = marginals(page)
+    assert n_drawn >= 2 * n_params > 0
 
 
 def test_the_page_says_where_the_answer_is_read_and_marks_the_floor(browser):
@@ -186,12 +205,12 @@ def test_the_page_says_where_the_answer_is_read_and_marks_the_floor(browser):
     assert page.inner_text("#answer-at") == "population 3, \u03b5 3.333 % (decision tolerance 3.200 %, noise floor 2.800 %)"
     assert page.inner_text("#leader") == "linear (0.90)"
     assert page.inner_text("#efficiency") == "0.55"  # the last population's (issue O.5)
-    assert page.locator("#eps text.mark-label").all_text_contents() == ["decision 3.200 %", "noise floor 2.800 %"]
-    assert page.locator("#probs text.mark-label").all_text_contents() == ["answer (population 3)"]
+    assert read_all(page, "#eps text.mark-label", "t => t.textContent") == ["decision 3.200 %", "noise floor 2.800 %"]
+    assert read_all(page, "#probs text.mark-label", "t => t.textContent") == ["answer (population 3)"]
 
     def box(selector: str) -> list[dict]:
-        return page.eval_on_selector_all(selector, "es => es.map(e => { const b = e.getBoundingClientRect(); "
-                                                   "return {x: b.x, y: b.y, w: b.width, h: b.height}; })")
+        return read_all(page, selector, "e => { const b = e.getBoundingClientRect(); "
+                                        "return {x: b.x, y: b.y, w: b.width, h: b.height, text: e.textContent}; }")
 
     # drawn where they belong: the marks across the tolerance curve (10 down to 2, top to bottom),
     # the decision above the floor; the answer's line at population 3's tick
@@ -200,14 +219,73 @@ def test_the_page_says_where_the_answer_is_read_and_marks_the_floor(browser):
     assert decision["w"] > 100 and floor["w"] > 100
     assert curve["y"] < decision["y"] < floor["y"] < curve["y"] + curve["h"]
     (answer,) = box("#probs line.mark")
-    tick = next(b for b, label in zip(box("#probs text.lbl"), page.locator("#probs text.lbl").all_text_contents())
-            if label == "3")
+    tick = next(b for b in box("#probs text.lbl") if b["text"] == "3")
     assert answer["h"] > 100 and abs(answer["x"] - (tick["x"] + tick["w"] / 2)) < 2
-    assert page.eval_on_selector("#eps line.mark", "e => getComputedStyle(e).stroke") == "rgb(0, 0, 0)"
+    assert read_all(page, "#eps line.mark", "e => getComputedStyle(e).stroke") == ["rgb(0, 0, 0)"] * 2
     # the labels are filled text, not outlined in the grid's light grey (the chart's <div class="grid">
     # passed its stroke down to every <text>)
-    strokes = page.eval_on_selector_all("svg text", "ts => ts.map(t => getComputedStyle(t).stroke)")
+    strokes = read_all(page, "svg text", "t => getComputedStyle(t).stroke")
     assert strokes and set(strokes) == {"none"}, set(strokes)
+
+
+def test_the_legend_stays_while_populations_come(browser):
+    """The live page makes its legend again only when the models change, not on every event:
+    the legend's elements that a reader holds (a person's selection, a test reading their
+    colours) stay in the page while populations come. Served by Playwright's routing: the
+    first event stream ends after two populations, so the page reconnects (Last-Event-ID);
+    that request is held until the legend's elements are taken, then answered with two more
+    populations and the end."""
+    from service.http.page import CSP, VIEW
+
+    origin, job, models = "http://abcns.test", "0123456789abcdef", ["linear", "cubic"]
+
+    def population(t: int) -> dict:
+        return {"population": t, "epsilon": 10.0 / t, "epsilon_next": 10.0 / (t + 1), "acceptance_rate": 0.5,
+                "simulations": 1000 * t, "elapsed_s": float(t), "model_probabilities": {"linear": 0.6, "cubic": 0.4},
+                "simulations_per_s": None, "noise_floor": None, "decision_tolerance": None, "workers": 2,
+                "efficiency": 0.5}
+
+    def stream(first_id: int, events: list) -> str:
+        return "".join(f"id: {i}\nevent: {e}\ndata: {json.dumps(d)}\n\n" for i, (e, d) in enumerate(events, first_id))
+
+    first = stream(1, [("queued", {"id": job, "name": "toy", "models": models, "distance": "nmse"}),
+                       ("population", population(1)), ("population", population(2))])
+    rest = stream(4, [("population", population(3)), ("population", population(4)), ("finished", {})])
+    answers = {f"/jobs/{job}/view": ("text/html", VIEW),
+               f"/jobs/{job}": ("application/json", json.dumps({"id": job, "name": "toy", "models": models,
+                                                                "status": "running"})),
+               f"/jobs/{job}/result": ("application/json", json.dumps({"warnings": []})),
+               "/health": ("application/json", json.dumps({"workers": 2}))}
+    streams: list = []  # the requests for the events, in order
+
+    def serve(route):
+        path = route.request.url[len(origin):]
+        if path == f"/jobs/{job}/events":
+            streams.append(route)
+            if len(streams) == 1:
+                route.fulfill(status=200, content_type="text/event-stream", body=first, headers={"Content-Security-Policy": CSP})
+        elif path in answers:
+            kind, body = answers[path]
+            route.fulfill(status=200, content_type=kind, body=body, headers={"Content-Security-Policy": CSP})
+        else:
+            route.fulfill(status=404, body="")
+
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    page.route(f"{origin}/**", serve)
+    page.goto(f"{origin}/jobs/{job}/view")
+    wait_until(lambda: page.inner_text("#population") == "2", 30, "the first two populations on the page")
+    legend = page.evaluate_handle("() => Array.from(document.querySelectorAll('#legend .model'))")
+    # (the predicate calls the page, so Playwright answers its routes meanwhile)
+    wait_until(lambda: page.inner_text("#population") and len(streams) == 2, 30, "the page to ask for the events again")
+    assert streams[1].request.headers.get("last-event-id") == "3"
+    streams[1].fulfill(status=200, content_type="text/event-stream", body=rest, headers={"Content-Security-Policy": CSP})
+    wait_until(lambda: page.inner_text("#status") == "finished" and page.inner_text("#population") == "4", 30,
+               "the last populations on the page")
+    from service.report.colours import model_colour
+
+    assert legend.evaluate("ss => ss.map(s => s.isConnected)") == [True, True]  # the same elements, still shown
+    assert legend.evaluate("ss => ss.map(s => getComputedStyle(s).color)") == [rgb(model_colour(i)) for i in range(2)]
+    assert read_all(page, "#legend .model", "s => s.textContent.trim()") == [f"\u25a0 {m}" for m in models]
 
 
 XSS = '<img src=x onerror="document.title=\'pwned:\'+sessionStorage.getItem(\'abcns-token\')">'

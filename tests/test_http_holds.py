@@ -438,6 +438,124 @@ def test_a_cancel_as_the_dispatcher_takes_the_job_stops_it_without_error(tmp_pat
     assert job.status == "cancelled" and not job.store_path.exists() and not manager.running
 
 
+# ---------------------------------------------------------------------------- CI's chaos run
+class Killed(BaseException):
+    """The service process dies here (SIGKILL): nothing more of the job's thread runs."""
+
+
+class StoreWriteCut(Exception):
+    pass
+
+
+def idle_manager(folder: Path):
+    """A job manager whose dispatcher is stopped: the test runs a job's thread itself."""
+    from service.http.jobs import JobManager
+
+    manager = JobManager(folder, None, max_running=1, loop=None)  # type: ignore[arg-type]
+    manager.begin_shutdown()
+    manager.dispatcher.join(timeout=10)
+    manager.stopping = False
+    return manager
+
+
+def restarted_manager(folder: Path):
+    """A job manager on ``folder`` as a restarted service makes it (its dispatcher running)."""
+    from service.http.jobs import JobManager
+
+    return JobManager(folder, None, max_running=1, loop=None)  # type: ignore[arg-type]
+
+
+def take(manager, job) -> None:
+    with manager.lock:  # what the dispatcher does, up to starting the job's thread
+        assert manager.queue.popleft() == job.id
+        manager.running.add(job.id)
+
+
+def duffing_job(manager, populations: int = 2):
+    from service.spec import parse
+
+    duffing = ROOT / "examples" / "duffing_41"
+    arrays = {"input": np.load(duffing / "force.npy"), "observed": np.load(duffing / "displacement.npy")}
+    return manager.submit(parse(duffing_spec(max_populations=populations, particles=200)), arrays)
+
+
+def test_a_service_killed_in_a_jobs_final_status_write_resumes_it_to_finished(tmp_path, monkeypatch):
+    """CI's chaos run: the service was SIGKILLed while it recorded a job's end in its store
+    (set_status("finished", ...)), then restarted; the job ended "cancelled" (its last event
+    with stop_reason null), though nobody cancelled it. Here the service dies at its second
+    write of the store's metadata once that status change begins (a status change was five
+    writes, one per key: the store was left "finished" with no stop reason), or not at all
+    where the change is one write; a new manager on the same folder then resumes the job or
+    finds it ended. Either way it ends finished, with its stop reason. In-process: the job's
+    thread is run by the test, the kill a BaseException that nothing in it catches."""
+    import zarr
+
+    from service.http.jobs import TERMINAL as ENDED
+    from service.run.store import Store
+
+    manager = idle_manager(tmp_path / "jobs")
+    job = duffing_job(manager)
+    take(manager, job)
+    writes: list[str] = []  # the store's metadata writes since the final status change began
+    store_set, set_status = zarr.storage.LocalStore.set, Store.set_status
+
+    async def cut_at_the_second_write(self, key, value):
+        if writes and key == "zarr.json":
+            writes.append(key)
+            if len(writes) > 2:
+                raise StoreWriteCut
+        await store_set(self, key, value)
+
+    def final(self, status, *args, **kwargs):
+        if status == "finished":
+            writes.append("begins")
+        try:
+            set_status(self, status, *args, **kwargs)
+        except StoreWriteCut:
+            raise Killed from None
+
+    with monkeypatch.context() as m:
+        m.setattr(zarr.storage.LocalStore, "set", cut_at_the_second_write)
+        m.setattr(Store, "set_status", final)
+        try:
+            manager._run(job)
+        except Killed:
+            assert job.status == "running"  # the service died with the job running
+    again = restarted_manager(tmp_path / "jobs")
+    try:
+        back = again.get(job.id)
+        wait_until(lambda: back.status in ENDED, 300, "the job to end")
+        events = [json.loads(line) for line in (job.folder / "events.jsonl").read_text().splitlines()]
+        assert back.status == "finished", (back.error, events[-3:])
+        assert events[-1]["event"] == "finished" and events[-1]["data"]["stop_reason"] == "max_populations", events[-3:]
+        assert Store.open(job.store_path).attrs["stop_reason"] == "max_populations"
+    finally:
+        again.shutdown(10)
+
+
+def test_a_run_that_says_cancelled_when_nobody_cancelled_the_job_fails_saying_so(tmp_path, monkeypatch):
+    """The service ends a job "cancelled" only when it was cancelled. A run whose result says
+    "cancelled" otherwise (as run_job's did for a store left "finished" with no stop reason)
+    fails, and its error says why, instead of ending cancelled in silence."""
+    import dataclasses
+
+    from abcns import StopReason
+    from service.http import jobs
+    from service.run.runner import run_job
+
+    def says_cancelled(*args, **kwargs):
+        return dataclasses.replace(run_job(*args, **kwargs), stop_reason=StopReason.CANCELLED)
+
+    manager = idle_manager(tmp_path / "jobs")
+    job = duffing_job(manager, populations=1)
+    take(manager, job)
+    monkeypatch.setattr(jobs, "run_job", says_cancelled)
+    manager._run(job)
+    events = [json.loads(line) for line in (job.folder / "events.jsonl").read_text().splitlines()]
+    assert job.status == "failed" and events[-1]["event"] == "failed", (job.status, events[-1])
+    assert "nobody cancelled" in (job.error or ""), job.error
+
+
 # ---------------------------------------------------------------------------- Q.4, Q.12
 def test_an_upload_takes_a_yaml_spec(service, tmp_path):
     """Q.4: the spec part of an upload may be YAML (what `abcns run` reads), by its file

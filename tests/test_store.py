@@ -1,6 +1,7 @@
 """The zarr result store: exact round trip, resume from a store, crash-safe appends,
 xarray while a job runs, attributes and errors."""
 
+import contextlib
 import hashlib
 import json
 import os
@@ -337,6 +338,36 @@ def test_attributes_status_and_format_version(reference):
     assert store.attrs["status"] == "finished"
 
 
+def test_a_status_change_is_one_write_so_a_kill_leaves_the_old_or_the_new(tmp_path, monkeypatch):
+    """CI's chaos run: the service was SIGKILLed inside set_status("finished", ...) and the
+    store said "finished" with no stop reason and the run information of population 1: zarr's
+    ``attrs.update`` rewrites the group's metadata once per key, and the kill came between
+    the first key (status) and the next. A status change is one write of the metadata now.
+    Here the process "dies" at the second write of the group's metadata (zarr.json)."""
+    models, _ = two_models()
+    store = new_store(tmp_path / "s.zarr", models)
+    store.set_status("running", None, run={"epsilon_initial_source": "given"})
+    writes: list[str] = []
+    store_set = zarr.storage.LocalStore.set
+
+    async def dies_at_the_second_write(self, key, value):
+        if key == "zarr.json":
+            writes.append(key)
+            if len(writes) > 1:
+                raise Crash("killed")
+        await store_set(self, key, value)
+
+    with monkeypatch.context() as m, contextlib.suppress(Crash):
+        m.setattr(zarr.storage.LocalStore, "set", dies_at_the_second_write)
+        store.set_status("finished", StopReason.MAX_POPULATIONS, run={"epsilon_initial_source": "given", "n_simulations": 12})
+    a = Store.open(store.path).attrs
+    assert (a["status"], a["stop_reason"], a["run"]) in (
+        ("running", None, {"epsilon_initial_source": "given"}),  # the old attributes
+        ("finished", "max_populations", {"epsilon_initial_source": "given", "n_simulations": 12}),  # or the new
+    ), (a["status"], a["stop_reason"], a["run"])
+    assert writes == ["zarr.json"]  # one write
+
+
 def test_open_and_create_errors(tmp_path):
     with pytest.raises(StoreNotFound, match="does not exist"):
         Store.open(tmp_path / "missing.zarr")
@@ -562,6 +593,33 @@ def test_a_store_an_earlier_version_made_for_the_job_is_this_jobs(tmp_path):
     assert len(again.populations) == 2 and same_bits(again.populations[1].theta, first.populations[1].theta)
     with pytest.raises(abcns.SpecError, match="holds another job"):
         run_job(parse({**raw, "seed": 5}), Path("/"), path, None)
+
+
+def test_a_store_marked_finished_without_a_stop_reason_is_resumed_not_called_cancelled(tmp_path):
+    """What a service killed inside set_status("finished", ...) left while a status change was
+    one write per key: the store "finished", no stop reason, the run information of
+    population 1. run_job returned it as the job's result, with the stop reason "cancelled"
+    (result_of's word for a run that has none), and the service ended the job cancelled (CI's
+    chaos run). Such a store is resumed: the run ends at once (its populations are all
+    there) and records why, as the uninterrupted run did."""
+    from service.run.runner import run_job
+    from service.spec import parse
+
+    demo = Path(__file__).resolve().parents[1] / "data" / "authors-demo" / "demo_data.npz"
+    raw = {"name": "torn", "data": {"dt": 0.01, "input": f"{demo}:force", "observed": f"{demo}:displacement"},
+           "models": [{"name": "linear", "simulator": "duffing", "fixed": {"m": 1, "k3": 0, "k5": 0},
+                       "priors": {"c": [0.002, 0.2], "k": [20, 80]}, "integrator": {"substeps": 1}}],
+           "sampler": {"particles": 50, "batch_size": 25, "epsilon_initial": 100}, "stop": {"max_populations": 2}}
+    spec, path = parse(raw), tmp_path / "torn.zarr"
+    first = run_job(spec, Path("/"), path, None)
+    store = Store.open(path)
+    run = {k: store.attrs["run"][k] for k in ("epsilon_initial_source", "n_pilot_simulations")}  # population 1's
+    store._update_attrs({"status": "finished", "stop_reason": None, "run": run})
+    again = run_job(spec, Path("/"), path, None)
+    assert again.stop_reason is first.stop_reason is StopReason.MAX_POPULATIONS
+    a = Store.open(path).attrs
+    assert (a["status"], a["stop_reason"], a["run"]["n_simulations"]) == ("finished", "max_populations", first.n_simulations)
+    assert len(again.populations) == 2 and same_bits(again.populations[1].theta, first.populations[1].theta)
 
 
 def test_zarrs_warning_about_a_half_written_metadata_file_is_ignored_by_dataset_only(tmp_path):

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 from distributed import Client
 
-from abcns import SpecError
+from abcns import SpecError, StopReason
 from service.http.limits import Limits, admit
 from service.run.runner import Progress, run_job, summary
 from service.run.store import Store, StoreError
@@ -535,11 +535,17 @@ class JobManager:
             spec = JobSpec.model_validate(job.spec())
             result = run_job(spec, job.folder, job.store_path, self.client, on_population=on_population,
                              cancel=lambda: job.cancel.is_set() or self.stopping, owned_store=True)
-            if result.stop_reason.value == "cancelled" and self.stopping and not job.cancel.is_set():
+            stopped = result.stop_reason is StopReason.CANCELLED  # the run's cancel hook said stop
+            if stopped and job.cancel.is_set():
+                self._end(job, "cancelled", None)
+            elif stopped and self.stopping:
                 job.status = "queued"  # the service is stopping: the job resumes when it starts again
                 job.save_or_log()
+            elif stopped:  # nobody cancelled it: a job never ends "cancelled" unless it was
+                self._end(job, "failed", "the run ended with the stop reason 'cancelled', but nobody cancelled the "
+                                         "job (its store records no stop reason of its own); submit it again")
             else:
-                self._end(job, "cancelled" if result.stop_reason.value == "cancelled" else "finished", None)
+                self._end(job, "finished", None)
         except (SpecError, StoreError) as err:
             self._end(job, "failed", str(err))
         except Exception as err:

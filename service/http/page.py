@@ -73,7 +73,7 @@ const pops = [];  // population events
 const COLORS = __MODEL_COLOURS__;  // a model's colour, as in abcns plot (service/report/colours.py)
 const EPS_COLOR = COLORS[0], ACC_COLOR = "#2ca02c";  // as abcns plot's tolerance figure
 const HIST_PARTICLES = 50000, PAGE = 10000;  // the marginals use at most this many particles of a population
-let modelNames = [], lastId = 0, ended = false, histBusy = false, histShown = 0;
+let modelNames = [], lastId = 0, ended = false, histBusy = false, histShown = 0, legendKey = null;
 let unit = " %";  // the tolerance's unit: % for the NMSE (the default distance), none for a summary distance
 
 // a job's model probabilities in the order of its models (a list, or name -> value)
@@ -204,9 +204,14 @@ function render() {
        points: pops.map(q => [q.population, probsOf(q, modelNames)[i]])})),
        {y0: 0, y1: 1, ylabel: "model probability", fmt: tickText,
         marks: known ? [{x: d.population, label: "answer (population " + d.population + ")"}] : []});
-  const legend = Array.from({length: n}, (_, i) => { const s = el("span", {class: "model"}, "\u25A0 " + (modelNames[i] || "model " + (i + 1)) + "  ");
-    s.style.color = COLORS[i % COLORS.length]; return s; });
-  document.getElementById("legend").replaceChildren(...legend);
+  // the legend is made again only when the models it names change, not on every event:
+  // its elements stay (a selection in it, a reader of them)
+  const names = Array.from({length: n}, (_, i) => modelNames[i] || "model " + (i + 1)), key = JSON.stringify(names);
+  if (key !== legendKey) {
+    legendKey = key;
+    document.getElementById("legend").replaceChildren(...names.map((name, i) => {
+      const s = el("span", {class: "model"}, "\u25A0 " + name + "  "); s.style.color = COLORS[i % COLORS.length]; return s; }));
+  }
 }
 
 // the marginals of the leading model of the last population: one fetch at a time, and

@@ -205,7 +205,11 @@ def run_job(
     spec_json = spec.model_dump(mode="json")
     store_path = Path(store_path)
     store = _existing_store(store_path, key, owned_store)
-    if store is not None and store.attrs.get("status") == "finished":
+    # a finished run records why it stopped with its status; a store "finished" with no stop
+    # reason (a status change that a killed process cut, before it was one write) is resumed:
+    # the run ends again where it did and says why (read as it is, its result would say
+    # "cancelled", result_of's word for a run with no stop reason)
+    if store is not None and store.attrs.get("status") == "finished" and store.attrs.get("stop_reason"):
         return result_from_store(store)
     if store is None:
         store = Store.create(

@@ -65,7 +65,9 @@ Written for one writer of populations (the job's runner) and any number of reade
 process: every call re-reads the metadata from disk, so a ``Store`` object never goes stale.
 Attribute updates (counter, status) are read-modify-writes of the group metadata done under
 an exclusive ``flock`` on the store's directory (POSIX), so a status set by the scheduler
-while the runner appends is not lost.
+while the runner appends is not lost; each is one write of the metadata file (zarr's
+``attrs.update`` writes it once per key), so a process killed in a status change leaves
+the old attributes or the new ones, never a status without its stop reason.
 """
 
 from __future__ import annotations
@@ -502,7 +504,7 @@ class Store:
             "updated_at": _now(),
             "n_populations": 0,
         }
-        group.attrs.update(_encode_attrs(attrs))
+        group.update_attributes(_encode_attrs(attrs))  # one write (attrs.update writes once per key)
         _consolidate(path)
         _group(path, "r+").attrs["format_version"] = FORMAT_VERSION  # last: marks a complete store
         return cls(path, attrs)
@@ -586,13 +588,18 @@ class Store:
     def _update_attrs(self, update: dict[str, Any], consolidate: bool = False) -> None:
         """Read-modify-write of the group attributes under an exclusive lock, so a status
         change from another process and a counter bump cannot overwrite each other (nor the
-        consolidated metadata, which lives in the same file and is kept by an update)."""
+        consolidated metadata, which lives in the same file and is kept by an update).
+
+        One write of the group's metadata for the whole update: zarr's ``attrs.update``
+        writes it once per key, and a process killed between two of those writes left a
+        store "finished" with no stop reason and the run information of its first
+        population (CI's chaos run; the resumed job then ended "cancelled")."""
         fd = os.open(self.path, os.O_RDONLY)  # flock(2) on the store's directory: no extra file in the hierarchy
         try:
             fcntl.flock(fd, fcntl.LOCK_EX)
             if consolidate:
                 _consolidate(self.path)
-            self._group("r+").attrs.update(_encode_attrs(update))
+            self._group("r+").update_attributes(_encode_attrs(update))
         finally:
             os.close(fd)  # releases the lock
 
