@@ -70,6 +70,9 @@ NEED_MARGIN = 1.1
 #: run and one to start next; more would only wait in its queue, each costing the client and
 #: the scheduler ~1-2 ms of CPU to submit and to release when the population ends first
 IN_FLIGHT_PER_THREAD = 2
+#: the result of a task taken without ``as_completed`` (``Stream._next_completed``)
+_UNTRACKED = object()
+
 #: seconds between two looks at the run's budget (time, cancel) while a stream waits for a
 #: task: a stop takes effect within this even while a batch runs
 WATCH_S = 0.1
@@ -268,26 +271,39 @@ class Stream:
         fewer tasks than worker threads are left in flight, more are submitted)."""
         task, _ = self.pending[0]
         while task.key not in self.done:
-            future, result = self._next_completed()
+            future, result = self._next_completed(task)
+            if future.key in self.done or not any(f.key == future.key for f, _ in self.pending):
+                continue  # reported again after it was taken without ``as_completed``: already used
             self.done[future.key] = result
             if self._in_flight() < self.n_workers:
                 self._top_up()
         result = self.done.pop(task.key)
-        if task.status == "finished":
+        if task.status == "finished" and result is not _UNTRACKED:
             return result  # type: ignore[return-value]
-        return task.result()  # an error or a cancellation: raises what ``result()`` raises
+        # an error or a cancellation (raises what ``result()`` raises), or a task whose result
+        # ``as_completed`` never delivered
+        return task.result()
 
-    def _next_completed(self) -> tuple[Future, object]:
+    def _next_completed(self, oldest: Future) -> tuple[Future, object]:
         """The next task to complete and its result, waiting for it. While it waits, the
         run's budget is asked every ``WATCH_S`` whether the run must stop (time spent, or
         cancelled); then every task is released and ``Stopped`` raised: the run ends now,
-        not when the running batch ends."""
+        not when the running batch ends. ``oldest`` (the task the caller waits for) is
+        looked at too: ``as_completed`` loses a task when the scheduler's connection drops
+        while it fetches the result (its tracker dies on the closed comm), and the stream
+        would wait for it forever; a task done but not delivered comes back as
+        ``(oldest, _UNTRACKED)``, and its ``result()`` says what became of it."""
         budget = self.ex.budget
         while not self.completed.has_ready():
             reason = budget.reason() if budget is not None else None
             if reason is not None:
                 self.close()
                 raise Stopped(reason)
+            if oldest.done():  # finished, erred or cancelled, and as_completed has not said so
+                with self.completed.thread_condition:
+                    self.completed.thread_condition.wait(timeout=WATCH_S)  # its report may be on the way
+                if not self.completed.has_ready():
+                    return oldest, _UNTRACKED
             with self.completed.thread_condition:  # notified when a task completes
                 self.completed.thread_condition.wait(timeout=WATCH_S)
         return next(self.completed)
