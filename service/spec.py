@@ -15,7 +15,7 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal, get_args, get_type_hints
+from typing import TYPE_CHECKING, Annotated, Any, Literal, get_args, get_type_hints
 
 import numpy as np
 import yaml
@@ -29,7 +29,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
-from pydantic_core import PydanticCustomError
+from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from abcns import Model, NSSettings, RejectionSettings, SMCSettings, SpecError, StopRules
 from abcns.distances import NMSE, check_window
@@ -144,12 +144,16 @@ class _Sampler(_Strict):
     of fields another algorithm reads, which specs stored by earlier versions hold); a
     value for a field another algorithm reads is an error naming the field."""
 
+    if TYPE_CHECKING:  # for mypy only: each generated sampler's own field (a Literal of its name)
+        algorithm: str
+
     @model_validator(mode="before")
     @classmethod
     def _nulls_and_other_algorithms(cls, data: Any) -> Any:
         if not isinstance(data, dict):
             return data
-        out, errors = {}, []
+        out: dict[str, Any] = {}
+        errors: list[InitErrorDetails] = []
         for name, value in data.items():
             if name in cls.model_fields:
                 if value is not None or _admits_none(cls.model_fields[name].annotation):
@@ -174,16 +178,30 @@ class _Sampler(_Strict):
 
 def _sampler(algorithm: str, settings: type) -> type[_Sampler]:
     default = algorithm if algorithm == DEFAULT_ALGORITHM else ...  # the default need not name itself
+    field: tuple[Any, Any] = (Literal[algorithm], default)  # a Literal made at run time: no static type
     return create_model(
         settings.__name__.removesuffix("Settings") + "Sampler", __base__=_Sampler,
         __doc__=f"algorithm {algorithm!r}: the fields of abcns.{settings.__name__}",
-        algorithm=(Literal[algorithm], default), **_spec_fields(settings))
+        algorithm=field, **_spec_fields(settings))
 
 
 DEFAULT_ALGORITHM = "abc-ns"
 _SETTINGS: dict[str, type[NSSettings] | type[SMCSettings] | type[RejectionSettings]] = {
     "abc-ns": NSSettings, "abc-smc": SMCSettings, "rejection": RejectionSettings}
-NSSampler, SMCSampler, RejectionSampler = (_sampler(a, s) for a, s in _SETTINGS.items())
+if TYPE_CHECKING:
+    # mypy cannot see into the models create_model makes: what it checks of each is its base
+    # and its ``algorithm`` (these classes never exist at run time; the settings' fields are
+    # read through settings())
+    class NSSampler(_Sampler):
+        algorithm: Literal["abc-ns"] = "abc-ns"
+
+    class SMCSampler(_Sampler):
+        algorithm: Literal["abc-smc"]
+
+    class RejectionSampler(_Sampler):
+        algorithm: Literal["rejection"]
+else:
+    NSSampler, SMCSampler, RejectionSampler = (_sampler(a, s) for a, s in _SETTINGS.items())
 # which algorithms read each field (the message of an inapplicable one)
 _READ_BY = {name: [a for a, s in _SETTINGS.items() if name in _spec_fields(s)]
             for s in _SETTINGS.values() for name in _spec_fields(s)}
@@ -206,8 +224,13 @@ def _algorithm(value: Any) -> Any:
 # the sampler section: one model per algorithm, chosen by ``algorithm``
 SamplerSpec = Annotated[NSSampler | SMCSampler | RejectionSampler,
                         Field(discriminator="algorithm"), BeforeValidator(_algorithm)]
-StopSpec = create_model("StopSpec", __base__=_Strict, __doc__="the fields of abcns.StopRules",
-                        **_spec_fields(StopRules))
+if TYPE_CHECKING:
+    # what mypy checks of the model create_model makes: a pydantic model with the fields of
+    # StopRules (frozen only because a frozen dataclass's subclass must be, for mypy)
+    class StopSpec(BaseModel, StopRules, frozen=True): ...
+else:
+    StopSpec = create_model("StopSpec", __base__=_Strict, __doc__="the fields of abcns.StopRules",
+                            **_spec_fields(StopRules))
 
 
 class JobSpec(_Strict):
