@@ -89,7 +89,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, cast
 
 import numpy as np
 import scipy
@@ -440,7 +440,7 @@ class Store:
         if int(n_particles) < 1:
             raise StoreError(f"n_particles must be >= 1, got {n_particles}")
         if hasattr(spec, "model_dump"):  # a pydantic JobSpec
-            spec = spec.model_dump(mode="json")  # type: ignore[union-attr]
+            spec = spec.model_dump(mode="json")
         spec = _jsonable(dict(spec), "spec")  # checked before anything is written
         union = _union(parameter_names)
         n, m, d = int(n_particles), len(model_names), len(union)
@@ -521,7 +521,7 @@ class Store:
 
     # ------------------------------------------------------------------ attributes
 
-    def _group(self, mode: str = "r") -> zarr.Group:
+    def _group(self, mode: Literal["r", "r+"] = "r") -> zarr.Group:
         return _group(self.path, mode)
 
     @property
@@ -576,7 +576,8 @@ class Store:
     async def _write_rows(self, rows: dict[str, np.ndarray], n: int) -> None:
         k = len(rows["population"])
         group = await zarr.api.asynchronous.open_group(store=str(self.path), mode="r+", zarr_format=3)
-        arrays = await asyncio.gather(*(group.getitem(name) for name in rows))
+        members = await asyncio.gather(*(group.getitem(name) for name in rows))
+        arrays = cast(list[zarr.AsyncArray[Any]], members)  # a store's group holds arrays only
         await asyncio.gather(*(arr.resize((n + k, *arr.shape[1:])) for arr in arrays))
         await asyncio.gather(*(arr.setitem(slice(n, n + k), value) for arr, value in zip(arrays, rows.values(), strict=True)))
 
@@ -680,7 +681,7 @@ class Store:
     def _read(self, rows: slice) -> dict[str, np.ndarray]:
         group = self._group("r")
         names = set(group.array_keys())
-        return {name: np.asarray(group[name][rows]) for name in _POPULATION_ARRAYS if name in names}
+        return {name: _values(group, name, rows) for name in _POPULATION_ARRAYS if name in names}
 
     def _population(self, a: dict[str, np.ndarray], i: int) -> Population:
         fields: dict[str, Any] = {}
@@ -706,12 +707,14 @@ class Store:
                     for e in range(codes.shape[0]) if codes[e] >= 0
                 ))
             ellipsoids = tuple(bounds)
+        optional: dict[str, Any] = {part: cls(**parts[part]) if a[f"has_{part}"][i] else None
+                                    for part, cls in _PARTS.items()}
         return Population(
             **fields,
             theta=self._from_named(a["model_index"][i], a["theta"][i]),
             survivors=a["survivor"][i].copy() if a["has_survivors"][i] else None,
             ellipsoids=ellipsoids,
-            **{part: cls(**parts[part]) if a[f"has_{part}"][i] else None for part, cls in _PARTS.items()},
+            **optional,
         )
 
     def populations(self) -> list[Population]:
@@ -737,10 +740,11 @@ class Store:
         if not 1 <= t <= n:
             raise IndexError(f"population {t} is not in {self.path} (it holds populations 1..{n})")
         group = self._group("r")
-        out: dict[str, Any] = {k: group[k][t - 1].item() for k in ("epsilon", "epsilon_next", "n_accepted", "n_simulations")}
-        out |= {k: np.asarray(group[k][t - 1, rows]) for k in ("model_index", "theta", "distance", "weight")}
+        out: dict[str, Any] = {k: _values(group, k, t - 1).item()
+                               for k in ("epsilon", "epsilon_next", "n_accepted", "n_simulations")}
+        out |= {k: _values(group, k, (t - 1, rows)) for k in ("model_index", "theta", "distance", "weight")}
         out["theta"] = self._from_named(out["model_index"], out["theta"])
-        out["model_probability"] = np.asarray(group["model_probability"][t - 1])
+        out["model_probability"] = _values(group, "model_probability", t - 1)
         return out
 
     def dataset(self, retries: int = 20) -> xr.Dataset:
@@ -769,7 +773,7 @@ class Store:
     def totals(self) -> np.ndarray:
         """``n_simulations_total`` of the complete populations (zarr only: no xarray, whose
         first use imports dask.array, which two threads importing at once can find half made)."""
-        return np.asarray(self._group("r")["n_simulations_total"][: self.n_populations])
+        return _values(self._group("r"), "n_simulations_total", slice(None, self.n_populations))
 
     def run_state(self) -> dict[str, Any]:
         """What a resume needs: the counters after the last complete population."""
@@ -779,14 +783,19 @@ class Store:
         group = self._group("r")
         return {
             "n_populations": n,
-            "t": int(group["population"][n - 1]),
-            "n_simulations_total": int(group["n_simulations_total"][n - 1]),
-            "elapsed_s": float(group["elapsed_s"][n - 1]),
+            "t": int(_values(group, "population", n - 1)),
+            "n_simulations_total": int(_values(group, "n_simulations_total", n - 1)),
+            "elapsed_s": float(_values(group, "elapsed_s", n - 1)),
         }
 
 
-def _group(path: Path, mode: str = "r") -> zarr.Group:
-    return zarr.open_group(str(path), mode=mode, zarr_format=3)  # type: ignore[arg-type]
+def _group(path: Path, mode: Literal["r", "r+"] = "r") -> zarr.Group:
+    return zarr.open_group(str(path), mode=mode, zarr_format=3)
+
+
+def _values(group: zarr.Group, name: str, selection: int | slice | tuple[int, slice]) -> np.ndarray:
+    """``group[name][selection]`` as a numpy array (a store's group holds arrays only)."""
+    return np.asarray(cast(zarr.Array, group[name])[selection])
 
 
 _WARNING_FILTERS = threading.Lock()
