@@ -260,9 +260,12 @@ class Stream:
         n = len(groups)
         # fifo_timeout=0: each call is a new "generation" of the scheduler's priorities, so its
         # tasks come after every earlier call's (by default calls within 100 ms share one, and
-        # each call's first task would jump ahead of the previous call's later ones)
+        # each call's first task would jump ahead of the previous call's later ones). Client.map
+        # types fifo_timeout str, but passes it on to the scheduler, which parses a number too
+        # (Scheduler._set_priorities: int | float | str, through dask.utils.parse_timedelta)
         tasks = self.ex.client.map(evaluate_on_worker, [self.ex.job_key] * n, [self.ex.payload] * n,
-                                   [pack_draws(g) for g in groups], key=keys, pure=False, fifo_timeout=0)
+                                   [pack_draws(g) for g in groups], key=keys, pure=False,
+                                   fifo_timeout=0)  # type: ignore[arg-type]
         self.pending.extend(zip(tasks, map(len, groups), strict=True))
         self.completed.update(tasks)
 
@@ -279,7 +282,7 @@ class Stream:
                 self._top_up()
         result = self.done.pop(task.key)
         if task.status == "finished" and result is not _UNTRACKED:
-            return result  # type: ignore[return-value]
+            return result
         # an error or a cancellation (raises what ``result()`` raises), or a task whose result
         # ``as_completed`` never delivered
         return task.result()
