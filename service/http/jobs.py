@@ -43,6 +43,7 @@ import threading
 import time
 import uuid
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -129,7 +130,7 @@ class EventLog:
 
     def append(self, event: str, data: dict) -> dict:
         with self.lock:
-            record = {"id": self.last_id + 1, "event": event, "data": data, "time": time.time()}
+            record: dict[str, Any] = {"id": self.last_id + 1, "event": event, "data": data, "time": time.time()}
             with self.path.open("a") as f:
                 f.write(json.dumps(record) + "\n")
             self.last_id, self.last_event = record["id"], event
@@ -342,7 +343,9 @@ class JobManager:
             folder.mkdir()
             stored = dict(cut_to_read(spec, arrays))  # a new dict: cut_to_read may return arrays itself
             arrays.clear()
-            np.savez_compressed(folder / DATA_FILE, **stored)
+            # mypy checks **stored against savez_compressed's keyword allow_pickle (bool) too;
+            # numpy takes the arrays as its **kwds
+            np.savez_compressed(folder / DATA_FILE, **stored)  # type: ignore[arg-type]
             keys = list(stored)
             del stored
             data = spec.data.model_copy(update={k: f"{DATA_FILE}:{k}" for k in keys})
@@ -447,7 +450,7 @@ class JobManager:
             threading.Thread(target=self._run, args=(job,), name=f"abcns-job-{job.id[:8]}", daemon=True).start()
 
     @staticmethod
-    def _progress(pop, models: list[str], n_simulations_total: int, elapsed_s: float, rate: float | None,
+    def _progress(pop, models: Sequence[str], n_simulations_total: int, elapsed_s: float, rate: float | None,
                   workers: int | None = None, efficiency: float | None = None) -> dict:
         """A population event: the model probabilities by model name; the noise floor and the
         decision tolerance as estimated after the population (null while the run knows none);

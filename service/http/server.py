@@ -126,7 +126,7 @@ class Server(uvicorn.Server):
         super().__init__(config)
         self.abcns_app = app
 
-    def handle_exit(self, sig, frame) -> None:  # type: ignore[no-untyped-def]
+    def handle_exit(self, sig, frame) -> None:
         if not self.should_exit:
             begin_shutdown(self.abcns_app)
         super().handle_exit(sig, frame)
