@@ -78,8 +78,8 @@ def job_data(spec: dict | JobSpec, base_dir: str | Path | None, expect_hash: str
         sim = simulator_for(d, force, dt, observed, f"models[{i}]", allow_import, spec.data.input_interpolation)
         check_model(m, sim, f"models[{i}]")
         models[m.name], sims[m.name] = m, sim
-    fit = tuple(spec.data.fit) if spec.data.fit else (0, observed.size)
-    test = tuple(spec.data.test) if spec.data.test else None
+    fit = spec.data.fit or (0, observed.size)  # tuples already: the spec's Windows (pydantic)
+    test = spec.data.test or None
     samples = all(getattr(s, "needs_input", None) is False for s in sims.values())
     return JobData(spec, force, np.sort(observed) if samples else observed, dt, fit, test, models, sims, samples)
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib import colormaps
+from matplotlib.axis import Axis
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 from matplotlib.ticker import LogFormatter, MaxNLocator, ScalarFormatter
@@ -157,7 +158,7 @@ class _NamedOffsetFormatter(ScalarFormatter):
     def set_locs(self, locs):
         super().set_locs(locs)
         off = super().get_offset()
-        if self.axis is not None:
+        if isinstance(self.axis, Axis):  # always: set by Axis.set_major_formatter (_compact_ticks)
             self.axis.set_label_text(f"{self.name} ({off})" if off else self.name)
 
     def get_offset(self) -> str:
