@@ -25,7 +25,7 @@ import time
 from collections.abc import Callable, Mapping
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Annotated, NoReturn
+from typing import Annotated, Any, NoReturn, cast
 
 import typer
 
@@ -405,12 +405,12 @@ def serve(
     from service.http.server import serve as run_server
     from service.http.settings import Settings
 
-    given = {"store_dir": store_dir, "scheduler": scheduler, "workers": workers, "token": token,
-             "max_running": max_running, "max_queued": max_queued, "max_particles": max_particles,
-             "max_batch_size": max_batch_size, "max_substeps": max_substeps, "max_samples": max_samples,
-             "max_models": max_models, "max_memory_mb": max_memory_mb, "max_job_seconds": max_job_seconds,
-             "max_job_simulations": max_job_simulations,
-             "max_request_bytes": None if max_request_mb is None else int(max_request_mb * 1024 * 1024)}
+    given: dict[str, Any] = {"store_dir": store_dir, "scheduler": scheduler, "workers": workers, "token": token,
+                             "max_running": max_running, "max_queued": max_queued, "max_particles": max_particles,
+                             "max_batch_size": max_batch_size, "max_substeps": max_substeps, "max_samples": max_samples,
+                             "max_models": max_models, "max_memory_mb": max_memory_mb, "max_job_seconds": max_job_seconds,
+                             "max_job_simulations": max_job_simulations,
+                             "max_request_bytes": None if max_request_mb is None else int(max_request_mb * 1024 * 1024)}
     try:  # only what was given: the rest from ABCNS_* variables (README, The HTTP API) or the defaults
         settings = Settings(**{k: v for k, v in given.items() if v is not None})
     except ValidationError as err:
@@ -510,7 +510,7 @@ def submit(
     data = job_spec.data.model_copy(update={key: f"npz:{key}" for key in arrays})  # the arrays go in the upload
     body = json.dumps(job_spec.model_copy(update={"data": data}).model_dump(mode="json"))
     npz = io.BytesIO()
-    np.savez(npz, **arrays)
+    np.savez(npz, **arrays)  # type: ignore[arg-type]  # mypy checks **arrays against allow_pickle (bool) too
     names = [m.name for m in job_spec.models]
     url = url.rstrip("/")
     with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"} if token else {},
@@ -574,7 +574,7 @@ def plot_cmd(
 ) -> None:
     """Write the figures of finished stores: tolerance, acceptance, model probabilities,
     marginals and pairs, predictive bands (with --spec) and confusion matrices."""
-    from service.report.analysis import confusion_of, store_job_data
+    from service.report.analysis import JobData, confusion_of, store_job_data
     from service.report.plots import confusion_figure, plot_result, save
     from service.run.runner import result_from_store
     from service.run.store import Store, StoreError
@@ -608,11 +608,12 @@ def plot_cmd(
         for f in files.values():
             typer.echo(str(f))
     if len(stores) > 1 and spec:
-        conf = confusion_of(results, datas, labels or [p.stem for p in stores])
+        conf = confusion_of(results, cast(list[JobData], datas),  # with spec, every store's data was read
+                            labels or [p.stem for p in stores])
         typer.echo(str(save(confusion_figure(conf), out / "confusion.png")))
         typer.echo(f"confusion: best {conf.best}; mean NMSE " + ", ".join(f"{k} {v:.4g} %" for k, v in conf.mean.items())
                    + (f"; eliminated {', '.join(conf.eliminated)}" if conf.eliminated else ""))
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()
