@@ -40,7 +40,7 @@ demo: $(RUNTIME)
 
 test: $(DEV) browser
 	$(BIN)/ruff check abcns worker service tests benchmarks examples
-	$(BIN)/mypy abcns worker
+	$(BIN)/mypy abcns worker service
 	$(BIN)/python -m pytest
 
 # Debian's chromium for the live-page test (as root, e.g. in CI); nothing downloaded from elsewhere
