@@ -162,6 +162,18 @@ def test_the_page_says_when_a_run_is_undecided(browser, service):
     assert n_drawn >= 2 * n_params > 0
 
 
+def fulfil_from(answers: dict, route, path: str) -> None:
+    """Fulfil a routed request of the page from ``answers`` (path -> (content type, body)),
+    with the service's content security policy; 404 for any other path."""
+    from service.http.page import CSP
+
+    if path in answers:
+        kind, body = answers[path]
+        route.fulfill(status=200, content_type=kind, body=body, headers={"Content-Security-Policy": CSP})
+    else:
+        route.fulfill(status=404, body="")
+
+
 def test_the_page_says_where_the_answer_is_read_and_marks_the_floor(browser):
     """Issue T: the page says at which population and tolerance the answer (the leading
     model) is read, and marks the noise floor and the decision tolerance on the tolerance
@@ -169,7 +181,7 @@ def test_the_page_says_where_the_answer_is_read_and_marks_the_floor(browser):
     as the service serves it (its HTML and Content-Security-Policy) by Playwright's routing,
     with five population events (tolerance 10 / t; a floor from population 2: 2.8, decision
     3.2), so population 3 (3.333) holds the answer, linear 0.9, though the last says cubic."""
-    from service.http.page import CSP, VIEW
+    from service.http.page import VIEW
 
     origin, job = "http://abcns.test", "0123456789abcdef"
     events = []
@@ -190,12 +202,7 @@ def test_the_page_says_where_the_answer_is_read_and_marks_the_floor(browser):
                "/health": ("application/json", json.dumps({"workers": 2}))}
 
     def serve(route):
-        path = route.request.url[len(origin):]
-        if path in answers:
-            kind, body = answers[path]
-            route.fulfill(status=200, content_type=kind, body=body, headers={"Content-Security-Policy": CSP})
-        else:
-            route.fulfill(status=404, body="")
+        fulfil_from(answers, route, route.request.url[len(origin):])
 
     page = browser.new_page(viewport={"width": 1200, "height": 900})
     page.route(f"{origin}/**", serve)
@@ -264,11 +271,8 @@ def test_the_legend_stays_while_populations_come(browser):
             streams.append(route)
             if len(streams) == 1:
                 route.fulfill(status=200, content_type="text/event-stream", body=first, headers={"Content-Security-Policy": CSP})
-        elif path in answers:
-            kind, body = answers[path]
-            route.fulfill(status=200, content_type=kind, body=body, headers={"Content-Security-Policy": CSP})
         else:
-            route.fulfill(status=404, body="")
+            fulfil_from(answers, route, path)
 
     page = browser.new_page(viewport={"width": 1200, "height": 900})
     page.route(f"{origin}/**", serve)

@@ -562,6 +562,15 @@ def test_a_store_whose_creation_was_cut_is_made_again_only_where_the_caller_owns
             assert len(result.populations) == 2 and Store.open(path).n_populations == 2
 
 
+
+def linear_demo_raw(name: str) -> dict:
+    """A two-population job of the authors' linear model on their demo data (50 particles)."""
+    demo = Path(__file__).resolve().parents[1] / "data" / "authors-demo" / "demo_data.npz"
+    return {"name": name, "data": {"dt": 0.01, "input": f"{demo}:force", "observed": f"{demo}:displacement"},
+            "models": [{"name": "linear", "simulator": "duffing", "fixed": {"m": 1, "k3": 0, "k5": 0},
+                        "priors": {"c": [0.002, 0.2], "k": [20, 80]}, "integrator": {"substeps": 1}}],
+            "sampler": {"particles": 50, "batch_size": 25, "epsilon_initial": 100}, "stop": {"max_populations": 2}}
+
 def test_a_store_an_earlier_version_made_for_the_job_is_this_jobs(tmp_path):
     """Its job key hashed that version's dump of the spec (the flat sampler section, nulls
     for the fields of other algorithms); the spec it holds validates to this job's, so
@@ -572,11 +581,7 @@ def test_a_store_an_earlier_version_made_for_the_job_is_this_jobs(tmp_path):
     from service.run.runner import run_job
     from service.spec import parse
 
-    demo = Path(__file__).resolve().parents[1] / "data" / "authors-demo" / "demo_data.npz"
-    raw = {"name": "old", "data": {"dt": 0.01, "input": f"{demo}:force", "observed": f"{demo}:displacement"},
-           "models": [{"name": "linear", "simulator": "duffing", "fixed": {"m": 1, "k3": 0, "k5": 0},
-                       "priors": {"c": [0.002, 0.2], "k": [20, 80]}, "integrator": {"substeps": 1}}],
-           "sampler": {"particles": 50, "batch_size": 25, "epsilon_initial": 100}, "stop": {"max_populations": 2}}
+    raw = linear_demo_raw("old")
     spec, path = parse(raw), tmp_path / "old.zarr"
     first = run_job(spec, Path("/"), path, None)
     store = Store.open(path)
@@ -605,11 +610,7 @@ def test_a_store_marked_finished_without_a_stop_reason_is_resumed_not_called_can
     from service.run.runner import run_job
     from service.spec import parse
 
-    demo = Path(__file__).resolve().parents[1] / "data" / "authors-demo" / "demo_data.npz"
-    raw = {"name": "torn", "data": {"dt": 0.01, "input": f"{demo}:force", "observed": f"{demo}:displacement"},
-           "models": [{"name": "linear", "simulator": "duffing", "fixed": {"m": 1, "k3": 0, "k5": 0},
-                       "priors": {"c": [0.002, 0.2], "k": [20, 80]}, "integrator": {"substeps": 1}}],
-           "sampler": {"particles": 50, "batch_size": 25, "epsilon_initial": 100}, "stop": {"max_populations": 2}}
+    raw = linear_demo_raw("torn")
     spec, path = parse(raw), tmp_path / "torn.zarr"
     first = run_job(spec, Path("/"), path, None)
     store = Store.open(path)
