@@ -6,7 +6,8 @@ running batch ends; a task's group of batches is capped by the seconds left.
 The slow batch is ``benchmarks.sleepy``'s Duffing oscillator, which sleeps 2 ms per
 simulation: a batch of 20,000 takes 40 s of wall time on any machine (sleep, not CPU), and
 the worker stays responsive meanwhile, so the test can see the batch still running after
-the executor stopped waiting. The cluster (two stock workers, one per such test) is killed
+the executor stopped waiting. The cluster (two stock workers) is shared by the module; a
+worker left running a dropped batch is restarted after its test, and the cluster is killed
 at the end.
 """
 
@@ -44,14 +45,33 @@ def sleepy_job():
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    cluster = StockCluster(tmp_path_factory.mktemp("dask"), n_workers=2)  # one per test of a running batch
+def module_client(tmp_path_factory):
+    cluster = StockCluster(tmp_path_factory.mktemp("dask"), n_workers=2)
     with Client(cluster.address, timeout=30) as c:
         yield c
-    for p in cluster.procs:  # the dropped batch still sleeps in the worker: no waiting for it
+    for p in cluster.procs:  # a dropped batch may still sleep in a worker: no waiting for it
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait()
+
+
+@pytest.fixture
+def client(module_client):
+    """The module's cluster, its workers idle for each test: a worker still running a batch
+    a test dropped (its 40 s of sleep go on after the test) is killed after the test, and
+    its nanny starts another. Without that, the scheduler (for which the released task is
+    gone) could give the next test's batch to that worker, where it waited up to 40 s."""
+    yield module_client
+    busy = {address: pid for address, (n, pid) in module_client.run(
+        lambda dask_worker: (len(dask_worker.state.executing), os.getpid())).items() if n}
+    for pid in busy.values():
+        os.kill(pid, signal.SIGKILL)  # its nanny starts another (a restart through the nanny waits ~5 s)
+
+    def idle_pair() -> bool:
+        workers = module_client.scheduler_info(n_workers=-1)["workers"]
+        return len(workers) == 2 and not set(busy) & set(workers)
+
+    wait_until(idle_pair, 60, "the restarted worker to join", 0.05)
 
 
 def executing(client: Client, group: str) -> int:
