@@ -22,6 +22,7 @@ import numpy as np
 from abcns import NMSE, Model, NSSettings, StopRules
 from abcns.distances import gk_summaries
 from abcns.executor import OK, Evaluate
+from abcns.noise import Noise
 from examples.paper import gandk_32, linear_31
 from service.spec import build, load
 from worker.description import simulator_for
@@ -52,6 +53,7 @@ class Case:
     budget_note: str
     particles: int = 1000
     notes: list[str] = field(default_factory=list)
+    noise: Noise | None = None  # abcns: the distance's noise model (the noise floor), as a job's
 
 
 def full_row(model: Model, simulator, pars: dict) -> np.ndarray:
@@ -95,6 +97,7 @@ def _nmse_case(nmse: NMSE) -> dict:
 
     return {
         "distance": distance,
+        "noise": nmse.noise(),
         "observed": {"y": nmse.observed[:n].copy()},
         "output": lambda row: {"y": np.array(row[:n], dtype=float)},
         "failed": {"y": np.full(n, np.inf)},

@@ -48,7 +48,7 @@ def _posterior(case: Case, theta: np.ndarray | None, weights: np.ndarray | None)
 
 
 def run_abcns(case: Case, seed: int) -> dict:
-    r = run(case.models, case.evaluate, case.settings, case.stop, seed=seed)
+    r = run(case.models, case.evaluate, case.settings, case.stop, seed=seed, noise=case.noise)
     pops, cum = [], r.n_pilot_simulations
     for p in r.populations:
         cum += p.n_simulations
