@@ -459,6 +459,49 @@ _TAYLOR_TERMS = 14  # with the scaled norm <= 1/2 the first omitted term is < 3e
 
 
 @njit(cache=True, error_model="numpy")
+def _hold_taylor(m12, m21, m22, mb, sc):
+    """``F = expm(M) - I`` of :func:`hold_coefficients`' scaled matrix (``M`` = [[0, m12],
+    [m21, m22]] with the force column ``mb`` and the ramp's ``sc``), as (F's 2 x 2 block,
+    its Gamma column, its ramp column): phi_1(M) = I + M/2! + M^2/3! + ... by Horner,
+    Y <- I + (M Y) / q, then F = M Y (carrying F instead of expm(M) keeps the squaring free
+    of cancellation)."""
+    p11, p12, p21, p22, g1, g2 = 1.0, 0.0, 0.0, 1.0, 0.0, 0.0
+    r1, r2, y34 = 0.0, 0.0, 0.0  # the ramp's column and the (f, slope) entry of Y
+    for q in range(_TAYLOR_TERMS, 1, -1):
+        r = 1.0 / q
+        n11 = 1.0 + (m12 * p21) * r
+        n12 = (m12 * p22) * r
+        n21 = (m21 * p11 + m22 * p21) * r
+        n22 = 1.0 + (m21 * p12 + m22 * p22) * r
+        ng1 = (m12 * g2) * r
+        ng2 = (m21 * g1 + m22 * g2 + mb) * r
+        nr1 = (m12 * r2) * r
+        nr2 = (m21 * r1 + m22 * r2 + mb * y34) * r
+        p11, p12, p21, p22, g1, g2 = n11, n12, n21, n22, ng1, ng2
+        r1, r2, y34 = nr1, nr2, sc * r
+    return (m12 * p21, m12 * p22, m21 * p11 + m22 * p21, m21 * p12 + m22 * p22,
+            m12 * g2, m21 * g1 + m22 * g2 + mb, m12 * r2, m21 * r1 + m22 * r2 + mb * y34)
+
+
+@njit(cache=True, error_model="numpy")
+def _hold_square(s, sigma, f11, f12, f21, f22, fg1, fg2, fr1, fr2):
+    """:func:`_hold_taylor`'s F squared ``s`` times: (I + F)^2 = I + (2 F + F F); the Gamma
+    part: (I + F) g + g = 2 g + F g; the ramp's: (I + F) r + sigma g + r = 2 r + F r + sigma g."""
+    for _ in range(s):
+        n11 = 2.0 * f11 + (f11 * f11 + f12 * f21)
+        n12 = 2.0 * f12 + (f11 * f12 + f12 * f22)
+        n21 = 2.0 * f21 + (f21 * f11 + f22 * f21)
+        n22 = 2.0 * f22 + (f21 * f12 + f22 * f22)
+        ng1 = 2.0 * fg1 + (f11 * fg1 + f12 * fg2)
+        ng2 = 2.0 * fg2 + (f21 * fg1 + f22 * fg2)
+        nr1 = 2.0 * fr1 + (f11 * fr1 + f12 * fr2) + sigma * fg1
+        nr2 = 2.0 * fr2 + (f21 * fr1 + f22 * fr2) + sigma * fg2
+        f11, f12, f21, f22, fg1, fg2 = n11, n12, n21, n22, ng1, ng2
+        fr1, fr2, sigma = nr1, nr2, 2.0 * sigma
+    return f11, f12, f21, f22, fg1, fg2, fr1, fr2
+
+
+@njit(cache=True, error_model="numpy")
 def hold_coefficients(m, c, k, dt, w):
     """Fill rows 3..13 of ``w`` with the exact transition of ``m x'' + c x' + k x = f`` over
     one sample for a held force and for a linear ramp: ``s_{i+1} = Phi s_i + Gamma f_i``
@@ -494,61 +537,15 @@ def hold_coefficients(m, c, k, dt, w):
         while norm * sc > 0.5:
             sc *= 0.5
             s += 1
-        m12 = dt * sc
-        m21 = a21 * sc
-        m22 = a22 * sc
-        mb = b2 * sc
-        # phi_1(M) = I + M/2! + M^2/3! + ... by Horner, Y <- I + (M Y) / q, then F = M Y =
-        # expm(M) - I: carrying F instead of expm(M) keeps the squaring free of cancellation
-        p11, p12, p21, p22, g1, g2 = 1.0, 0.0, 0.0, 1.0, 0.0, 0.0
-        r1, r2, y34 = 0.0, 0.0, 0.0  # the ramp's column and the (f, slope) entry of Y
-        for q in range(_TAYLOR_TERMS, 1, -1):
-            r = 1.0 / q
-            n11 = 1.0 + (m12 * p21) * r
-            n12 = (m12 * p22) * r
-            n21 = (m21 * p11 + m22 * p21) * r
-            n22 = 1.0 + (m21 * p12 + m22 * p22) * r
-            ng1 = (m12 * g2) * r
-            ng2 = (m21 * g1 + m22 * g2 + mb) * r
-            nr1 = (m12 * r2) * r
-            nr2 = (m21 * r1 + m22 * r2 + mb * y34) * r
-            p11, p12, p21, p22, g1, g2 = n11, n12, n21, n22, ng1, ng2
-            r1, r2, y34 = nr1, nr2, sc * r
-        f11 = m12 * p21
-        f12 = m12 * p22
-        f21 = m21 * p11 + m22 * p21
-        f22 = m21 * p12 + m22 * p22
-        fg1 = m12 * g2
-        fg2 = m21 * g1 + m22 * g2 + mb
-        fr1 = m12 * r2
-        fr2 = m21 * r1 + m22 * r2 + mb * y34
-        sigma = sc
-        # (I + F)^2 = I + (2 F + F F); the Gamma part: (I + F) g + g = 2 g + F g; the ramp's:
-        # (I + F) r + sigma g + r = 2 r + F r + sigma g
-        for _ in range(s):
-            n11 = 2.0 * f11 + (f11 * f11 + f12 * f21)
-            n12 = 2.0 * f12 + (f11 * f12 + f12 * f22)
-            n21 = 2.0 * f21 + (f21 * f11 + f22 * f21)
-            n22 = 2.0 * f22 + (f21 * f12 + f22 * f22)
-            ng1 = 2.0 * fg1 + (f11 * fg1 + f12 * fg2)
-            ng2 = 2.0 * fg2 + (f21 * fg1 + f22 * fg2)
-            nr1 = 2.0 * fr1 + (f11 * fr1 + f12 * fr2) + sigma * fg1
-            nr2 = 2.0 * fr2 + (f21 * fr1 + f22 * fr2) + sigma * fg2
-            f11, f12, f21, f22, fg1, fg2 = n11, n12, n21, n22, ng1, ng2
-            fr1, fr2, sigma = nr1, nr2, 2.0 * sigma
-        p11 = 1.0 + f11
-        p12 = f12
-        p21 = f21
-        p22 = 1.0 + f22
-        g1 = fg1
-        g2 = fg2
-        w[3, j] = p11
-        w[4, j] = p12
-        w[5, j] = p21
-        w[6, j] = p22
-        w[7, j] = g1
-        w[8, j] = g2
-        w[12, j] = fr1
+        f11, f12, f21, f22, fg1, fg2, fr1, fr2 = _hold_taylor(dt * sc, a21 * sc, a22 * sc, b2 * sc, sc)
+        f11, f12, f21, f22, fg1, fg2, fr1, fr2 = _hold_square(s, sc, f11, f12, f21, f22, fg1, fg2, fr1, fr2)
+        w[3, j] = 1.0 + f11  # Phi = I + F
+        w[4, j] = f12
+        w[5, j] = f21
+        w[6, j] = 1.0 + f22
+        w[7, j] = fg1  # Gamma
+        w[8, j] = fg2
+        w[12, j] = fr1  # R
         w[13, j] = fr2
 
 

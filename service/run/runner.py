@@ -26,7 +26,7 @@ from pathlib import Path
 
 from distributed import Client
 
-from abcns import Population, Result, SpecError, StopReason
+from abcns import Population, Result, RunEnd, SpecError, StopReason
 from abcns.executor import SerialExecutor
 from abcns.filling import Budget
 from abcns.run import algorithm_name, consume, iterate
@@ -212,12 +212,7 @@ def run_job(
     if store is not None and store.attrs.get("status") == "finished" and store.attrs.get("stop_reason"):
         return result_from_store(store)
     if store is None:
-        store = Store.create(
-            store_path, spec=spec_json, seed=job.seed, model_names=[m.name for m in job.models],
-            parameter_names=[list(m.parameter_names) for m in job.models], n_particles=job.settings.particles,
-            data_hash=dhash, algorithm=algorithm_name(job.settings),
-            max_ellipsoids=getattr(job.settings, "n_ellipsoids", 1),
-        )
+        store = _new_store(store_path, spec_json, job, dhash)
     history = store.populations()
     state = store.run_state()
     budget = Budget(job.stop, cancel=cancel, n_simulations=int(state["n_simulations_total"]),
@@ -259,6 +254,21 @@ def run_job(
         raise
     finally:
         getattr(executor, "close", lambda: None)()  # the Dask executor releases the job's data
+    _record_end(store, key, end, run_info, budget)
+    return result_from_store(store)
+
+
+def _new_store(path: Path, spec_json: dict, job: Job, dhash: str) -> Store:
+    """The job's new, empty store."""
+    return Store.create(path, spec=spec_json, seed=job.seed, model_names=[m.name for m in job.models],
+                        parameter_names=[list(m.parameter_names) for m in job.models],
+                        n_particles=job.settings.particles, data_hash=dhash, algorithm=algorithm_name(job.settings),
+                        max_ellipsoids=getattr(job.settings, "n_ellipsoids", 1))
+
+
+def _record_end(store: Store, key: str, end: RunEnd, run_info: dict, budget: Budget) -> None:
+    """The run's end in the store, in one status write: cancelled or finished, why, where
+    eps_1 came from (the algorithm's word), the simulations, the wall time and the notes."""
     if end.epsilon_initial_source != "resumed":  # the algorithm says where eps_1 came from
         run_info["epsilon_initial_source"] = end.epsilon_initial_source
         run_info["n_pilot_simulations"] = end.n_pilot_simulations
@@ -266,4 +276,3 @@ def run_job(
     status = "cancelled" if end.reason is StopReason.CANCELLED else "finished"
     run_info.update(n_simulations=budget.n_simulations, wall_time_s=budget.elapsed(), notes=notes)
     store.set_status(status, end.reason.value, job_key=key, run=run_info)
-    return result_from_store(store)

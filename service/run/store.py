@@ -427,65 +427,17 @@ class Store:
     ) -> Store:
         """A new, empty store at ``path`` (status "running"); refuses an existing non-empty path."""
         path = Path(path)
-        if path.exists() and (not path.is_dir() or any(path.iterdir())):
-            raise StoreError(f"{path} already exists and is not empty; refusing to overwrite it")
         model_names, parameter_names = list(model_names), [list(p) for p in parameter_names]
-        if not model_names or len(parameter_names) != len(model_names):
-            raise StoreError(f"need one list of parameter names per model: {len(model_names)} models, "
-                             f"{len(parameter_names)} lists")
-        if len(set(model_names)) != len(model_names):
-            raise StoreError(f"duplicate model names {model_names}")
-        if min(len(p) for p in parameter_names) < 1:
-            raise StoreError("every model needs at least one parameter")
-        if int(n_particles) < 1:
-            raise StoreError(f"n_particles must be >= 1, got {n_particles}")
+        _check_new(path, model_names, parameter_names, n_particles, max_ellipsoids)
         if hasattr(spec, "model_dump"):  # a pydantic JobSpec
             spec = spec.model_dump(mode="json")
         spec = _jsonable(dict(spec), "spec")  # checked before anything is written
         union = _union(parameter_names)
-        n, m, d = int(n_particles), len(model_names), len(union)
-        k = int(max_ellipsoids)
-        if k < 1:
-            raise StoreError(f"max_ellipsoids must be >= 1, got {max_ellipsoids}")
-
+        n, k = int(n_particles), int(max_ellipsoids)
         group = zarr.open_group(str(path), mode="w-", zarr_format=3)
-        units = _distance_units(spec)
         frame = ellipsoid_frame(spec, str(algorithm))
-        prior_low, prior_width = _priors(spec, model_names, union)
-
-        def meta(v: Variable) -> dict[str, Any]:
-            """A variable's attributes, written with the array (one metadata write each)."""
-            out = {"long_name": v.long_name, "description": v.description.replace("{frame}", _FRAME_TEXT[frame])
-                   or v.long_name}
-            if v.units is not None:
-                out["units"] = v.units.format(distance_units=units)
-            if v.name == "model_index":
-                out["flag_meanings"] = " ".join(model_names)  # CF: index i is model_names[i]
-            return out
-
-        sizes = {_N: n, _M: m, _E: k, _D: d, _DB: d}
-        static = {
-            "model": np.array(model_names, dtype=str),
-            "parameter": np.array(union, dtype=str),
-            "parameter_b": np.array(union, dtype=str),
-            "model_has_parameter": np.array([[u in p for u in union] for p in parameter_names]),
-            "prior_low": prior_low,
-            "prior_width": prior_width,
-        }
-        for v in SCHEMA:
-            if not v.grows:
-                values = static[v.name]
-                arr = group.create_array(v.name, shape=values.shape, dtype=str if v.dtype == "str" else v.dtype,
-                                         dimension_names=list(v.dims), attributes=meta(v))
-                arr[...] = values
-                continue
-            tail = tuple(sizes[dim] for dim in v.dims)
-            # rows per chunk along population: a chunk of ~64 KiB at most (one population of
-            # theta, 256 of a scalar), so an append of several populations writes few files
-            rows = int(np.clip(CHUNK_BYTES // (np.dtype(v.dtype).itemsize * math.prod(tail)), 1, 256))
-            group.create_array(v.name, shape=(0, *tail), chunks=(rows, *tail), dtype=v.dtype, fill_value=v.fill_value,
-                               dimension_names=[_P, *v.dims], attributes=meta(v))
-
+        _create_arrays(group, spec, frame, model_names, parameter_names, union,
+                       {_N: n, _M: len(model_names), _E: k, _D: len(union), _DB: len(union)})
         attrs = {
             "spec": spec,
             "seed": int(seed),
@@ -910,6 +862,64 @@ def _union(parameter_names: Sequence[Sequence[str]]) -> list[str]:
     """Every model's parameter names, each once, in first-seen order."""
     return list(dict.fromkeys(name for names in parameter_names for name in names))
 
+
+
+def _check_new(path: Path, model_names: list[str], parameter_names: list[list[str]], n_particles: int,
+               max_ellipsoids: int) -> None:
+    """What :meth:`Store.create` refuses (StoreError): a non-empty path, or names and sizes
+    that make no store."""
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise StoreError(f"{path} already exists and is not empty; refusing to overwrite it")
+    if not model_names or len(parameter_names) != len(model_names):
+        raise StoreError(f"need one list of parameter names per model: {len(model_names)} models, "
+                         f"{len(parameter_names)} lists")
+    if len(set(model_names)) != len(model_names):
+        raise StoreError(f"duplicate model names {model_names}")
+    if min(len(p) for p in parameter_names) < 1:
+        raise StoreError("every model needs at least one parameter")
+    if int(n_particles) < 1:
+        raise StoreError(f"n_particles must be >= 1, got {n_particles}")
+    if int(max_ellipsoids) < 1:
+        raise StoreError(f"max_ellipsoids must be >= 1, got {max_ellipsoids}")
+
+
+def _create_arrays(group: zarr.Group, spec: Mapping[str, Any], frame: str | None, model_names: list[str],
+                   parameter_names: list[list[str]], union: list[str], sizes: dict[str, int]) -> None:
+    """Every array of :data:`SCHEMA` in a new store: the static ones written, the growing
+    ones empty along population, each with its attributes (one metadata write each)."""
+    units = _distance_units(spec)
+    prior_low, prior_width = _priors(spec, model_names, union)
+
+    def meta(v: Variable) -> dict[str, Any]:
+        out = {"long_name": v.long_name, "description": v.description.replace("{frame}", _FRAME_TEXT[frame])
+               or v.long_name}
+        if v.units is not None:
+            out["units"] = v.units.format(distance_units=units)
+        if v.name == "model_index":
+            out["flag_meanings"] = " ".join(model_names)  # CF: index i is model_names[i]
+        return out
+
+    static = {
+        "model": np.array(model_names, dtype=str),
+        "parameter": np.array(union, dtype=str),
+        "parameter_b": np.array(union, dtype=str),
+        "model_has_parameter": np.array([[u in p for u in union] for p in parameter_names]),
+        "prior_low": prior_low,
+        "prior_width": prior_width,
+    }
+    for v in SCHEMA:
+        if not v.grows:
+            values = static[v.name]
+            arr = group.create_array(v.name, shape=values.shape, dtype=str if v.dtype == "str" else v.dtype,
+                                     dimension_names=list(v.dims), attributes=meta(v))
+            arr[...] = values
+            continue
+        tail = tuple(sizes[dim] for dim in v.dims)
+        # rows per chunk along population: a chunk of ~64 KiB at most (one population of
+        # theta, 256 of a scalar), so an append of several populations writes few files
+        rows = int(np.clip(CHUNK_BYTES // (np.dtype(v.dtype).itemsize * math.prod(tail)), 1, 256))
+        group.create_array(v.name, shape=(0, *tail), chunks=(rows, *tail), dtype=v.dtype, fill_value=v.fill_value,
+                           dimension_names=[_P, *v.dims], attributes=meta(v))
 
 __all__ = ["FORMAT_VERSION", "FRAMES", "NOTE_CODES", "SCHEMA", "STATUSES", "Store", "StoreError", "StoreIncomplete",
            "StoreNotFound", "Variable", "data_hash", "dataset_result", "ellipsoid_frame", "model_view", "result_from_store",
