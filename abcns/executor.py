@@ -297,7 +297,7 @@ def per_model(functions: Sequence[SimulateDistance] | Sequence[SimulateDistanceE
             if rng is None and uses_rng[m]:
                 rng = np.random.default_rng(batch.seed)
             try:
-                d, s = call(m, theta, rng, batch.epsilon)  # type: ignore[arg-type]
+                d, s = call(m, theta, rng, batch.epsilon)  # type: ignore[arg-type]  # None: uses_rng False
             except NUMERICAL_ERRORS:
                 d, s = one_at_a_time(m, theta, rows, batch)
             distances[rows] = d

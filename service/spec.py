@@ -85,7 +85,7 @@ class DataSpec(_Strict):
         if self.dt is not None or self.fs is not None:
             # a sampling rate of physical sense: its sample interval, decimated, is a normal positive float
             rate = "dt" if self.dt is not None else "fs"
-            base = self.dt if self.dt is not None else 1.0 / self.fs  # type: ignore[operator]
+            base = self.dt if self.dt is not None else 1.0 / self.fs  # type: ignore[operator]  # fs: set without dt  # fs: set without dt
             if not (_normal(base) and _normal(self.sample_interval)):
                 what = "dt" if rate == "dt" else "1/fs"
                 note = f" x decimate ({self.decimate})" if self.decimate > 1 and _normal(base) else ""
@@ -99,7 +99,7 @@ class DataSpec(_Strict):
     @property
     def sample_interval(self) -> float:
         """The interval between the samples used (after decimation)."""
-        base = self.dt if self.dt is not None else 1.0 / self.fs  # type: ignore[operator]
+        base = self.dt if self.dt is not None else 1.0 / self.fs  # type: ignore[operator]  # fs: set without dt
         return base * self.decimate
 
 

@@ -245,7 +245,7 @@ async def queue_job(manager: JobManager, request: Request, response: Response, s
         log.warning("a job could not be stored: %r", err)
         raise Refused(503, f"the service cannot store a job now ({what}); try again later", retry) from None
     response.headers["Location"] = f"{request.scope.get('root_path', '')}/jobs/{job.id}"
-    return JobCreated(id=job.id, status=job.status)  # type: ignore[arg-type]
+    return JobCreated(id=job.id, status=job.status)  # type: ignore[arg-type]  # a Status, held as str
 
 
 @api.post("/jobs/upload", status_code=201, response_model=JobCreated, openapi_extra=_UPLOAD_BODY,
@@ -382,7 +382,7 @@ async def job_events(
 
     async def stream() -> AsyncIterator[bytes]:
         try:
-            async for e in job.events.follow(start, manager.closing):  # type: ignore[union-attr]
+            async for e in job.log.follow(start, manager.closing):
                 if e is None:
                     yield format_sse_event(comment="keep-alive")
                 else:
@@ -506,6 +506,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   docs_url=None, redoc_url=None,
                   description="ABC-NS model selection and parameter estimation jobs for dynamical systems.")
     app.state.settings = settings
+    # starlette types a handler as taking any Exception; these take the class they handle
     app.add_exception_handler(RequestValidationError, on_validation_error)  # type: ignore[arg-type]
     app.add_exception_handler(Refused, on_refused)  # type: ignore[arg-type]
     app.include_router(public)
@@ -522,7 +523,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             app.openapi_schema = out
         return app.openapi_schema
 
-    app.openapi = openapi  # type: ignore[method-assign]
+    app.openapi = openapi  # type: ignore[method-assign]  # FastAPI's documented way to extend its schema
     return app
 
 

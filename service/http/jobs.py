@@ -142,7 +142,8 @@ class EventLog:
 
     def _notify(self) -> None:
         changed, self._changed = self._changed, asyncio.Event()
-        changed.set()  # type: ignore[union-attr]
+        assert changed is not None  # called on the loop, which a log with a loop has
+        changed.set()
 
     def read(self, pos: int = 0) -> tuple[list[dict], int]:
         """The complete events from byte ``pos`` on, and the position after them."""
@@ -177,7 +178,8 @@ class EventLog:
                     return
             if ended or closing.is_set():
                 return
-            wait = [asyncio.ensure_future(waiter.wait()), asyncio.ensure_future(closing.wait())]  # type: ignore[union-attr]
+            assert waiter is not None, "a log read by follow() has an event loop"
+            wait = [asyncio.ensure_future(waiter.wait()), asyncio.ensure_future(closing.wait())]
             done, pending = await asyncio.wait(wait, timeout=heartbeat_s, return_when=asyncio.FIRST_COMPLETED)
             for p in pending:
                 p.cancel()
@@ -199,7 +201,13 @@ class JobRecord:
     crashes: int = 0  # times the service died while this job ran
     progress: dict | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
-    events: EventLog | None = None
+    events: EventLog | None = None  # opened when the manager takes the job (``log``)
+
+    @property
+    def log(self) -> EventLog:
+        """The job's event log: every job the manager holds has one."""
+        assert self.events is not None, f"job {self.id}: its event log was never opened"
+        return self.events
 
     @property
     def store_path(self) -> Path:
@@ -311,6 +319,7 @@ class JobManager:
             if job.status not in TERMINAL and job.events is not None and job.events.ended():
                 # the service died (or the disk was full) between a job's terminal event and its
                 # status (``_end``): both come back from the event
+                # an ended log's last event is a terminal one (a str)
                 job.status, job.error = job.events.last_event, job.events.last_error  # type: ignore[assignment]
                 job.save_or_log()
                 continue
@@ -481,7 +490,7 @@ class JobManager:
         for t in range(seen + 1, store.n_populations + 1):
             pop = store.population(t)
             job.progress = self._progress(pop, job.models, totals[t - 1], pop.elapsed_s, None)
-            job.events.append("population", job.progress)  # type: ignore[union-attr]
+            job.log.append("population", job.progress)
 
     def _connected(self) -> bool:
         """Is the client connected to a scheduler? A client that gave up reconnecting is
@@ -525,12 +534,12 @@ class JobManager:
         started_on = self._scheduler_id()
         job.status = "running"
         job.save_or_log()
-        job.events.append("started", {"resumed": resumed})  # type: ignore[union-attr]
+        job.log.append("started", {"resumed": resumed})
 
         def on_population(p: Progress) -> None:
             job.progress = self._progress(p.population, job.models, p.n_simulations_total, p.elapsed_s,
                                           p.simulations_per_s, p.workers, p.efficiency)
-            job.events.append("population", job.progress)  # type: ignore[union-attr]
+            job.log.append("population", job.progress)
 
         try:
             if resumed:
@@ -557,7 +566,7 @@ class JobManager:
                 # its last complete population once a scheduler answers again
                 job.status = "queued"
                 job.save_or_log()
-                job.events.append("requeued", {"reason": f"lost the scheduler ({type(err).__name__}: {err})"})  # type: ignore[union-attr]
+                job.log.append("requeued", {"reason": f"lost the scheduler ({type(err).__name__}: {err})"})
                 with self.lock:
                     self.queue.appendleft(job.id)
             else:
@@ -591,7 +600,7 @@ class JobManager:
             if result.get("notes"):
                 data["notes"] = result["notes"]  # why it stopped, in words (nothing_accepted)
         try:
-            job.events.append(status, data)  # type: ignore[union-attr]
+            job.log.append(status, data)
         except OSError as err:
             log.error("job %s: cannot append its %s event: %s", job.id, status, err)
         job.status, job.error = status, error

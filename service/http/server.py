@@ -40,6 +40,7 @@ class DeadlineProtocol(H11Protocol):
     header_timeout_s = 5.0
     body_timeout_s = 30.0
 
+    # as uvicorn's own H11Protocol.connection_made (asyncio.Protocol types it with a BaseTransport)
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
         self._phase: str | None = None
