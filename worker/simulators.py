@@ -164,22 +164,11 @@ def _substeps(substeps: object) -> int:
     return substeps
 
 
-def _output(output: str) -> str:
-    if output not in OUTPUTS:
-        raise SpecError("integrator.output", f"must be one of {OUTPUTS}, got {output!r}")
-    return output
-
-
-def _interpolation(value: str) -> str:
-    if value not in INTERPOLATIONS:
-        raise SpecError("data.input_interpolation", f"must be one of {INTERPOLATIONS}, got {value!r}")
+def _one_of(value: str, allowed: tuple[str, ...], where: str) -> str:
+    """``value`` when it is one of ``allowed``, else a SpecError at the spec's field ``where``."""
+    if value not in allowed:
+        raise SpecError(where, f"must be one of {allowed}, got {value!r}")
     return value
-
-
-def _backend(backend: str) -> str:
-    if backend not in BACKENDS:
-        raise SpecError("integrator.backend", f"must be one of {BACKENDS}, got {backend!r}")
-    return backend
 
 
 def _kernels():
@@ -227,10 +216,10 @@ class Oscillator:
                  backend: str = "numba", input_interpolation: str = "hold"):
         self.force = _force(force, dt)
         self.dt = float(dt)
-        self.output = _output(output)
+        self.output = _one_of(output, OUTPUTS, "integrator.output")
         self.state_bound = float(state_bound)
-        self.backend = _backend(backend)
-        self.input_interpolation = _interpolation(input_interpolation)
+        self.backend = _one_of(backend, BACKENDS, "integrator.backend")
+        self.input_interpolation = _one_of(input_interpolation, INTERPOLATIONS, "data.input_interpolation")
 
     @property
     def _hold(self) -> int:
