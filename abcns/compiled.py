@@ -244,7 +244,9 @@ def radii(points: np.ndarray) -> tuple[bool, np.ndarray]:
 @njit(cache=True, error_model="numpy")
 def _two_means(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.ndarray,
                iterations: int) -> np.ndarray:
-    """``bounds.two_means`` of ``points[rows]`` with whitened points ``y``."""
+    """A 2-means clustering of ``points[rows]`` in whitened coordinates ``y``, started at the two
+    rows farthest apart along ``axis`` (deterministic), at most ``iterations`` Lloyd steps:
+    which rows are in the second cluster (a boolean mask)."""
     n = rows.shape[0]
     d = points.shape[1]
     lo_i, hi_i = 0, 0

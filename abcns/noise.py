@@ -63,7 +63,7 @@ METHODS = ("estimated", "stated")
 class Noise:
     """What a run knows of its distance's noise: the distance is a scaled sum of squares of
     ``n_samples`` residuals (the NMSE over its fit window), and, when the user states it,
-    ``variance``, one sample's noise variance in distance units (``NMSE.noise_variance``
+    ``variance``, one sample's noise variance in distance units (``NMSE.noise``
     converts a noise standard deviation in the data's units)."""
 
     n_samples: int

@@ -326,7 +326,7 @@ class Result:
                 "model_probability_se": self.model_probability_se(pop.t)}
 
     def summary(self) -> dict:
-        """The JSON summary of DESIGN.md (plus a few more fields). The answer (model
+        """The JSON summary of docs/design.md, "The summary" (plus a few more fields). The answer (model
         probabilities, their errors, the evidence, the posterior) is read at the decision
         population (:meth:`decision_population`: the lowest tolerance above the noise floor
         by its spread, or the final population when the run knows no floor); ``final`` says
