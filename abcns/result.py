@@ -123,9 +123,10 @@ class Result:
 
     ``n_simulations`` counts every simulation, including the pilot and an unfinished last
     population cut short by a budget; the populations' own counters cover only complete
-    populations. Posterior summaries come from the last complete population, weighted
-    by its weights for ABC-SMC and uniformly for ABC-NS and rejection (each population is
-    the sample the paper reports).
+    populations. Posterior summaries (:meth:`posterior`) come from the last complete
+    population unless another is named (:meth:`summary` reads them at the decision
+    population), weighted by its weights for ABC-SMC and uniformly for ABC-NS and rejection
+    (each population is the sample the paper reports).
     """
 
     algorithm: str
