@@ -1,7 +1,8 @@
 """abcns: ABC-NS (Ben Abdessalem et al. 2019) for parameter estimation and model selection.
 
-Pure numpy/scipy: priors, ellipsoids, the ABC-NS population step, the ABC-SMC and
-rejection baselines, distances and result values. No Dask, no files, no HTTP.
+Numpy and scipy (numba for the bounds' compiled loops, threadpoolctl for the BLAS limit): priors,
+ellipsoids, the ABC-NS population step, the ABC-SMC and rejection baselines, distances and
+result values. No Dask, no files, no HTTP.
 """
 
 from abcns.distances import NMSE, CallableDistance, SummaryEuclidean, gk_summaries, order_statistics

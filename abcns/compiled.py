@@ -1,8 +1,10 @@
-"""Numba kernels of the population step's geometry: the split tree of ``abcns.bounds``
-and the ellipsoid counts of ``abcns.ellipsoid``. Imported on first use (numba's import
-and its compiled-function cache cost ~0.5 s, which ``import abcns`` does not pay).
+"""Numba kernels of the population step's geometry: the split tree of ``abcns.bounds``, the
+ellipsoid counts of ``abcns.ellipsoid``, the volume weights of ``bounds.union_volume``, the
+labels of ``bounds.choose`` and the prior-box test of ``priors.in_box``. Imported on first use
+(numba's import and its compiled-function cache cost ~0.5 s, which ``import abcns`` does not pay).
 
-Neither kernel decides a result by its own rounding:
+None of them decides a result by its own rounding (:func:`labels` and :func:`in_box` only
+compare):
 
 - :func:`tree_rows` returns only *which rows* go to which ellipsoid of a bound (each set
   is then fitted by ``ellipsoid.fit``, in numpy, as before). Its arithmetic (means,
@@ -13,7 +15,8 @@ Neither kernel decides a result by its own rounding:
   covariance from numpy's ``eigh`` (called back from the kernel, once per level of the
   tree), so its sign, which orders the two halves and hence the ellipsoids of the bound,
   is the one LAPACK's dsyevd gives as numpy calls it.
-- :func:`count_inside` is exact or says it cannot be: see ``ellipsoid.n_containing``.
+- :func:`count_inside` is exact or says it cannot be: see ``ellipsoid.n_containing``;
+  :func:`mixture_weights` likewise, with margins that cover numpy's rounding too.
 """
 
 from __future__ import annotations
@@ -244,7 +247,9 @@ def radii(points: np.ndarray) -> tuple[bool, np.ndarray]:
 @njit(cache=True, error_model="numpy")
 def _two_means(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.ndarray,
                iterations: int) -> np.ndarray:
-    """``bounds.two_means`` of ``points[rows]`` with whitened points ``y``."""
+    """A 2-means clustering of ``points[rows]`` in whitened coordinates ``y``, started at the two
+    rows farthest apart along ``axis`` (deterministic), at most ``iterations`` Lloyd steps:
+    which rows are in the second cluster (a boolean mask)."""
     n = rows.shape[0]
     d = points.shape[1]
     lo_i, hi_i = 0, 0

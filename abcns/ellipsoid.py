@@ -37,7 +37,7 @@ class Ellipsoid:
     matrix: np.ndarray  # (d, d) symmetric positive definite
     axes: np.ndarray  # (d, d)
     log_volume: float
-    note: str = ""  # "" | "repaired" | "fallback"
+    note: str = ""  # "" | "repaired" | "fallback" | "box" (from_box)
 
     @property
     def n_dim(self) -> int:

@@ -37,12 +37,12 @@ default (``StopRules.noise_floor``). Why this level:
   the noise, decides between them.
 
 ``d_min`` is the lowest distance any model has reached and ``p`` the largest number of free
-parameters among the models still alive (the conservative choice: with nested models the best
-fit is the most flexible model's, and a floor that uses its ``p`` cannot rise when the best
-fit passes from one model to another, so the decision tolerance only falls as the run
-goes on). The estimate assumes independent noise samples; with correlated residuals (a
-model error that the data resolve) the floor is optimistic, and a stated noise
-(``Noise.variance``) overrides the estimate.
+parameters among the models still alive and the best fit's model (the conservative choice:
+with nested models the best fit is the most flexible model's, and a floor that uses its
+``p`` cannot rise when the best fit passes from one model to another, so the decision
+tolerance only falls as the run goes on). The estimate assumes independent noise samples;
+with correlated residuals (a model error that the data resolve) the floor is optimistic, and
+a stated noise (``Noise.variance``) overrides the estimate.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ METHODS = ("estimated", "stated")
 class Noise:
     """What a run knows of its distance's noise: the distance is a scaled sum of squares of
     ``n_samples`` residuals (the NMSE over its fit window), and, when the user states it,
-    ``variance``, one sample's noise variance in distance units (``NMSE.noise_variance``
+    ``variance``, one sample's noise variance in distance units (``NMSE.noise``
     converts a noise standard deviation in the data's units)."""
 
     n_samples: int
@@ -81,10 +81,10 @@ class Floor:
     """The noise floor as estimated after one population (see the module docstring).
 
     ``best``: the lowest distance any particle of the run has reached so far, by model
-    ``model``; ``n_parameters``: the most free parameters of a model alive (p); ``variance``: one sample's noise in
-    distance units (``METHODS[method]``: estimated from ``best`` or stated); ``floor`` = best +
-    p v, the truth's expected distance; ``spread`` = sqrt(2 p) v; ``decision`` = floor +
-    spread, the decision tolerance."""
+    ``model``; ``n_parameters``: the most free parameters of a model alive or of ``model``
+    (p); ``variance``: one sample's noise in distance units (``METHODS[method]``: estimated
+    from ``best`` or stated); ``floor`` = best + p v, the truth's expected distance;
+    ``spread`` = sqrt(2 p) v; ``decision`` = floor + spread, the decision tolerance."""
 
     best: float
     model: int

@@ -123,9 +123,10 @@ class Result:
 
     ``n_simulations`` counts every simulation, including the pilot and an unfinished last
     population cut short by a budget; the populations' own counters cover only complete
-    populations. Posterior summaries come from the last complete population, weighted
-    by its weights for ABC-SMC and uniformly for ABC-NS and rejection (each population is
-    the sample the paper reports).
+    populations. Posterior summaries (:meth:`posterior`) come from the last complete
+    population unless another is named (:meth:`summary` reads them at the decision
+    population), weighted by its weights for ABC-SMC and uniformly for ABC-NS and rejection
+    (each population is the sample the paper reports).
     """
 
     algorithm: str
@@ -326,7 +327,7 @@ class Result:
                 "model_probability_se": self.model_probability_se(pop.t)}
 
     def summary(self) -> dict:
-        """The JSON summary of DESIGN.md (plus a few more fields). The answer (model
+        """The JSON summary of docs/design.md, "The summary" (plus a few more fields). The answer (model
         probabilities, their errors, the evidence, the posterior) is read at the decision
         population (:meth:`decision_population`: the lowest tolerance above the noise floor
         by its spread, or the final population when the run knows no floor); ``final`` says

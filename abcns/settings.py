@@ -45,7 +45,7 @@ class Stopped(Exception):
     def notes(self) -> tuple[str, ...]:
         return () if self.note is None else (self.note,)
 
-# The documented valid ranges of the numeric settings (README, "Spec"): what one process
+# The documented valid ranges of the numeric settings (docs/design.md, "The job spec"): what one process
 # can hold and a run can count, not admission limits (a service sets lower ones).
 MAX_PARTICLES = 10**8  # a population of 10^8 particles of 8 parameters is ~7 GB in the runner
 MAX_BATCH_SIZE = 10**7

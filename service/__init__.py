@@ -1,4 +1,4 @@
-"""The scheduler process and everything with I/O (specs, runner, store, HTTP, CLI).
+"""The runner's process (the Dask client) and everything with I/O (specs, runner, store, HTTP, CLI).
 
 The runner's linear algebra is on small matrices (the ellipsoids of a few parameters, a
 population's points), where BLAS threads only spin against the Dask workers on the same

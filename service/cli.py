@@ -399,7 +399,8 @@ def serve(
     access_log: Annotated[bool, typer.Option(help="log every request (uvicorn's access log, on stderr)")] = True,
 ) -> None:
     """Serve the HTTP job API and the live pages (prints the address; logs every request).
-    Every option left out comes from its ABCNS_* variable (ABCNS_MAX_RUNNING, ...), else its default."""
+    Every option left out but --host, --port and --access-log comes from its ABCNS_* variable
+    (ABCNS_MAX_RUNNING, ...; --max-request-mb: ABCNS_MAX_REQUEST_BYTES), else its default."""
     from pydantic import ValidationError
 
     from service.http.server import serve as run_server

@@ -1,4 +1,4 @@
-"""The job spec (DESIGN.md): one pydantic schema for Python, the CLI and HTTP.
+"""The job spec (docs/design.md, "The job spec"): one pydantic schema for Python, the CLI and HTTP.
 
 ``load(path)`` reads YAML or JSON; ``build(spec, base_dir)`` validates everything that can
 be checked before a simulation (files, windows, lengths, simulator parameters, sampler
@@ -85,7 +85,7 @@ class DataSpec(_Strict):
         if self.dt is not None or self.fs is not None:
             # a sampling rate of physical sense: its sample interval, decimated, is a normal positive float
             rate = "dt" if self.dt is not None else "fs"
-            base = self.dt if self.dt is not None else 1.0 / self.fs  # type: ignore[operator]  # fs: set without dt  # fs: set without dt
+            base = self.dt if self.dt is not None else 1.0 / self.fs  # type: ignore[operator]  # fs: set without dt
             if not (_normal(base) and _normal(self.sample_interval)):
                 what = "dt" if rate == "dt" else "1/fs"
                 note = f" x decimate ({self.decimate})" if self.decimate > 1 and _normal(base) else ""
@@ -462,7 +462,8 @@ def check_records(force: np.ndarray | None, observed: np.ndarray) -> None:
 def check_physical(spec: JobSpec, simulators: list[Simulator], distance: object) -> None:
     """What makes physical and numerical sense beyond the schema, once the job's parts are
     built: an NMSE scale that is a finite number (each parameter's valid range, a positive
-    mass among them, is the simulator's: ``Simulator.valid``). SpecError naming the field."""
+    mass among them, is the simulator's: its ``ranges``, checked by
+    ``worker.compose.check_ranges``). SpecError naming the field."""
     scale = getattr(distance, "scale", 1.0)
     if not (math.isfinite(scale) and scale > 0):
         raise SpecError("data.observed", f"its variance on the fit window is too small for the NMSE in floating point "

@@ -1,4 +1,4 @@
-"""Numba batch kernels for the forced oscillators (Duffing, Bouc-Wen, exact-ZOH linear).
+"""Numba batch kernels for the forced oscillators (Duffing, Bouc-Wen, exact linear).
 
 Layout. A batch of ``n`` particles lives in one C-ordered work array ``w`` of shape
 ``(rows, n)``: the state components first (one contiguous ``(n,)`` row each), then the
@@ -10,9 +10,10 @@ first-order: ``force[i] + (force[i+1] - force[i]) tau``, tau the fraction of ste
 the RK4 stages of a substep then see the force at the substep's start, middle and end, and
 the linear model's exact recursion takes the ramp's own coefficients
 (:func:`hold_coefficients`). With ``hold`` 0 every loop is the zero-order-hold loop it
-always was, to the bit. Kernels are ``@njit(cache=True)`` with ``fastmath={"contract"}``
-only (FMA contraction, no reassociation, NaN/inf semantics kept) and
-``error_model="numpy"`` (no Python exception branches in the loops); none is parallel.
+always was, to the bit. Kernels are ``@njit(cache=True)``; those that integrate and score
+have ``fastmath={"contract"}`` only (FMA contraction, no reassociation, NaN/inf semantics
+kept) and ``error_model="numpy"`` (no Python exception branches in the loops); the linear
+model's coefficients (:func:`hold_coefficients`) have no ``fastmath``; none is parallel.
 
 Drivers take a block of particles (``w`` holds only them; a few hundred keep the work
 array in L1) and ``cols``, their columns in the caller's ``dist``, ``status`` and
@@ -88,7 +89,8 @@ OUTPUT_CODES = {"displacement": 0, "velocity": 1, "acceleration": 2}
 
 
 class _JitOptions(TypedDict):
-    """The options every kernel is compiled with (typed so that ``njit(**_JIT)`` checks)."""
+    """The options the integrating and scoring kernels are compiled with (typed so that
+    ``njit(**_JIT)`` checks)."""
 
     cache: bool
     fastmath: set[str]

@@ -1,6 +1,6 @@
 """The registry of simulators, by name.
 
-Built-ins: ``duffing``, ``bouc_wen``, ``linear`` (exact zero-order hold), ``gandk``.
+Built-ins: ``duffing``, ``bouc_wen``, ``linear`` (exact, for a held or a linear input), ``gandk``.
 Plugins: any installed package can add simulators through the entry-point group
 ``abcns.simulators`` (``name = "package.module:factory"``); they must be installed on the
 service and on every worker. The CLI (never HTTP) may also name a local
@@ -15,9 +15,10 @@ start, stop, epsilon)``, a fused fast path). The factory may have a static
 ``omega_max(bounds)`` (lets the substeps be chosen from the priors) and ``needs_input``:
 False: called as ``factory(n_samples=...)`` (the observed record's length); True: the input
 is required, and the factory is called with those of the keywords ``force``, ``dt``,
-``n_samples``, ``substeps``, ``output`` and ``state_bound`` its signature names (all with
-``**kwargs``); absent: as True, but ``force`` may be None (no input given). See
-``worker/simulators.py`` for four examples and :func:`worker.description.simulator_for`.
+``n_samples``, ``substeps``, ``output``, ``state_bound`` and ``input_interpolation`` its
+signature names (all with ``**kwargs``); absent: as True, but ``force`` may be None (no
+input given). See ``worker/simulators.py`` for four examples and
+:func:`worker.description.simulator_for`.
 """
 
 from __future__ import annotations

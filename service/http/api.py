@@ -293,7 +293,7 @@ def job_status(job: Annotated[JobRecord, Depends(get_job)]) -> dict:
 
 @api.get("/jobs/{job_id}/result", response_model=Summary)
 def job_result(job: Annotated[JobRecord, Depends(get_job)], manager: Annotated[JobManager, Depends(get_manager)]):
-    """The summary of DESIGN.md (so far, while the job runs)."""
+    """The summary of docs/design.md, "The summary" (so far, while the job runs)."""
     result = manager.result(job)
     if result is None:
         raise HTTPException(404, f"job {job.id} has no population yet ({job.status})")

@@ -36,11 +36,11 @@ class Limits:
 
 def memory_estimate(job: Job) -> dict[str, float]:
     """Bytes a job needs at its peak, roughly: the populations the runner holds (particles x
-    (widest model + 5 per-particle values) x 8 bytes, for max_populations or 200 of them:
-    the result is read back whole at the end) and the trajectories of one task's batch
-    (3 x batch_size x simulated samples x 8 bytes: the output, the state and the error of
-    the numpy path; the numba path needs less; with the NMSE only the samples up to the end
-    of the fit window are simulated)."""
+    (widest model + 5 per-particle values) x 8 bytes, for max_populations or 200 of them,
+    one for rejection: the result is read back whole at the end) and the trajectories of
+    one task's batch (3 x batch_size x simulated samples x 8 bytes: the output, the state and
+    the error of the numpy path; the numba path needs less; with the NMSE only the samples up
+    to the end of the fit window are simulated)."""
     settings, spec = job.settings, job.spec
     width = max(m.n_dim for m in job.models) + 5
     populations = spec.stop.max_populations or (1 if spec.sampler.algorithm == "rejection" else POPULATIONS_ASSUMED)
