@@ -83,6 +83,10 @@ class Budget:
         self.cancel = cancel
         self.n_simulations = n_simulations
         self.start = clock() - elapsed_before_s
+        #: where epsilon_1 came from and the pilot's simulations, once the run knows
+        #: (``abcns.rejection.initial_epsilon`` sets it): the runner stores it with population
+        #: 1, so that a run resumed later still says it
+        self.epsilon_initial: tuple[str, int] | None = None
 
     def elapsed(self) -> float:
         return self.clock() - self.start

@@ -48,9 +48,11 @@ def initial_epsilon(
     simulations are run (population index 0 of the seed stream) and epsilon_1 is the
     ``pilot_quantile`` quantile of their distances (failed ones count as +inf). When that
     quantile is +inf (more than 1 - q failed or diverged) it is the quantile of the finite
-    ones ("pilot_finite"); when every one failed the run stops (``PILOT_FAILED``).
+    ones ("pilot_finite"); when every one failed the run stops (``PILOT_FAILED``). The
+    source and the pilot's simulations are also set on ``budget.epsilon_initial``.
     """
     if settings.epsilon_initial is not None:
+        budget.epsilon_initial = ("given", 0)
         return float(settings.epsilon_initial), "given", 0
     size = settings.pilot_size or settings.particles
     before = budget.n_simulations
@@ -67,6 +69,7 @@ def initial_epsilon(
         if finite.size == 0:
             raise Stopped(StopReason.PILOT_FAILED)
         eps, source = float(np.quantile(finite, settings.pilot_quantile, method="higher")), "pilot_finite"
+    budget.epsilon_initial = (source, budget.n_simulations - before)
     return eps, source, budget.n_simulations - before
 
 

@@ -872,3 +872,32 @@ def test_the_descriptions_are_true_of_a_real_run(reference):
     assert {name for name, u in units.items() if u == "%"} == {  # the spec's NMSE: the distance's units
         "distance", "epsilon", "epsilon_next", "floor_best", "floor_noise_variance", "noise_floor", "decision_tolerance"}
     assert units["elapsed_s"] == "s" and all(units[n] == "1" for n in ("n_accepted", "weight", "model_probability"))
+
+
+def test_a_resumed_run_says_where_its_first_tolerance_came_from(tmp_path):
+    """An ABC-SMC job with a tolerance schedule whose runner dies after its first population
+    (here an exception from ``on_population``: the run ends ``failed``, as a killed process
+    leaves it, without the end record that says where epsilon_1 came from) and is resumed:
+    its result and its store say the schedule, as the uninterrupted run's do (the runner
+    wrote a guess, "given" or "pilot", with population 1, and a resumed run kept it)."""
+    from service.run.runner import run_job
+    from service.spec import parse
+
+    raw = linear_demo_raw("schedule")
+    raw["sampler"] = {"algorithm": "abc-smc", "particles": 50, "batch_size": 25, "schedule": [100, 60, 40, 30, 25, 20]}
+    raw["stop"] = {"max_populations": 6}
+    spec = parse(raw)
+    whole = run_job(spec, Path("/"), tmp_path / "whole.zarr", None)
+    assert whole.epsilon_initial_source == "schedule" and len(whole.populations) == 6
+
+    def dies(progress) -> None:
+        raise RuntimeError("the runner dies")
+
+    path = tmp_path / "resumed.zarr"
+    with pytest.raises(RuntimeError, match="the runner dies"):
+        run_job(spec, Path("/"), path, None, on_population=dies)
+    assert Store.open(path).attrs["status"] == "failed" and 1 <= Store.open(path).n_populations < 6
+    resumed = run_job(spec, Path("/"), path, None)
+    assert len(resumed.populations) == 6
+    assert resumed.epsilon_initial_source == "schedule"
+    assert Store.open(path).attrs["run"]["epsilon_initial_source"] == "schedule"

@@ -229,9 +229,9 @@ def run_job(
 
     def written(pop: Population) -> None:
         info = None
-        if pop.t == 1:  # what a resume needs; the algorithm's own word comes with RunEnd
-            run_info["epsilon_initial_source"] = "given" if job.settings.epsilon_initial is not None else "pilot"
-            run_info["n_pilot_simulations"] = budget.n_simulations - pop.n_simulations
+        if pop.t == 1:  # what a resume needs, as the algorithm found it (no pilot: a schedule)
+            source, n_pilot = budget.epsilon_initial or ("schedule", 0)
+            run_info["epsilon_initial_source"], run_info["n_pilot_simulations"] = source, n_pilot
             info = dict(run_info)
         now = time.monotonic()
         dt = now - start
