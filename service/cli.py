@@ -564,7 +564,8 @@ def main() -> None:
 
 @app.command(name="plot")
 def plot_cmd(
-    stores: Annotated[list[Path], typer.Argument(help="finished job stores; two or more also give the §5.4 confusion matrices")],
+    stores: Annotated[list[Path], typer.Argument(
+        help="finished job stores; two or more, each with its --spec, also give the §5.4 confusion matrices")],
     out: Annotated[Path, typer.Option("--out", help="directory for the PNG figures (created)")],
     spec: Annotated[list[Path] | None, typer.Option(
         "--spec", help="the spec file each store was run from (in the stores' order); its directory holds the data. "
