@@ -39,7 +39,8 @@ def test_scale_benchmark_runs():
                            "--populations", "1", "--d41-workers", "1", "--d41-populations", "1"],
                           cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
-    assert "| workers | simulations | executed | wall s | sims/s | ideal sims/s | efficiency |" in done.stdout
+    assert ("| workers | simulations | carried, dropped | executed | wall s | sims/s | ideal sims/s | efficiency | "
+            "efficiency of proposals |") in done.stdout
     assert "end to end / (N x kernel alone)" in done.stdout
 
 
