@@ -14,18 +14,22 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+from dataclasses import replace
 from datetime import datetime, timedelta
 
 import numpy as np
 
-from abcns import run
+from abcns import StopRules, run
 from abcns.result import posterior_summary
 from benchmarks.peers import cases
 from benchmarks.peers.cases import Case
 
 
 def warm_up(case: Case) -> None:
-    """Compile (or load from numba's cache) every kernel both tools will call, outside the clocks."""
+    """Compile (or load from numba's cache) every kernel both tools will call, outside the
+    clocks: the simulators', and abcns's population step's (a two-population run of 100)."""
+    run(case.models, case.evaluate, replace(case.settings, particles=100, batch_size=50),
+        StopRules(min_epsilon_decrease=None, max_populations=2), seed=0, noise=case.noise)
     rng = np.random.default_rng(0)
     for m, sim in zip(case.models, case.simulators):
         pars = {p: 0.5 * (u.low + u.high) for p, u in m.priors.items()}
