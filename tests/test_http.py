@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from http_helpers import demo_spec, follow, same_populations
 
-from benchmarks.harness import AUTH, BIN, ROOT, TOKEN, Service, duffing_spec
+from benchmarks.harness import AUTH, BIN, ROOT, TOKEN, Service, duffing_spec, wait_until
 from service.run.store import Store
 
 pytestmark = pytest.mark.http
@@ -39,8 +39,39 @@ def reference(cluster, tmp_path_factory):
     return tmp / "ref.zarr"
 
 
+TERMINAL = ("finished", "failed", "cancelled")
+
+
+@pytest.fixture(scope="module")
+def module_service(cluster, tmp_path_factory):
+    s = Service(tmp_path_factory.mktemp("http") / "jobs", cluster.address)
+    yield s
+    s.close()
+
+
+def settle(service: Service) -> None:
+    """Cancel every job still queued or running and wait until each has ended."""
+    jobs = httpx.get(f"{service.url}/jobs", headers=AUTH, timeout=60).json()
+    for job in jobs:
+        if job["status"] not in TERMINAL:
+            httpx.delete(f"{service.url}/jobs/{job['id']}", headers=AUTH, timeout=60)
+    wait_until(lambda: all(j["status"] in TERMINAL for j in httpx.get(f"{service.url}/jobs", headers=AUTH,
+                                                                       timeout=60).json()),
+               120, "the jobs left by a test to end", 0.05)
+
+
 @pytest.fixture
-def service(cluster, tmp_path):
+def service(module_service):
+    """One service for the tests that only submit and read: reset around each test, so it
+    starts with no job queued or running (the fuzzing's accepted jobs included)."""
+    settle(module_service)
+    yield module_service
+    settle(module_service)
+
+
+@pytest.fixture
+def fresh(cluster, tmp_path):
+    """A service of its own, for a test that kills and restarts it."""
     s = Service(tmp_path / "jobs", cluster.address)
     yield s
     s.close()
@@ -73,7 +104,8 @@ def service_store(service: Service, job_id: str) -> Path:
     return service.job_dir(job_id) / "store.zarr"
 
 
-def test_service_sigkilled_mid_job_resumes_identical_and_events_continue(service, reference):
+def test_service_sigkilled_mid_job_resumes_identical_and_events_continue(fresh, reference):
+    service = fresh
     job_id = httpx.post(f"{service.url}/jobs", json=duffing_spec(), headers=AUTH, timeout=60).json()["id"]
     before = follow(service.url, job_id, until=lambda ev: sum(e["event"] == "population" for e in ev) >= 3)
     service.kill()
