@@ -101,7 +101,7 @@ class Service:
         env = {**os.environ, "PYTHONPATH": str(ROOT), "ABCNS_STORE_INTERVAL_S": "0", **self.env}
         with self.log.open("ab") as out:
             self.proc = subprocess.Popen(self.args, stdout=out, stderr=out, start_new_session=True, env=env)
-        wait_until(self.healthy, 60, "the service to answer /health", 0.2)
+        wait_until(self.healthy, 60, "the service to answer /health", 0.05)
 
     def healthy(self) -> bool:
         import httpx  # the dev extra: the cluster helpers above run on the runtime install (make bench)
