@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from http_helpers import demo_spec, follow, same_populations
 
-from benchmarks.harness import AUTH, BIN, ROOT, TOKEN, Service, duffing_spec, wait_until
+from benchmarks.harness import AUTH, BIN, ROOT, TOKEN, Service, duffing_spec, probe_client, wait_until
 from service.run.store import Store
 
 pytestmark = pytest.mark.http
@@ -51,13 +51,14 @@ def module_service(cluster, tmp_path_factory):
 
 def settle(service: Service) -> None:
     """Cancel every job still queued or running and wait until each has ended."""
-    jobs = httpx.get(f"{service.url}/jobs", headers=AUTH, timeout=60).json()
-    for job in jobs:
-        if job["status"] not in TERMINAL:
-            httpx.delete(f"{service.url}/jobs/{job['id']}", headers=AUTH, timeout=60)
-    wait_until(lambda: all(j["status"] in TERMINAL for j in httpx.get(f"{service.url}/jobs", headers=AUTH,
-                                                                       timeout=60).json()),
-               120, "the jobs left by a test to end", 0.05)
+    with probe_client(timeout=60) as http:
+        def jobs() -> list[dict]:
+            return http.get(f"{service.url}/jobs", headers=AUTH).json()
+
+        for job in jobs():
+            if job["status"] not in TERMINAL:
+                http.delete(f"{service.url}/jobs/{job['id']}", headers=AUTH)
+        wait_until(lambda: all(j["status"] in TERMINAL for j in jobs()), 120, "the jobs left by a test to end", 0.05)
 
 
 @pytest.fixture
