@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from http_helpers import demo_spec, follow, same_populations
 
-from benchmarks.harness import AUTH, BIN, ROOT, TOKEN, Service, duffing_spec, probe_client, wait_until
+from benchmarks.harness import AUTH, BIN, ROOT, TOKEN, Service, duffing_spec
 from service.run.store import Store
 
 pytestmark = pytest.mark.http
@@ -37,45 +37,6 @@ def reference(cluster, tmp_path_factory):
                            cluster.address, "--quiet"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     return tmp / "ref.zarr"
-
-
-TERMINAL = ("finished", "failed", "cancelled")
-
-
-@pytest.fixture(scope="module")
-def module_service(cluster, tmp_path_factory):
-    s = Service(tmp_path_factory.mktemp("http") / "jobs", cluster.address)
-    yield s
-    s.close()
-
-
-def settle(service: Service) -> None:
-    """Cancel every job still queued or running and wait until each has ended."""
-    with probe_client(timeout=60) as http:
-        def jobs() -> list[dict]:
-            return http.get(f"{service.url}/jobs", headers=AUTH).json()
-
-        for job in jobs():
-            if job["status"] not in TERMINAL:
-                http.delete(f"{service.url}/jobs/{job['id']}", headers=AUTH)
-        wait_until(lambda: all(j["status"] in TERMINAL for j in jobs()), 120, "the jobs left by a test to end", 0.05)
-
-
-@pytest.fixture
-def service(module_service):
-    """One service for the tests that only submit and read: reset around each test, so it
-    starts with no job queued or running (the fuzzing's accepted jobs included)."""
-    settle(module_service)
-    yield module_service
-    settle(module_service)
-
-
-@pytest.fixture
-def fresh(cluster, tmp_path):
-    """A service of its own, for a test that kills and restarts it."""
-    s = Service(tmp_path / "jobs", cluster.address)
-    yield s
-    s.close()
 
 
 def test_http_job_with_a_worker_killed_equals_abcns_run(service, cluster, reference):

@@ -32,48 +32,6 @@ pytestmark = pytest.mark.http
 SHUTDOWN_S = 20  # the stated bound: SIGTERM to exit, streams open and a job running
 
 
-TERMINAL = ("finished", "failed", "cancelled")
-
-
-@pytest.fixture
-def fresh(cluster, tmp_path):
-    """A service of its own, for a test that kills, restarts or stops it, edits its store
-    directory, or measures its memory from its start."""
-    s = Service(tmp_path / "jobs", cluster.address)
-    yield s
-    s.close()
-
-
-@pytest.fixture(scope="module")
-def module_service(cluster, tmp_path_factory):
-    s = Service(tmp_path_factory.mktemp("hostile") / "jobs", cluster.address)
-    yield s
-    s.close()
-
-
-def settle(service: Service) -> None:
-    """Cancel every job still queued or running and wait until each has ended."""
-    with probe_client(timeout=60) as http:
-        def jobs() -> list[dict]:
-            return http.get(f"{service.url}/jobs", headers=AUTH).json()
-
-        for job in jobs():
-            if job["status"] not in TERMINAL:
-                http.delete(f"{service.url}/jobs/{job['id']}", headers=AUTH)
-        wait_until(lambda: all(j["status"] in TERMINAL for j in jobs()), 120, "the jobs left by a test to end", 0.05)
-
-
-@pytest.fixture
-def service(module_service):
-    """One service for the module's tests that only submit and read (starting one takes ~2 s
-    a test): reset around each test, so it starts with no job queued or running and no job
-    it left behind moves under the next test (a job list compared before and after, the one
-    running slot)."""
-    settle(module_service)
-    yield module_service
-    settle(module_service)
-
-
 def post(service: Service, spec: dict) -> httpx.Response:
     """POST /jobs with Python's JSON (which writes a lone surrogate as an escape; httpx's
     json= would refuse to encode it)."""
