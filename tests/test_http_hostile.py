@@ -16,6 +16,7 @@ import socket
 import subprocess
 import threading
 import time
+import uuid
 import zipfile
 from pathlib import Path
 
@@ -444,9 +445,12 @@ def test_slow_clients_are_dropped(cluster, tmp_path):
 
 # ---------------------------------------------------------------------------- I.3
 def test_serve_prints_its_address_and_logs_requests(service):
-    """I.3: `abcns serve` prints the address it listens on and logs every request."""
-    get(service, "/jobs")
-    wait_until(lambda: b'"GET /jobs HTTP/1.1" 200' in service.log.read_bytes(), 10, "the access-log line")
+    """I.3: `abcns serve` prints the address it listens on and logs every request (this
+    test's own: the service's log holds the module's earlier requests too)."""
+    marker = uuid.uuid4().hex
+    get(service, "/jobs", params={"request": marker})
+    wait_until(lambda: f'"GET /jobs?request={marker} HTTP/1.1" 200'.encode() in service.log.read_bytes(), 10,
+               "the access-log line")
     out = service.log.read_text()
     assert f"http://127.0.0.1:{service.port}" in out and '"GET /health HTTP/1.1" 200' in out
 
