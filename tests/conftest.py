@@ -4,8 +4,9 @@
 from __future__ import annotations
 
 import pytest
+from http_helpers import settle
 
-from benchmarks.harness import StockCluster
+from benchmarks.harness import Service, StockCluster
 
 
 @pytest.fixture
@@ -21,3 +22,31 @@ def cluster(tmp_path_factory):
     c = StockCluster(tmp_path_factory.mktemp("dask"))
     yield c
     c.close()
+
+
+@pytest.fixture(scope="module")
+def module_service(cluster, tmp_path_factory):
+    """One `abcns serve` on the module's cluster, for the module's tests that only submit and
+    read (through ``service``): starting one costs ~2 s a test."""
+    s = Service(tmp_path_factory.mktemp("service") / "jobs", cluster.address)
+    yield s
+    s.close()
+
+
+@pytest.fixture
+def service(module_service):
+    """The module's service, reset around each test (``settle``): no job queued or running
+    when the test starts, none of its own left moving after it. A test that kills, restarts
+    or stops its service, edits its store directory, reads its whole log, or measures its
+    memory from its start takes ``fresh`` instead."""
+    settle(module_service)
+    yield module_service
+    settle(module_service)
+
+
+@pytest.fixture
+def fresh(cluster, tmp_path):
+    """A service of its own, on the module's cluster."""
+    s = Service(tmp_path / "jobs", cluster.address)
+    yield s
+    s.close()

@@ -1,5 +1,6 @@
 """What the HTTP, browser and chaos tests share besides ``benchmarks.harness`` (`abcns serve`
-as a user starts it, the §4.1 job): the demo job, an event-stream reader, store comparison."""
+as a user starts it, the §4.1 job): the demo job, an event-stream reader, store comparison,
+and the reset of a service shared by a module's tests (``settle``)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ import httpx
 import numpy as np
 import yaml
 
-from benchmarks.harness import AUTH, ROOT
+from benchmarks.harness import AUTH, ROOT, Service, probe_client, wait_until
+from service.http.jobs import TERMINAL
 from service.run.store import Store
 
 
@@ -73,3 +75,17 @@ def same_populations(a: Path, b: Path) -> None:
     for p, q in zip(sa.populations(), sb.populations()):
         for name in ("models", "theta", "distances", "weights", "survivors"):
             np.testing.assert_array_equal(getattr(p, name), getattr(q, name), err_msg=f"population {p.t} {name}")
+
+
+def settle(service: Service) -> None:
+    """Cancel every job of ``service`` still queued or running and wait until each has
+    ended: a service shared by a module's tests starts each test with its one running slot
+    free, and no job a test left behind moves under the next."""
+    with probe_client(timeout=60) as http:
+        def jobs() -> list[dict]:
+            return http.get(f"{service.url}/jobs", headers=AUTH).json()
+
+        for job in jobs():
+            if job["status"] not in TERMINAL:
+                http.delete(f"{service.url}/jobs/{job['id']}", headers=AUTH)
+        wait_until(lambda: all(j["status"] in TERMINAL for j in jobs()), 120, "the jobs left by a test to end", 0.05)

@@ -25,7 +25,7 @@ import pytest
 from distributed import Client
 from http_helpers import same_populations
 
-from benchmarks.harness import AUTH, BIN, ROOT, Service, duffing_spec, free_port, stop, wait_until
+from benchmarks.harness import AUTH, BIN, ROOT, Service, duffing_spec, free_port, probe_client, stop, wait_until
 from service.report.analysis import run_to_store
 from service.spec import parse
 
@@ -100,9 +100,9 @@ def _answers(port: int) -> bool:
         return False
 
 
-def populations_done(service: Service) -> int:
+def populations_done(http: httpx.Client, service: Service) -> int:
     try:
-        jobs = httpx.get(f"{service.url}/jobs", headers=AUTH, timeout=10).json()
+        jobs = http.get(f"{service.url}/jobs", headers=AUTH).json()
     except httpx.HTTPError:
         return 0
     return sum((j.get("progress") or {}).get("population", 0) for j in jobs)
@@ -117,21 +117,23 @@ def test_jobs_survive_killed_workers_service_and_scheduler(tmp_path):
     missed: list[float] = []  # /health probes that failed while the service was up
 
     def probe() -> None:
-        while not stopping.is_set():
-            was_down = down.is_set()
-            try:
-                ok = httpx.get(f"{service.url}/health", timeout=5).status_code == 200
-            except httpx.HTTPError:
-                ok = False
-            if not ok and not was_down and not down.is_set():
-                missed.append(time.monotonic())
-            time.sleep(0.1)
+        with probe_client(timeout=5) as probes:  # each probe a new connection, as httpx.get's
+            while not stopping.is_set():
+                was_down = down.is_set()
+                try:
+                    ok = probes.get(f"{service.url}/health").status_code == 200
+                except httpx.HTTPError:
+                    ok = False
+                if not ok and not was_down and not down.is_set():
+                    missed.append(time.monotonic())
+                time.sleep(0.1)
 
     start = time.monotonic()
     rss_before = service.rss_mb()
     prober = threading.Thread(target=probe, daemon=True)
     prober.start()
     kills: list[str] = []
+    http = probe_client(timeout=10)  # the polls below: a new connection each, without a client built each time
     try:
         ids = []
         for seed in range(1, N_JOBS + 1):
@@ -141,9 +143,9 @@ def test_jobs_survive_killed_workers_service_and_scheduler(tmp_path):
             ids.append(r.json()["id"])
 
         def at(n_populations: int, what: str, action) -> None:
-            wait_until(lambda: populations_done(service) >= n_populations, 300, f"{n_populations} populations")
+            wait_until(lambda: populations_done(http, service) >= n_populations, 300, f"{n_populations} populations")
             action()
-            kills.append(f"{what} after {populations_done(service)} populations")
+            kills.append(f"{what} after {populations_done(http, service)} populations")
 
         def kill_service() -> None:
             down.set()
@@ -158,7 +160,7 @@ def test_jobs_survive_killed_workers_service_and_scheduler(tmp_path):
         at(30, "the service", kill_service)
 
         def all_ended() -> bool:
-            jobs = httpx.get(f"{service.url}/jobs", headers=AUTH, timeout=10).json()
+            jobs = http.get(f"{service.url}/jobs", headers=AUTH).json()
             return len(jobs) == N_JOBS and all(j["status"] in ("finished", "failed", "cancelled") for j in jobs)
 
         wait_until(all_ended, 600, "every job to end", 0.5)
@@ -181,6 +183,7 @@ def test_jobs_survive_killed_workers_service_and_scheduler(tmp_path):
         assert not missed, f"/health did not answer {len(missed)} times while the service was up"
         assert np.isfinite(wall)
     finally:
+        http.close()
         stopping.set()
         prober.join(timeout=10)
         service.close()

@@ -9,13 +9,15 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pytest
 import xarray as xr
 import yaml
-from distributed import Client
+from distributed import Client, LocalCluster
 
 from service.run.dask_executor import local_cluster
 from service.run.runner import run_job
@@ -44,6 +46,26 @@ def run_local(spec_path: Path, out: Path, n_workers: int, on_population=None):
     with local_cluster(n_workers) as cluster, \
             Client(cluster) as client:
         return run_on(client, spec_path, out, on_population)
+
+
+@pytest.fixture(scope="module")
+def clusters():
+    """LocalClusters of 2 and 8 workers, each started once for the module (on first use):
+    a test connects a client of its own (its keys go with it) and waits for every worker,
+    those a kill test took included (their nannies start others)."""
+    started: dict[int, LocalCluster] = {}
+
+    @contextmanager
+    def connect(n_workers: int) -> Iterator[Client]:
+        if n_workers not in started:
+            started[n_workers] = local_cluster(n_workers)
+        with Client(started[n_workers]) as client:
+            client.wait_for_workers(n_workers, timeout=120)
+            yield client
+
+    yield connect
+    for cluster in started.values():
+        cluster.close()
 
 
 def run_on(client: Client, spec_path: Path, out: Path, on_population=None, cancel=None):
@@ -91,13 +113,14 @@ def test_reference_run_is_readable_with_xarray_while_running(reference):
         assert status == "running"
 
 
-def test_two_workers_give_the_one_worker_result(reference, tmp_path):
+def test_two_workers_give_the_one_worker_result(reference, clusters, tmp_path):
     spec, ref_store, _ = reference
-    run_local(spec, tmp_path / "two.zarr", 2)
+    with clusters(2) as client:
+        run_on(client, spec, tmp_path / "two.zarr")
     assert_same_store(ref_store, tmp_path / "two.zarr")
 
 
-def test_eight_workers_give_the_one_worker_result_also_when_stopped_and_resumed(reference, tmp_path):
+def test_eight_workers_give_the_one_worker_result_also_when_stopped_and_resumed(reference, clusters, tmp_path):
     """On 8 worker processes: an undisturbed run; then a run cancelled halfway (the budget's
     cancel check, asked between batches in the run's own order, says yes at half the checks
     of the undisturbed run: the store keeps the populations done, status "cancelled") and run
@@ -118,9 +141,7 @@ def test_eight_workers_give_the_one_worker_result_also_when_stopped_and_resumed(
         checks[0] += between_batches()
         return False
 
-    with local_cluster(8) as cluster, \
-            Client(cluster) as client:
-        client.wait_for_workers(8, timeout=120)
+    with clusters(8) as client:
         run_on(client, spec, tmp_path / "eight.zarr", cancel=count)
         assert_same_store(ref_store, tmp_path / "eight.zarr")
 
@@ -138,14 +159,12 @@ def test_eight_workers_give_the_one_worker_result_also_when_stopped_and_resumed(
         assert_same_store(ref_store, out)
 
 
-def run_killing_workers(spec, out, n_victims: int, n_workers: int = 2) -> list[int]:
+def run_killing_workers(clusters, spec, out, n_victims: int, n_workers: int = 2) -> list[int]:
     """Run the job on ``n_workers`` worker processes and SIGKILL ``n_victims`` of them inside
     population 3; the nannies start new ones. Returns the killed pids."""
     killed = []
     with pytest.MonkeyPatch.context() as mp, \
-            local_cluster(n_workers) as cluster, \
-            Client(cluster) as client:
-        client.wait_for_workers(n_workers, timeout=120)
+            clusters(n_workers) as client:
         pids = client.run(os.getpid)
         mp.setenv("ABCNS_STORE_INTERVAL_S", "0")  # population 2's callback comes as soon as it is done
 
@@ -168,23 +187,23 @@ def run_killing_workers(spec, out, n_victims: int, n_workers: int = 2) -> list[i
     return killed
 
 
-def test_a_worker_killed_mid_population_changes_nothing(reference, tmp_path):
+def test_a_worker_killed_mid_population_changes_nothing(reference, clusters, tmp_path):
     spec, ref_store, _ = reference
-    run_killing_workers(spec, tmp_path / "killed.zarr", n_victims=1)
+    run_killing_workers(clusters, spec, tmp_path / "killed.zarr", n_victims=1)
     assert_same_store(ref_store, tmp_path / "killed.zarr")
 
 
-def test_three_of_eight_workers_killed_mid_population_change_nothing(reference, tmp_path):
+def test_three_of_eight_workers_killed_mid_population_change_nothing(reference, clusters, tmp_path):
     spec, ref_store, _ = reference
-    run_killing_workers(spec, tmp_path / "killed8.zarr", n_victims=3, n_workers=8)
+    run_killing_workers(clusters, spec, tmp_path / "killed8.zarr", n_victims=3, n_workers=8)
     assert_same_store(ref_store, tmp_path / "killed8.zarr")
 
 
-def test_every_worker_killed_at_once_changes_nothing(reference, tmp_path):
+def test_every_worker_killed_at_once_changes_nothing(reference, clusters, tmp_path):
     """The job's data lives on the cluster as a task: with every worker that held it dead,
     the scheduler computes it again (scattered data would be lost, and the job with it)."""
     spec, ref_store, _ = reference
-    run_killing_workers(spec, tmp_path / "all-killed.zarr", n_victims=2)
+    run_killing_workers(clusters, spec, tmp_path / "all-killed.zarr", n_victims=2)
     assert_same_store(ref_store, tmp_path / "all-killed.zarr")
 
 

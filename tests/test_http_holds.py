@@ -34,14 +34,6 @@ pytestmark = pytest.mark.http
 TERMINAL = ("finished", "failed", "cancelled")
 
 
-@pytest.fixture(scope="module")
-def service(cluster, tmp_path_factory):
-    """One service for the tests that only submit and read (each cleans up its jobs)."""
-    s = Service(tmp_path_factory.mktemp("holds") / "jobs", cluster.address)
-    yield s
-    s.close()
-
-
 def post(service: Service, spec: dict | bytes, path: str = "/jobs") -> httpx.Response:
     body = spec if isinstance(spec, bytes) else json.dumps(spec).encode()
     return httpx.post(f"{service.url}{path}", content=body, timeout=120,
