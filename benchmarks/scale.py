@@ -15,7 +15,9 @@ Figures only (nothing is asserted about speed). Four parts (the fourth only when
    threads_per_worker=1, processes=True)``: N worker processes on this machine's cores
    (they mostly sleep). The ideal is N x 500 simulations/s.
 2. **The same against a stock cluster**: ``dask scheduler`` and ``dask worker --nworkers N
-   --nthreads 1`` started as subprocesses, reached with ``distributed.Client(address)``.
+   --nthreads 1`` started as subprocesses (their modules, ``python -m
+   distributed.cli.dask_scheduler``, by this interpreter), reached with
+   ``distributed.Client(address)``: the scheduler in a process of its own.
 3. **Paper §4.1 with the real kernels** (examples/duffing_41/spec.yaml, ``--d41-populations``
    populations) on 1 and 2 LocalCluster workers, beside the kernel alone: the evaluator
    called in this process on one batch of prior draws (epsilon = inf: every simulation runs
@@ -67,6 +69,7 @@ import logging
 import os
 import shutil
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -82,7 +85,7 @@ from abcns import run
 from abcns.filling import draws
 from abcns.rejection import prior_proposer
 from benchmarks import sleepy
-from benchmarks.harness import BIN, ROOT, free_port, stop
+from benchmarks.harness import ROOT, free_port, stop
 from service.run.dask_executor import cluster_env
 from service.run.dask_executor import local_cluster as embedded_cluster
 from service.run.runner import run_job
@@ -203,10 +206,13 @@ def stock_cluster(n: int, tmp: Path) -> Iterator[tuple[Client, list[int], float]
     address = f"tcp://127.0.0.1:{port}"
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "cwd": ROOT,
              "env": {**os.environ, **cluster_env()}}  # the Dask settings of docs/deploy.md
-    procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
+    # the CLI's modules, run by this interpreter (no `dask` script needed on PATH: a machine
+    # with the packages installed by `pip --target` has none)
+    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
                                "--dashboard-address", ":0"], **quiet)]
     try:
-        procs.append(subprocess.Popen([BIN / "dask", "worker", address, "--nworkers", str(n), "--nthreads", "1",
+        procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
+                                       "--nworkers", str(n), "--nthreads", "1",
                                        "--no-dashboard", "--local-directory", str(tmp)], **quiet))
         with Client(address, timeout=60) as client:
             client.wait_for_workers(n, timeout=300)
