@@ -12,6 +12,7 @@ result equals an uninterrupted run's, and the serial executor's equals the Dask 
 
 from __future__ import annotations
 
+import gc
 import hashlib
 import json
 import math
@@ -20,7 +21,8 @@ import queue
 import shutil
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -92,6 +94,33 @@ def write_interval() -> float:
     if not 0 <= value <= 3600:
         raise SpecError(WRITE_INTERVAL_ENV, f"must be between 0 and 3600 seconds, got {value}")
     return value
+
+
+_FROZEN_RUNS = 0
+_FROZEN_LOCK = threading.Lock()
+
+
+@contextmanager
+def frozen_heap() -> Iterator[None]:
+    """While runs go on in this process, the objects alive when each started (the modules, the
+    Dask client and, for a LocalCluster, its scheduler) are left out of the cyclic garbage
+    collector's full passes (``gc.freeze``); when the last run ends they are handed back
+    (``gc.unfreeze``), so nothing is kept for good. A full pass over the ~200,000 objects of a
+    runner's process stalls every thread of it (the scheduler and the client included, so the
+    workers wait) for ~110-140 ms, once every second or two on a busy run: on 16 cores, 3-4
+    such gaps between populations in a 2.5 s run at 2 ms and 14 workers. Frozen, a full
+    pass takes ~7 ms. It changes no result (the collector only frees unreachable cycles)."""
+    global _FROZEN_RUNS
+    with _FROZEN_LOCK:
+        gc.freeze()  # also the objects of a run that starts while another goes on
+        _FROZEN_RUNS += 1
+    try:
+        yield
+    finally:
+        with _FROZEN_LOCK:
+            _FROZEN_RUNS -= 1
+            if _FROZEN_RUNS == 0:
+                gc.unfreeze()
 
 
 class PopulationWriter:
@@ -246,7 +275,8 @@ def run_job(
         writer.put(pop, budget.n_simulations, info, progress)
 
     try:
-        end = consume(gen, written)
+        with frozen_heap():
+            end = consume(gen, written)
         writer.close()
     except BaseException as err:
         writer.close(raise_error=False)  # what was computed is stored
