@@ -3,7 +3,7 @@
     python -m benchmarks.scale [--workers 1,2,4,8,16,32] [--stock-workers 1,8] [--populations 10]
                                [--batch-size B] [--d41-workers 1,2] [--d41-populations 6]
                                [--skip-local] [--skip-stock] [--skip-d41] [--quick]
-                               [--sleep-ms MS] [--pyabc-workers 8,14] [--pyabc-generations 8]
+                               [--sleep-ms MS] [--pyabc-workers 8,14] [--pyabc-generations 8] [--timeline]
 
 Figures only (nothing is asserted about speed). Four parts (the fourth only when asked for):
 
@@ -57,6 +57,13 @@ the same cluster running only the job's pattern of tasks that sleep (:func:`dask
 its efficiency and Dask's own CPU per task there (this process, with a stock scheduler's;
 the workers).
 
+``--timeline``: each sleepy row also taken apart from Dask's task stream (:func:`timeline`):
+the time before population 1's first task (the store created, the job's data and first
+tasks to the cluster), after the last population's last used task (the last append, the
+status, the result read back), the gaps between populations (the step, the dispatch, any
+stall of the runner's process) and the populations' spans against their simulations' time
+on W workers (the tail and the surplus). The task stream costs the scheduler a little CPU.
+
 ``--quick``: 1 population, LocalCluster 1 and 2 workers, stock 1 worker, §4.1 1 and 2
 workers with 1 population (a smoke run, under a minute).
 """
@@ -64,6 +71,7 @@ workers with 1 population (a smoke run, under a minute).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import logging
 import os
@@ -79,7 +87,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 import yaml
-from distributed import Client, as_completed
+from distributed import Client, as_completed, get_task_stream
 
 from abcns import run
 from abcns.filling import draws
@@ -243,17 +251,21 @@ def warm_up(client: Client, spec: JobSpec, base: Path, tmp: Path) -> None:
     shutil.rmtree(store.parent, ignore_errors=True)
 
 
-def measure(client: Client, pids: list[int], spec: JobSpec, base: Path, tmp: Path, count: bool = True) -> dict:
+def measure(client: Client, pids: list[int], spec: JobSpec, base: Path, tmp: Path, count: bool = True,
+            tasks: bool = False) -> dict:
     """One ``run_job`` into a fresh store (after :func:`warm_up`); wall, CPU of this process,
-    of the pids and of the workers."""
+    of the pids and of the workers; with ``tasks``, the run's batch tasks from Dask's task
+    stream (:func:`task_rows`), for :func:`timeline`."""
     warm_up(client, spec, base, tmp)
     store = Path(tempfile.mkdtemp(dir=tmp)) / "job.zarr"
     w_cpu0 = workers_cpu(client)
     sims0 = workers_simulated(client) if count else 0
     other0 = _proc_cpu(pids)
-    cpu0, t0 = time.process_time(), time.perf_counter()
-    res = run_job(spec, base, store, client, allow_import=True)
-    wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+    with get_task_stream(client) if tasks else contextlib.nullcontext() as stream:
+        epoch = time.time()  # the task stream's clock
+        cpu0, t0 = time.process_time(), time.perf_counter()
+        res = run_job(spec, base, store, client, allow_import=True)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     other = _proc_cpu(pids) - other0
     w_cpu = workers_cpu(client) - w_cpu0
     executed = workers_simulated(client) - sims0 if count else None
@@ -264,9 +276,54 @@ def measure(client: Client, pids: list[int], spec: JobSpec, base: Path, tmp: Pat
     dropped = sum(p.n_simulations - int(p.evidence.n_proposed.sum()) for p in pops if p.evidence is not None)
     # populations 2 on: the rate once the job is under way (no store creation, no first population)
     steady = sum(p.n_simulations for p in pops[1:]) / (pops[-1].elapsed_s - pops[0].elapsed_s) if len(pops) > 1 else np.nan
-    return {"populations": len(res.populations), "simulations": n, "dropped": dropped, "executed": executed, "wall": wall,
-            "rate": n / wall, "steady": steady, "runner_us": 1e6 * cpu / n, "other_us": 1e6 * other / n if pids else None,
-            "workers_us": 1e6 * w_cpu / n, "stop": res.stop_reason.value, "load": os.getloadavg()[0]}
+    out: dict = {"populations": len(res.populations), "simulations": n, "dropped": dropped, "executed": executed, "wall": wall,
+                 "rate": n / wall, "steady": steady, "runner_us": 1e6 * cpu / n, "other_us": 1e6 * other / n if pids else None,
+                 "workers_us": 1e6 * w_cpu / n, "stop": res.stop_reason.value, "load": os.getloadavg()[0]}
+    if stream is not None:
+        out["timeline"] = timeline(task_rows(stream.data, epoch), [p.n_simulations for p in pops],
+                                   spec.sampler.batch_size, wall)
+    return out
+
+
+def task_rows(records: list[dict], epoch: float) -> list[tuple[int, int, float, float]]:
+    """(population, first batch, compute start, compute stop) of each batch task in Dask's
+    task-stream records (``get_task_stream``), in seconds after ``epoch``. A batch task's key
+    is ``(group, population, first batch, last batch)`` (``service.run.dask_executor``); the
+    anchors (population 0) and the job's data are left out."""
+    rows = []
+    for rec in records:
+        key = rec["key"]
+        if not (isinstance(key, tuple) and len(key) == 4 and str(key[0]).startswith("abcns-") and key[1] > 0):
+            continue
+        for step in rec["startstops"]:
+            if step["action"] == "compute":
+                rows.append((int(key[1]), int(key[2]), step["start"] - epoch, step["stop"] - epoch))
+    return rows
+
+
+def timeline(rows: list[tuple[int, int, float, float]], simulations: list[int], batch_size: int, wall: float) -> dict:
+    """Where a run's wall time went, from its batch tasks (:func:`task_rows`) and each
+    population's simulations: ``start`` (before population 1's first task: the store created,
+    the job's data and first tasks to the cluster), ``end`` (after the last population's last
+    used task: the last append, the status, the result read back), ``gaps`` (from each
+    population's last used task to the next one's first: the step, the dispatch, any stall
+    of the runner's process), ``spans`` (each population's first task to its last used one:
+    its simulations, the tail and the surplus beside them). A used task holds a batch at or
+    below the population's ``ceil(simulations / batch_size)``."""
+    first, last = {}, {}
+    for t, n in enumerate(simulations, start=1):
+        used = -(-n // batch_size)
+        own = [r for r in rows if r[0] == t]
+        if not own:
+            continue
+        first[t] = min(r[2] for r in own)
+        last[t] = max((r[3] for r in own if r[1] <= used), default=first[t])
+    ts = sorted(first)
+    if not ts:
+        return {"start": np.nan, "end": np.nan, "gaps": [], "spans": np.nan}
+    gaps = [first[t + 1] - last[t] for t in ts[:-1] if t + 1 in first]
+    return {"start": first[ts[0]], "end": wall - last[ts[-1]], "gaps": gaps,
+            "spans": sum(last[t] - first[t] for t in ts)}
 
 
 def engine_alone(spec: JobSpec, base: Path) -> tuple[float, float]:
@@ -294,7 +351,7 @@ def engine_alone(spec: JobSpec, base: Path) -> tuple[float, float]:
 
 
 def sleepy_table(title: str, cluster: Callable, counts: list[int], spec: JobSpec, base: Path, tmp: Path,
-                 stock: bool, skip_floor: bool = False) -> None:
+                 stock: bool, skip_floor: bool = False, with_timeline: bool = False) -> None:
     print(f"\n## {title}")
     engine, kernel = engine_alone(spec, base)
     print(f"the same job in this process with the plain Duffing (engine + kernel, no sleep, no Dask, no store): "
@@ -306,9 +363,12 @@ def sleepy_table(title: str, cluster: Callable, counts: list[int], spec: JobSpec
           f"workers | start-up s | load |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if stock else "") + "---:|---:|---:|---:|",
           flush=True)
+    timelines = []
     for n in counts:
         with cluster(n) as (client, pids, startup):
-            r = measure(client, pids, spec, base, tmp)
+            r = measure(client, pids, spec, base, tmp, tasks=with_timeline)
+            if with_timeline:
+                timelines.append((n, r))
             units = round(r["simulations"] / (r["populations"] * spec.sampler.batch_size))
             floor, floor_runner, floor_workers = (np.nan,) * 3 if skip_floor else dask_floor(
                 client, pids, units, r["populations"], spec.sampler.batch_size * sleepy.SECONDS)
@@ -320,6 +380,22 @@ def sleepy_table(title: str, cluster: Callable, counts: list[int], spec: JobSpec
               f"{r['runner_us']:.0f} |{extra} "
               f"{r['workers_us']:.0f} | {floor_runner:.1f}, {floor_workers:.1f} | {startup:.1f} | {r['load']:.1f} |",
               flush=True)
+    if timelines:
+        print_timeline(timelines, sleepy.SECONDS)
+
+
+def print_timeline(timelines: list[tuple[int, dict]], seconds: float) -> None:
+    """The ``--timeline`` table: each row's wall time, taken apart (:func:`timeline`)."""
+    print("\ntimeline (Dask's task stream): before the first task | after the last used task | gaps between "
+          "populations: total (median; over 100 ms) | populations' spans against their simulations on W workers")
+    print("| workers | wall s | start ms | end ms | gaps ms | spans s / simulations s |")
+    print("|---:|---:|---:|---:|---|---:|")
+    for n, r in timelines:
+        tl, gaps = r["timeline"], np.array(r["timeline"]["gaps"])
+        gap_text = (f"{1e3 * gaps.sum():.0f} ({1e3 * np.median(gaps):.0f}; {int((gaps > 0.1).sum())} of {gaps.size})"
+                    if gaps.size else "")
+        print(f"| {n} | {r['wall']:.2f} | {1e3 * tl['start']:.0f} | {1e3 * tl['end']:.0f} | {gap_text} | "
+              f"{tl['spans']:.2f} / {r['simulations'] * seconds / n:.2f} |", flush=True)
 
 
 def kernel_alone(spec: JobSpec, base: Path, repeats: int) -> dict:
@@ -452,6 +528,9 @@ def main() -> None:
     parser.add_argument("--pyabc-workers", type=_counts, default=[],
                         help="pyABC MulticoreEvalParallelSampler sizes, e.g. 8,14 (default: none; needs pyabc)")
     parser.add_argument("--pyabc-generations", type=int, default=8, help="pyABC generations (max_nr_populations)")
+    parser.add_argument("--timeline", action="store_true",
+                        help="also take each sleepy row's wall time apart from Dask's task stream (start, end, gaps "
+                             "between populations, their spans)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: 1 population, 1-2 workers")
     args = parser.parse_args()
     if args.sleep_ms is not None:  # before any worker starts: they inherit the variable
@@ -470,11 +549,12 @@ def main() -> None:
         tmp = Path(tmpdir)
         if not args.skip_local:
             sleepy_table("latency-bound, LocalCluster (scheduler in the runner's process)", local_cluster,
-                         args.workers, spec, base, tmp, stock=False, skip_floor=args.skip_floor)
+                         args.workers, spec, base, tmp, stock=False, skip_floor=args.skip_floor,
+                         with_timeline=args.timeline)
         if not args.skip_stock:
             sleepy_table("latency-bound, stock `dask scheduler` + `dask worker --nworkers N --nthreads 1`",
                          lambda n: stock_cluster(n, tmp), args.stock_workers, spec, base, tmp, stock=True,
-                         skip_floor=args.skip_floor)
+                         skip_floor=args.skip_floor, with_timeline=args.timeline)
         if not args.skip_d41:
             d41_table(args.d41_workers, args.d41_populations, tmp)
         if args.pyabc_workers:

@@ -37,12 +37,36 @@ def test_sleepy_plugin_is_duffing_plus_sleep():
 @pytest.mark.distributed
 def test_scale_benchmark_runs():
     done = subprocess.run([sys.executable, "-m", "benchmarks.scale", "--workers", "1", "--stock-workers", "1",
-                           "--populations", "1", "--d41-workers", "1", "--d41-populations", "1", "--sleep-ms", "0.2"],
+                           "--populations", "1", "--d41-workers", "1", "--d41-populations", "1", "--sleep-ms", "0.2",
+                           "--timeline"],
                           cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert ("| workers | simulations | carried, dropped | executed | wall s | sims/s | ideal sims/s | efficiency | "
             "efficiency of proposals |") in done.stdout
     assert "end to end / (N x kernel alone)" in done.stdout
+    assert done.stdout.count("| workers | wall s | start ms | end ms | gaps ms | spans s / simulations s |") == 2
+
+
+def test_timeline_takes_a_run_apart():
+    """Two populations of batches of 10: population 1 used 25 simulations (batches 1-3; batch 4
+    is surplus), population 2 used 10 (batch 1). Times in seconds after the run's start."""
+    from benchmarks.scale import task_rows, timeline
+
+    key = lambda t, first, last: ("abcns-0123456789ab-nonce", t, first, last)
+    compute = lambda start, stop: {"startstops": [{"action": "transfer", "start": 0.0, "stop": 0.0},
+                                                  {"action": "compute", "start": 100 + start, "stop": 100 + stop}]}
+    records = [{"key": ("abcns-data-0123456789ab-nonce",), **compute(0.0, 0.01)},  # the job's data: left out
+               {"key": key(0, 0, 0), **compute(0.01, 0.02)},  # an anchor: left out
+               {"key": key(1, 1, 1), **compute(0.2, 0.3)}, {"key": key(1, 2, 3), **compute(0.21, 0.5)},
+               {"key": key(1, 4, 4), **compute(0.3, 0.9)},  # surplus: runs past the last used task
+               {"key": key(2, 1, 1), **compute(0.6, 0.7)}]
+    rows = task_rows(records, epoch=100.0)
+    assert [r[:2] for r in rows] == [(1, 1), (1, 2), (1, 4), (2, 1)]
+    tl = timeline(rows, [25, 10], batch_size=10, wall=1.0)
+    assert tl["start"] == pytest.approx(0.2)  # before population 1's first task
+    assert tl["end"] == pytest.approx(0.3)  # after population 2's last used task (0.7)
+    assert tl["gaps"] == pytest.approx([0.1])  # population 1's last used task ends 0.5, population 2 starts 0.6
+    assert tl["spans"] == pytest.approx(0.3 + 0.1)
 
 
 def test_pyabc_part_is_off_by_default_and_skipped_without_pyabc(monkeypatch, capsys):
