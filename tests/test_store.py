@@ -874,12 +874,14 @@ def test_the_descriptions_are_true_of_a_real_run(reference):
     assert units["elapsed_s"] == "s" and all(units[n] == "1" for n in ("n_accepted", "weight", "model_probability"))
 
 
-def test_a_resumed_run_says_where_its_first_tolerance_came_from(tmp_path):
+def test_a_resumed_run_says_where_its_first_tolerance_came_from(tmp_path, monkeypatch):
     """An ABC-SMC job with a tolerance schedule whose runner dies after its first population
-    (here an exception from ``on_population``: the run ends ``failed``, as a killed process
-    leaves it, without the end record that says where epsilon_1 came from) and is resumed:
-    its result and its store say the schedule, as the uninterrupted run's do (the runner
-    wrote a guess, "given" or "pilot", with population 1, and a resumed run kept it)."""
+    (here an exception in the runner's thread when population 2 is done: the run ends
+    ``failed`` with population 1 stored, as a killed process leaves it, without the end
+    record that says where epsilon_1 came from) and is resumed: its result and its store say
+    the schedule, as the uninterrupted run's do (the runner wrote a guess, "given" or
+    "pilot", with population 1, and a resumed run kept it)."""
+    import service.run.runner as runner
     from service.run.runner import run_job
     from service.spec import parse
 
@@ -890,13 +892,18 @@ def test_a_resumed_run_says_where_its_first_tolerance_came_from(tmp_path):
     whole = run_job(spec, Path("/"), tmp_path / "whole.zarr", None)
     assert whole.epsilon_initial_source == "schedule" and len(whole.populations) == 6
 
-    def dies(progress) -> None:
-        raise RuntimeError("the runner dies")
+    def dies(pop, *args):  # runner.Progress, called in the runner's thread as each population is done
+        if pop.t == 2:
+            raise RuntimeError("the runner dies")
+        return progress(pop, *args)
 
+    progress = runner.Progress
     path = tmp_path / "resumed.zarr"
-    with pytest.raises(RuntimeError, match="the runner dies"):
-        run_job(spec, Path("/"), path, None, on_population=dies)
-    assert Store.open(path).attrs["status"] == "failed" and 1 <= Store.open(path).n_populations < 6
+    with monkeypatch.context() as patch:
+        patch.setattr(runner, "Progress", dies)
+        with pytest.raises(RuntimeError, match="the runner dies"):
+            run_job(spec, Path("/"), path, None)
+    assert Store.open(path).attrs["status"] == "failed" and Store.open(path).n_populations == 1
     resumed = run_job(spec, Path("/"), path, None)
     assert len(resumed.populations) == 6
     assert resumed.epsilon_initial_source == "schedule"
