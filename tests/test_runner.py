@@ -1,12 +1,9 @@
-"""Two things the runner (``service.run.runner.run_job``) does so the workers do not wait on
-its process, checked by mechanism (no timing; what they buy is measured in
-docs/benchmarks.md, "The runner's pauses"):
-
-- the cyclic garbage collector's full passes are kept short while a run goes on
-  (``frozen_heap``): the objects alive when the run starts are frozen (``gc.freeze``) during
-  the run and handed back when it ends, whatever way it ends (a full pass over a runner's
-  ~200,000 objects stalls all its threads ~110-140 ms, against ~7 ms frozen);
-- a new job's store is made by the writer thread while the first population runs."""
+"""The runner (``service.run.runner.run_job``) keeps the cyclic garbage collector's full
+passes short while a run goes on (``frozen_heap``): the objects alive when the run starts
+are frozen (``gc.freeze``) during the run and handed back when it ends, whatever way it
+ends. What this buys is measured, not tested (docs/benchmarks.md, "The runner's pauses": a
+full pass over a runner's ~200,000 objects stalls all its threads ~110-140 ms, against ~7
+ms frozen); these tests check the mechanism (no timing)."""
 
 import gc
 from pathlib import Path
@@ -55,32 +52,3 @@ def test_overlapping_runs_unfreeze_when_the_last_ends():
         assert gc.get_freeze_count() >= first  # the second ended, the first goes on: still frozen
     assert gc.get_freeze_count() == before
 
-
-def test_a_new_jobs_store_is_made_while_its_first_population_runs(tmp_path, monkeypatch):
-    """The writer thread makes a new job's store while the runner's thread simulates: here the
-    store's creation waits until the first batch is simulated, which is possible only when it
-    does not come first (before, it did, and this wait ran out)."""
-    import threading
-
-    from abcns.executor import SerialExecutor
-
-    simulated = threading.Event()
-    order = []
-
-    class Watched(SerialExecutor):
-        def map(self, draws):
-            for result in super().map(draws):
-                simulated.set()
-                yield result
-
-    new_store = runner._new_store
-
-    def made_later(*args):
-        order.append("store waits" if simulated.wait(timeout=20) else "store first")
-        return new_store(*args)
-
-    monkeypatch.setattr(runner, "SerialExecutor", Watched)
-    monkeypatch.setattr(runner, "_new_store", made_later)
-    result = run_job(parse(linear_demo_raw("made-later")), Path("/"), tmp_path / "later.zarr", None)
-    assert order == ["store waits"]
-    assert len(result.populations) == 2 and result.stop_reason.value == "max_populations"

@@ -128,15 +128,11 @@ class PopulationWriter:
     ones are computed; the progress callback runs once its population is in the store.
     Populations that come within ``interval_s`` (:func:`write_interval`) of the last append
     go in one append, so a job whose populations come fast pays about one append a
-    second, not one per population. A new job's store is made by ``make`` on this thread
-    (and marked running) while the first population runs: ~0.15 s of zarr that the workers
-    waited through when it came first. ``store`` is None until then (and stays None when it
-    could not be made: the error is the writer's)."""
+    second, not one per population."""
 
-    def __init__(self, store: Store | None, job_key: str, on_population: Callable[[Progress], None] | None,
-                 interval_s: float, make: Callable[[], Store] | None = None):
+    def __init__(self, store: Store, job_key: str, on_population: Callable[[Progress], None] | None,
+                 interval_s: float):
         self.store, self.job_key, self.on_population = store, job_key, on_population
-        self.make = make
         self.interval_s = interval_s
         self.queue: queue.SimpleQueue = queue.SimpleQueue()
         self.error: BaseException | None = None
@@ -159,12 +155,6 @@ class PopulationWriter:
             raise self.error
 
     def _run(self) -> None:
-        if self.make is not None:
-            try:
-                self.store = self.make()
-                self.store.set_status("running", job_key=self.job_key)
-            except BaseException as err:  # handed to the runner's thread (put, close)
-                self.error = err
         done = False
         while not done:
             items = [self.queue.get()]
@@ -181,7 +171,6 @@ class PopulationWriter:
             if not items or self.error is not None:
                 continue
             self.last_append = time.monotonic()
-            assert self.store is not None  # made above, else self.error is set
             try:
                 self.store.append_many([(pop, total) for pop, total, _, _ in items])
                 infos = [info for _, _, info, _ in items if info is not None]
@@ -251,15 +240,20 @@ def run_job(
     # "cancelled", result_of's word for a run with no stop reason)
     if store is not None and store.attrs.get("status") == "finished" and store.attrs.get("stop_reason"):
         return result_from_store(store)
-    writer, history, state, run_info = _begin(store, lambda: _new_store(store_path, spec_json, job, dhash), key,
-                                              on_population, interval_s)
+    if store is None:
+        store = _new_store(store_path, spec_json, job, dhash)
+    history = store.populations()
+    state = store.run_state()
     budget = Budget(job.stop, cancel=cancel, n_simulations=int(state["n_simulations_total"]),
                     elapsed_before_s=float(state["elapsed_s"]))
+    run_info = dict(store.attrs.get("run", {}))
+    store.set_status("running", job_key=key)
     executor = (SerialExecutor(job.evaluate) if client is None
                 else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget))
     gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget,
                   noise=job.noise)
     start, sims_start = time.monotonic(), budget.n_simulations
+    writer = PopulationWriter(store, key, on_population, interval_s)
     last = [start, 0.0]  # when the previous population ended, the workers' busy seconds then
 
     def written(pop: Population) -> None:
@@ -286,27 +280,12 @@ def run_job(
         writer.close()
     except BaseException as err:
         writer.close(raise_error=False)  # what was computed is stored
-        if writer.store is not None:  # (None: the store could not be made, the error says why)
-            writer.store.set_status("failed", None, job_key=key, error=f"{type(err).__name__}: {err}")
+        store.set_status("failed", None, job_key=key, error=f"{type(err).__name__}: {err}")
         raise
     finally:
         getattr(executor, "close", lambda: None)()  # the Dask executor releases the job's data
-    assert writer.store is not None  # made, or close() raised the writer's error
-    _record_end(writer.store, key, end, run_info, budget)
-    return result_from_store(writer.store)
-
-
-def _begin(store: Store | None, make: Callable[[], Store], key: str, on_population: Callable[[Progress], None] | None,
-           interval_s: float) -> tuple[PopulationWriter, list[Population], dict, dict]:
-    """The run's writer, and the store's populations, counters and run information so far. A
-    new job's store is made by the writer (``make``) while population 1 runs; a resumed
-    one's is marked running here."""
-    if store is None:
-        writer = PopulationWriter(None, key, on_population, interval_s, make=make)
-        return writer, [], {"n_simulations_total": 0, "elapsed_s": 0.0}, {}
-    history, state, run_info = store.populations(), store.run_state(), dict(store.attrs.get("run", {}))
-    store.set_status("running", job_key=key)
-    return PopulationWriter(store, key, on_population, interval_s), history, state, run_info
+    _record_end(store, key, end, run_info, budget)
+    return result_from_store(store)
 
 
 def _new_store(path: Path, spec_json: dict, job: Job, dhash: str) -> Store:
