@@ -114,13 +114,11 @@ class Service:
         with probe_client() as http:
             wait_until(lambda: self.healthy(http), 60, "the service to answer /health", 0.05)
 
-    def healthy(self, http=None) -> bool:
-        """Whether /health answers 200 (through ``http``, a :func:`probe_client`, when given)."""
+    def healthy(self, http) -> bool:
+        """Whether /health answers 200 (asked through ``http``, a :func:`probe_client`)."""
         import httpx  # the dev extra: the cluster helpers above run on the runtime install (make bench)
 
         try:
-            if http is None:
-                return httpx.get(f"{self.url}/health", timeout=2).status_code == 200
             return http.get(f"{self.url}/health").status_code == 200
         except httpx.HTTPError:
             return False
