@@ -240,14 +240,15 @@ def run_job(
     # "cancelled", result_of's word for a run with no stop reason)
     if store is not None and store.attrs.get("status") == "finished" and store.attrs.get("stop_reason"):
         return result_from_store(store)
-    if store is None:
-        store = _new_store(store_path, spec_json, job, dhash)
-    history = store.populations()
-    state = store.run_state()
-    budget = Budget(job.stop, cancel=cancel, n_simulations=int(state["n_simulations_total"]),
-                    elapsed_before_s=float(state["elapsed_s"]))
-    run_info = dict(store.attrs.get("run", {}))
-    store.set_status("running", job_key=key)
+    if store is None:  # new, running, with the job's key: nothing to read back
+        store = _new_store(store_path, spec_json, job, dhash, key)
+        history, n_simulations, elapsed_s, run_info = [], 0, 0.0, {}
+    else:
+        history, state = store.populations(), store.run_state()
+        n_simulations, elapsed_s = int(state["n_simulations_total"]), float(state["elapsed_s"])
+        run_info = dict(store.attrs.get("run", {}))
+        store.set_status("running", job_key=key)
+    budget = Budget(job.stop, cancel=cancel, n_simulations=n_simulations, elapsed_before_s=elapsed_s)
     executor = (SerialExecutor(job.evaluate) if client is None
                 else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget))
     gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget,
@@ -288,12 +289,12 @@ def run_job(
     return result_from_store(store)
 
 
-def _new_store(path: Path, spec_json: dict, job: Job, dhash: str) -> Store:
+def _new_store(path: Path, spec_json: dict, job: Job, dhash: str, key: str) -> Store:
     """The job's new, empty store."""
     return Store.create(path, spec=spec_json, seed=job.seed, model_names=[m.name for m in job.models],
                         parameter_names=[list(m.parameter_names) for m in job.models],
                         n_particles=job.settings.particles, data_hash=dhash, algorithm=algorithm_name(job.settings),
-                        max_ellipsoids=getattr(job.settings, "n_ellipsoids", 1))
+                        max_ellipsoids=getattr(job.settings, "n_ellipsoids", 1), job_key=key)
 
 
 def _record_end(store: Store, key: str, end: RunEnd, run_info: dict, budget: Budget) -> None:
