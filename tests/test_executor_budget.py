@@ -28,7 +28,7 @@ from abcns.rejection import prior_proposer
 from abcns.settings import Stopped
 from benchmarks import sleepy
 from benchmarks.harness import StockCluster, duffing_spec, wait_until
-from service.run.dask_executor import MAX_TASK_SECONDS, DaskExecutor, Stream
+from service.run.dask_executor import CLIENT_BATCH_S, MAX_TASK_SECONDS, DaskExecutor, Stream
 from service.spec import build, description, parse
 
 pytestmark = pytest.mark.distributed
@@ -189,3 +189,17 @@ def test_a_result_that_comes_between_the_look_and_the_wait_is_not_waited_for():
     oldest = SimpleNamespace(done=lambda: False)
     assert stream._next_completed(oldest) == ("future", "result")  # type: ignore[arg-type]
     assert True not in results.waits_while_ready, "waited for a result that was already there"
+
+
+def test_the_client_sends_to_the_scheduler_within_a_millisecond(client, sleepy_job):
+    """Dask's client holds a message up to 10 ms to batch it with the next; a population's
+    first tasks waited out that time after the release of the last one's surplus. The
+    executor shortens the client's batching to ``CLIENT_BATCH_S``."""
+    spec, built = sleepy_job
+    client.scheduler_comm.interval = 0.010  # Dask's default, as the module's client may have left it
+    executor = DaskExecutor(client, f"batch-{time.monotonic_ns()}", description(spec),
+                            {"force": built.force, "observed": built.observed}, allow_import=True)
+    try:
+        assert client.scheduler_comm.interval == CLIENT_BATCH_S == 0.001
+    finally:
+        executor.close()
