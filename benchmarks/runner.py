@@ -10,8 +10,10 @@ simulator choose them from the priors): ``--substeps 128`` makes the same job's 
 Simulations per second counts the simulations the algorithm used (the serial-equivalent
 count stored in the result), wall time from the first batch to the last population stored.
 Rows: the simulator alone on a batch of 1000 prior draws (one core, in-kernel NMSE), the
-engine in-process (serial executor, no store), and ``abcns run``'s code path (Dask
-LocalCluster + zarr store) with 1 and 2 worker processes. Each row but the first is the
+engine in-process (serial executor, no store), ``abcns run``'s code path without a cluster
+(``run_job`` in this process, zarr store: what a cluster must beat), and with a Dask
+LocalCluster of 1 and 2 worker processes (populations cheaper than
+``ABCNS_LOCAL_POPULATION_S`` evaluated in the runner: ``service.run.dask_executor``). Each row but the first is the
 fastest of ``--repeats`` runs (after a one-population warm-up: numba's cache, the workers'
 imports). *runner CPU µs/sim*: ``time.process_time()`` of this process over that run, per
 simulation: the whole engine in-process; with Dask, the runner (step, geometry, store),
@@ -77,6 +79,16 @@ def main() -> None:
     rows.append((f"engine in-process, serial ({len(reference.populations)} populations)",
                  reference.n_simulations / wall, wall, cpu / reference.n_simulations))
 
+    tmp = Path(tempfile.mkdtemp())
+    try:
+        run_job(warm, base, tmp / "warm.zarr", None)
+        stores = (tmp / f"job{i}.zarr" for i in range(args.repeats))
+        res, wall, cpu = _best(args.repeats, partial(run_job, spec, base, client=None), stores)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    rows.append(("abcns runner, in this process (no cluster), zarr store", res.n_simulations / wall, wall,
+                 cpu / res.n_simulations))
+
     for n_workers in args.workers:
         with local_cluster(n_workers) as cluster, \
                 Client(cluster) as client:
@@ -98,10 +110,11 @@ def main() -> None:
     for name, rate, wall, cpu in rows:
         print(f"{name:70s} {rate:10.0f} {'' if wall is None else f'{wall:8.2f}':>8s} {rate / rows[0][1]:12.2f} "
               f"{'' if cpu is None else f'{1e6 * cpu:18.1f}':>18s}")
-    if len(rows) > 2:
-        print(f"LocalCluster 1 worker / in-process: {rows[2][1] / rows[1][1]:.2f}")
     if len(rows) > 3:
-        print(f"2 workers / 1 worker: {rows[3][1] / rows[2][1]:.2f}")
+        print(f"LocalCluster 1 worker / engine in-process: {rows[3][1] / rows[1][1]:.2f}; "
+              f"/ runner without a cluster: {rows[3][1] / rows[2][1]:.2f}")
+    if len(rows) > 4:
+        print(f"2 workers / 1 worker: {rows[4][1] / rows[3][1]:.2f}")
     print(f"load average after: {os.getloadavg()[0]:.1f}")
 
 

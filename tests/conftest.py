@@ -3,10 +3,21 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 from http_helpers import settle
 
 from benchmarks.harness import Service, StockCluster
+
+# The tests' jobs are cheap: by default the runner would evaluate their populations after the
+# first in its own process (service.run.dask_executor.LOCAL_POPULATION_S), and a test of the
+# cluster (workers killed, resumed on another cluster, the same result on 1 or 3 workers)
+# would no longer use it. So the suite keeps every population on the cluster (also in the
+# `abcns serve` and `abcns run` processes it starts, which inherit this); the tests of
+# tests/test_executor_contract.py that say so evaluate populations here, and one runs a job
+# with the default.
+os.environ.setdefault("ABCNS_LOCAL_POPULATION_S", "0")
 
 
 @pytest.fixture

@@ -69,15 +69,23 @@ def test_the_embedded_cluster_asks_for_no_fixed_port(client):
     assert scheduler.http_server.address == "127.0.0.1"  # no dashboard asked: not served to the network
 
 
-@pytest.fixture(params=["serial", "dask"])
+@pytest.fixture(params=["serial", "dask", "dask-here"])
 def make_executor(request, job, client):
+    """Each executor: the serial one, the Dask one, and the Dask one with every population
+    cheap enough to be evaluated in this process (``dask-here``: a batch's cost as if
+    measured, and the job's evaluator given)."""
     spec, built = job
 
     def make(evaluate=None):
         if request.param == "serial":
             return SerialExecutor(evaluate or built.evaluate)
         arrays = {"force": built.force, "observed": built.observed}
-        return DaskExecutor(client, f"contract-{request.param}", description(spec), arrays)
+        if request.param == "dask":
+            return DaskExecutor(client, f"contract-{request.param}", description(spec), arrays)
+        executor = DaskExecutor(client, f"contract-{request.param}", description(spec), arrays,
+                                evaluate=evaluate or built.evaluate, local_s=dask_executor.LOCAL_POPULATION_S)
+        executor.batch_seconds, executor.expected = 1e-6, 1
+        return executor
 
     make.kind = request.param  # type: ignore[attr-defined]
     return make
@@ -166,6 +174,85 @@ def test_a_run_through_either_executor_gives_the_same_populations(make_executor,
     reference = abcns.run(built.models, built.evaluate, built.settings, built.stop, built.seed)
     assert len(result.populations) == len(reference.populations) == 4
     for p, q in zip(result.populations, reference.populations):
+        for name in ("models", "theta", "distances", "weights"):
+            np.testing.assert_array_equal(getattr(p, name), getattr(q, name), err_msg=f"{p.t} {name}")
+
+
+def cheap_batches(monkeypatch) -> None:
+    """Every batch measured at 0.1 ms (a worker's first batch, which loads the kernels, or a
+    busy machine would make a measured cost of this job's populations vary, and with it
+    where they run)."""
+    measured = DaskExecutor._measured
+    monkeypatch.setattr(DaskExecutor, "_measured",
+                        lambda ex, seconds, size, on_worker=True: measured(ex, 1e-4 * size, size, on_worker))
+
+
+def test_cheap_populations_are_evaluated_here_and_the_run_is_the_same(job, client, monkeypatch):
+    """Issue O.4, cheap kernels never lose to no cluster: a population whose simulations
+    the cluster would shorten by less than Dask's round trips cost is evaluated in the
+    runner's process. Population 1 goes to the cluster (nothing is measured yet), the
+    later ones (batches measured at 0.1 ms: :func:`cheap_batches`) are evaluated here, no
+    task of theirs reaches the cluster, and the run equals the serial one bit for bit."""
+    spec, built = job
+    decided: list[bool] = []
+    here = dask_executor.Stream.here
+
+    def recorded(stream):
+        first = stream.local is None
+        out = here(stream)
+        if first:
+            decided.append(out)
+        return out
+
+    monkeypatch.setattr(dask_executor.Stream, "here", recorded)
+    cheap_batches(monkeypatch)
+    submitted: set[int] = set()  # the populations of the batch tasks sent to the cluster
+    client_map = client.map
+
+    def recorded_map(*args, key=None, **kwargs):
+        submitted.update(k[1] for k in key or () if isinstance(k, tuple) and len(k) == 4)
+        return client_map(*args, key=key, **kwargs)
+
+    monkeypatch.setattr(client, "map", recorded_map)
+    arrays = {"force": built.force, "observed": built.observed}
+    executor = DaskExecutor(client, "contract-mixed", description(spec), arrays, evaluate=built.evaluate,
+                            local_s=dask_executor.LOCAL_POPULATION_S)
+    try:
+        result = abcns.run(built.models, executor, built.settings, built.stop, built.seed)
+    finally:
+        executor.close()
+    reference = abcns.run(built.models, built.evaluate, built.settings, built.stop, built.seed)
+    assert decided[0] is False and all(decided[1:]) and len(decided) == len(reference.populations) == 4, decided
+    assert submitted == {0, 1}  # the anchors and population 1's batches only
+    for p, q in zip(result.populations, reference.populations):
+        for name in ("models", "theta", "distances", "weights"):
+            np.testing.assert_array_equal(getattr(p, name), getattr(q, name), err_msg=f"{p.t} {name}")
+
+
+def test_the_runner_evaluates_cheap_populations_here_by_default(job, client, monkeypatch, tmp_path):
+    """``run_job`` gives its executor the job's evaluator and ``ABCNS_LOCAL_POPULATION_S``
+    (default ``LOCAL_POPULATION_S``; the suite sets 0, see conftest.py): with the default,
+    this cheap job's later populations are evaluated in the runner, and its store holds what
+    a run in this process stores."""
+    from service.run.runner import run_job
+    from service.run.store import Store
+
+    spec, _ = job
+    decided: list[bool] = []
+    here = dask_executor.Stream.here
+    monkeypatch.setattr(dask_executor.Stream, "here",
+                        lambda stream: decided.append(here(stream)) or decided[-1])
+    cheap_batches(monkeypatch)
+    monkeypatch.delenv("ABCNS_LOCAL_POPULATION_S", raising=False)
+    on_cluster = run_job(spec, ROOT, tmp_path / "cluster.zarr", client)
+    assert True in decided
+    monkeypatch.setenv("ABCNS_LOCAL_POPULATION_S", "0")
+    decided.clear()
+    run_job(spec, ROOT, tmp_path / "cluster-only.zarr", client)
+    assert decided and True not in decided  # 0: every population on the cluster
+    here_only = run_job(spec, ROOT, tmp_path / "serial.zarr", None)
+    assert len(on_cluster.populations) == len(here_only.populations) == 4
+    for p, q in zip(Store.open(tmp_path / "cluster.zarr").populations(), here_only.populations):
         for name in ("models", "theta", "distances", "weights"):
             np.testing.assert_array_equal(getattr(p, name), getattr(q, name), err_msg=f"{p.t} {name}")
 

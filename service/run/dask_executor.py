@@ -51,11 +51,12 @@ import time
 import uuid
 from collections import deque
 from collections.abc import Iterable, Iterator
+from typing import cast
 
 import dask
 from distributed import Client, Future, LocalCluster, as_completed
 
-from abcns.executor import Draw, Simulated, pack_draws, unpack_results
+from abcns.executor import Draw, Evaluate, Simulated, pack_draws, run_draw, unpack_results
 from abcns.filling import Budget
 from abcns.settings import Stopped
 from worker.tasks import anchor, evaluate_on_worker, job_payload
@@ -77,6 +78,13 @@ IN_FLIGHT_PER_THREAD = 2
 CLIENT_BATCH_S = 0.001
 #: the result of a task taken without ``as_completed`` (``Stream._next_completed``)
 _UNTRACKED = object()
+
+#: what Dask's round trips cost a population, in seconds of waiting (§4.1 on 2 cores: ~45 ms
+#: a population through one worker against ~17 in the runner alone): a population whose
+#: simulations the cluster would shorten by less than this is evaluated in the runner's
+#: process (:meth:`Stream.here`). ``ABCNS_LOCAL_POPULATION_S`` (service.run.runner) sets it;
+#: 0 keeps every population on the cluster
+LOCAL_POPULATION_S = 0.025
 
 #: seconds between two looks at the run's budget (time, cancel) while a stream waits for a
 #: task: a stop takes effect within this even while a batch runs
@@ -119,9 +127,15 @@ def local_cluster(n_workers: int, dashboard: bool = False) -> LocalCluster:
 
 
 class DaskExecutor:
+    """Batches on the cluster's workers; with ``evaluate`` (the job's evaluator in this
+    process) and ``local_s`` > 0, a population whose batches cost less than ``local_s``
+    seconds in all is evaluated here instead (:meth:`Stream.here`): the same results, since a
+    batch's result does not depend on where it runs."""
+
     def __init__(self, client: Client, job_key: str, description: dict, arrays: dict, allow_import: bool = False,
-                 budget: Budget | None = None):
+                 budget: Budget | None = None, evaluate: Evaluate | None = None, local_s: float = 0.0):
         self.client = client
+        self.evaluate, self.local_s = evaluate, local_s
         comm = getattr(client, "scheduler_comm", None)  # the client's batched stream to the scheduler
         if comm is not None and getattr(comm, "interval", 0) > CLIENT_BATCH_S:
             comm.interval = CLIENT_BATCH_S
@@ -154,6 +168,7 @@ class DaskExecutor:
         # are counted over both, so the next population's first tasks take the room the
         # carried ones leave, not room of their own
         self.streams: list[Stream] = []
+        self.last_here = False  # the last stream closed was evaluated in this process (Stream.here)
 
     def in_flight(self) -> int:
         """Tasks submitted and not yet completed, over every open stream."""
@@ -210,9 +225,10 @@ class DaskExecutor:
         self.streams.append(stream)
         return stream
 
-    def _measured(self, seconds: float, size: int) -> None:
-        self.busy_s += seconds
-        self.busy_batches += size
+    def _measured(self, seconds: float, size: int, on_worker: bool = True) -> None:
+        if on_worker:
+            self.busy_s += seconds
+            self.busy_batches += size
         per = seconds / size
         self.batch_seconds = per if self.batch_seconds is None else 0.7 * self.batch_seconds + 0.3 * per
 
@@ -242,6 +258,7 @@ class Stream:
         self.completed = as_completed(with_results=True, raise_errors=False)
         self.ready: deque[Simulated] = deque()  # the oldest task's results, not yet handed out
         self.closed = False
+        self.local: bool | None = None  # evaluated in this process (:meth:`here`), decided at the first top-up
 
     def __iter__(self) -> Stream:
         return self
@@ -264,10 +281,40 @@ class Stream:
         """Tasks submitted and not yet completed."""
         return len(self.pending) - len(self.done)
 
+    def here(self) -> bool:
+        """Whether this population is evaluated in this process, not on the cluster: its
+        simulations are cheap. Their cost ``c`` is a batch's compute time as last measured
+        times the previous population's need; spread over W workers the cluster would save
+        ``c (1 - 1/W)`` of it and pay the executor's ``local_s`` in round trips, so the
+        population stays here when ``c <= local_s W / (W - 1)``, and never when ``c`` exceeds
+        ``2 local_s`` (one worker too: the runner's process is no place for dear
+        simulations). Decided once, before anything is submitted; the first population
+        (nothing measured yet) goes to the cluster. Where a batch runs changes no result."""
+        if self.local is None:
+            ex, w = self.ex, self.n_workers
+            cost = None if ex.batch_seconds is None or ex.expected is None else ex.expected * ex.batch_seconds
+            spread = 2.0 if w < 2 else min(2.0, w / (w - 1))
+            self.local = ex.evaluate is not None and ex.local_s > 0 and cost is not None and cost <= ex.local_s * spread
+        return self.local
+
+    def _evaluate_here(self) -> Simulated | None:
+        """The next draw, evaluated in this process (None: no draws left)."""
+        draw = next(self.draws, None)
+        if draw is None:
+            self.exhausted = True
+            return None
+        start = time.perf_counter()
+        result = run_draw(cast("Evaluate", self.ex.evaluate), draw)  # here() says it is set
+        self.ex._measured(time.perf_counter() - start, 1, on_worker=False)
+        self.submitted += 1
+        return result
+
     def _top_up(self) -> None:
         """Submit tasks in one scheduler message until the estimate of the batches still
         needed is covered, or ``IN_FLIGHT_PER_THREAD`` tasks per worker thread are in
-        flight; at least one task is."""
+        flight; at least one task is (none for a population evaluated :meth:`here`)."""
+        if self.here():
+            return
         groups: list[list[Draw]] = []
         want = max(self.left or 1, 1)
         room = IN_FLIGHT_PER_THREAD * self.n_workers - self.ex.in_flight()
@@ -352,7 +399,11 @@ class Stream:
         while not self.ready:
             self._top_up()
             if not self.pending:
-                raise StopIteration
+                result = self._evaluate_here() if self.here() and not self.exhausted else None
+                if result is None:
+                    raise StopIteration
+                self.ready.append(result)
+                break
             packed, seconds = self._oldest()
             _, size = self.pending.popleft()
             self.ex._measured(seconds, size)
@@ -367,6 +418,7 @@ class Stream:
         if self in self.ex.streams:
             self.ex.streams.remove(self)
         self.ex.expected = max(self.consumed, 1)
+        self.ex.last_here = bool(self.local)
         # releasing a task the caller no longer needs cancels it (the scheduler forgets a
         # queued task nobody wants; one already running finishes and is dropped); unlike
         # ``client.cancel`` it does not wait for the scheduler's answer

@@ -32,7 +32,7 @@ from abcns import Population, Result, RunEnd, SpecError, StopReason
 from abcns.executor import SerialExecutor
 from abcns.filling import Budget
 from abcns.run import algorithm_name, consume, iterate
-from service.run.dask_executor import DaskExecutor
+from service.run.dask_executor import LOCAL_POPULATION_S, DaskExecutor
 from service.run.store import Store, StoreIncomplete, data_hash, result_from_store
 from service.spec import Job, JobSpec, build, description
 
@@ -47,7 +47,8 @@ class Progress:
     simulations_per_s: float
     # on a Dask cluster: its worker threads now, and the share of their time since the
     # previous population spent on the simulations the run used (the workers' compute time
-    # of the tasks consumed over workers x wall time); None in the runner's process
+    # of the tasks consumed over workers x wall time); None in the runner's process, and for
+    # a population cheap enough to be evaluated there (DaskExecutor's ``local_s``)
     workers: int | None = None
     efficiency: float | None = None
 
@@ -82,17 +83,29 @@ def summary(store: Store) -> dict:
 
 
 WRITE_INTERVAL_ENV = "ABCNS_STORE_INTERVAL_S"
+LOCAL_POPULATION_ENV = "ABCNS_LOCAL_POPULATION_S"
 
 
 def write_interval() -> float:
     """The coalescing interval: ``ABCNS_STORE_INTERVAL_S`` (0: one append per population)."""
-    raw = os.environ.get(WRITE_INTERVAL_ENV, "1")
+    return _seconds_env(WRITE_INTERVAL_ENV, 1.0)
+
+
+def local_population_s() -> float:
+    """``ABCNS_LOCAL_POPULATION_S``: a population whose simulations cost less than this many
+    seconds in all runs in the runner's process, not on the cluster (0: never;
+    :data:`service.run.dask_executor.LOCAL_POPULATION_S` by default)."""
+    return _seconds_env(LOCAL_POPULATION_ENV, LOCAL_POPULATION_S)
+
+
+def _seconds_env(name: str, default: float) -> float:
+    raw = os.environ.get(name, str(default))
     try:
         value = float(raw)
     except ValueError:
-        raise SpecError(WRITE_INTERVAL_ENV, f"must be a number of seconds, got {raw!r}") from None
+        raise SpecError(name, f"must be a number of seconds, got {raw!r}") from None
     if not 0 <= value <= 3600:
-        raise SpecError(WRITE_INTERVAL_ENV, f"must be between 0 and 3600 seconds, got {value}")
+        raise SpecError(name, f"must be between 0 and 3600 seconds, got {value}")
     return value
 
 
@@ -227,7 +240,7 @@ def run_job(
     if seed is not None:
         spec = spec.model_copy(update={"seed": seed})
     job: Job = build(spec, base_dir, allow_import)  # every check before anything runs
-    interval_s = write_interval()
+    interval_s, local_s = write_interval(), local_population_s()
     arrays = {"force": job.force, "observed": job.observed}
     dhash = data_hash(*(a for a in (job.force, job.observed) if a is not None))
     key = job_key(spec, job.seed, dhash)
@@ -250,7 +263,8 @@ def run_job(
         store.set_status("running", job_key=key)
     budget = Budget(job.stop, cancel=cancel, n_simulations=n_simulations, elapsed_before_s=elapsed_s)
     executor = (SerialExecutor(job.evaluate) if client is None
-                else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget))
+                else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget,
+                                  evaluate=job.evaluate, local_s=local_s))
     gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget,
                   noise=job.noise)
     start, sims_start = time.monotonic(), budget.n_simulations
@@ -269,7 +283,8 @@ def run_job(
         if isinstance(executor, DaskExecutor):
             workers = executor.n_workers()
             wall, busy = now - last[0], executor.busy_s - last[1]
-            efficiency = min(1.0, busy / (workers * wall)) if wall > 0 and workers else None
+            if wall > 0 and workers and not executor.last_here:  # none for a population evaluated here
+                efficiency = min(1.0, busy / (workers * wall))
             last[:] = [now, executor.busy_s]
         progress = Progress(pop, budget.n_simulations, budget.elapsed(),
                             (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0, workers, efficiency)
