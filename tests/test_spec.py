@@ -14,7 +14,8 @@ from pydantic import ValidationError
 
 from abcns import NSSettings, RejectionSettings, SMCSettings, SpecError, StopRules, run
 from examples.paper import authors_demo
-from service.run.runner import write_interval
+from service.run.dask_executor import LOCAL_POPULATION_S
+from service.run.runner import local_population_s, write_interval
 from service.spec import JobSpec, build, load, parse
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -137,6 +138,24 @@ def test_the_store_interval_defaults_to_a_second(monkeypatch):
     assert write_interval() == 1.0
     monkeypatch.setenv("ABCNS_STORE_INTERVAL_S", "0")
     assert write_interval() == 0.0
+
+
+def test_the_local_population_time_is_read_like_the_store_interval(monkeypatch):
+    """``ABCNS_LOCAL_POPULATION_S``: unset or empty (docker/compose.yaml passes it on empty)
+    is the default, a bad value an error naming the variable, before the job starts."""
+    for unset in (None, ""):
+        if unset is None:
+            monkeypatch.delenv("ABCNS_LOCAL_POPULATION_S", raising=False)
+        else:
+            monkeypatch.setenv("ABCNS_LOCAL_POPULATION_S", unset)
+        assert local_population_s() == LOCAL_POPULATION_S == 0.025
+    monkeypatch.setenv("ABCNS_LOCAL_POPULATION_S", "0")
+    assert local_population_s() == 0.0
+    for bad in ("fast", "-1", "nan"):
+        monkeypatch.setenv("ABCNS_LOCAL_POPULATION_S", bad)
+        with pytest.raises(SpecError) as err:
+            local_population_s()
+        assert err.value.field == "ABCNS_LOCAL_POPULATION_S"
 
 
 # ---------------------------------------------------------------------------- issue L: one definition of the settings

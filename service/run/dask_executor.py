@@ -28,6 +28,11 @@ submission order (never whichever finishes first: that would bias the posterior 
 cheap parameters). Each batch carries its own seed, so a task Dask reruns after a worker
 died gives the same answer, and the result does not depend on the number of workers.
 
+A population cheap enough that the cluster would shorten it by less than Dask's round trips
+cost (:data:`LOCAL_POPULATION_S`) is evaluated in the runner's process with the job's own
+evaluator (:meth:`Stream.here`): on §4.1's kernel (~5 ms of simulations a population) a
+cluster ran at half the speed of no cluster. Where a batch runs changes no result.
+
 The job's budget reaches into a running batch. A stream waiting for a task's result asks
 the run's :class:`abcns.filling.Budget` every ``WATCH_S`` whether the run must stop (its
 time budget spent, or cancelled); if so it releases every task not yet consumed (a queued
@@ -128,9 +133,10 @@ def local_cluster(n_workers: int, dashboard: bool = False) -> LocalCluster:
 
 class DaskExecutor:
     """Batches on the cluster's workers; with ``evaluate`` (the job's evaluator in this
-    process) and ``local_s`` > 0, a population whose batches cost less than ``local_s``
-    seconds in all is evaluated here instead (:meth:`Stream.here`): the same results, since a
-    batch's result does not depend on where it runs."""
+    process) and ``local_s`` > 0 (what Dask's round trips cost a population), a population
+    too cheap for the cluster to shorten by more than that is evaluated here instead
+    (:meth:`Stream.here`): the same results, since a batch's result does not depend on where
+    it runs."""
 
     def __init__(self, client: Client, job_key: str, description: dict, arrays: dict, allow_import: bool = False,
                  budget: Budget | None = None, evaluate: Evaluate | None = None, local_s: float = 0.0):

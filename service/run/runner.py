@@ -99,7 +99,8 @@ def local_population_s() -> float:
 
 
 def _seconds_env(name: str, default: float) -> float:
-    raw = os.environ.get(name, str(default))
+    """A number of seconds from the environment (unset or empty: ``default``), or a SpecError."""
+    raw = os.environ.get(name) or str(default)
     try:
         value = float(raw)
     except ValueError:
@@ -244,7 +245,6 @@ def run_job(
     arrays = {"force": job.force, "observed": job.observed}
     dhash = data_hash(*(a for a in (job.force, job.observed) if a is not None))
     key = job_key(spec, job.seed, dhash)
-    spec_json = spec.model_dump(mode="json")
     store_path = Path(store_path)
     store = _existing_store(store_path, key, owned_store)
     # a finished run records why it stopped with its status; a store "finished" with no stop
@@ -253,14 +253,9 @@ def run_job(
     # "cancelled", result_of's word for a run with no stop reason)
     if store is not None and store.attrs.get("status") == "finished" and store.attrs.get("stop_reason"):
         return result_from_store(store)
+    history, n_simulations, elapsed_s, run_info = ([], 0, 0.0, {}) if store is None else _resumed(store, key)
     if store is None:  # new, running, with the job's key: nothing to read back
-        store = _new_store(store_path, spec_json, job, dhash, key)
-        history, n_simulations, elapsed_s, run_info = [], 0, 0.0, {}
-    else:
-        history, state = store.populations(), store.run_state()
-        n_simulations, elapsed_s = int(state["n_simulations_total"]), float(state["elapsed_s"])
-        run_info = dict(store.attrs.get("run", {}))
-        store.set_status("running", job_key=key)
+        store = _new_store(store_path, spec.model_dump(mode="json"), job, dhash, key)
     budget = Budget(job.stop, cancel=cancel, n_simulations=n_simulations, elapsed_before_s=elapsed_s)
     executor = (SerialExecutor(job.evaluate) if client is None
                 else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget,
@@ -302,6 +297,15 @@ def run_job(
         getattr(executor, "close", lambda: None)()  # the Dask executor releases the job's data
     _record_end(store, key, end, run_info, budget)
     return result_from_store(store)
+
+
+def _resumed(store: Store, key: str) -> tuple[list[Population], int, float, dict]:
+    """What a resumed run starts from (the store's populations, simulations so far, elapsed
+    time and run information); the store is marked running with this job's key."""
+    history, state = store.populations(), store.run_state()
+    run_info = dict(store.attrs.get("run", {}))
+    store.set_status("running", job_key=key)
+    return history, int(state["n_simulations_total"]), float(state["elapsed_s"]), run_info
 
 
 def _new_store(path: Path, spec_json: dict, job: Job, dhash: str, key: str) -> Store:
