@@ -229,6 +229,27 @@ def test_cheap_populations_are_evaluated_here_and_the_run_is_the_same(job, clien
             np.testing.assert_array_equal(getattr(p, name), getattr(q, name), err_msg=f"{p.t} {name}")
 
 
+def test_no_population_is_evaluated_here_while_other_runs_share_the_process(job, client):
+    """``alone`` (the runner's count of runs in its process) is asked as each population
+    opens: with another run beside it, a cheap population goes to the cluster."""
+    spec, built = job
+    others = [False]
+    executor = DaskExecutor(client, "contract-crowd", description(spec), {"force": built.force, "observed": built.observed},
+                            evaluate=built.evaluate, local_s=dask_executor.LOCAL_POPULATION_S, alone=lambda: not others[0])
+    executor.batch_seconds, executor.expected = 1e-6, 1
+    try:
+        alone = executor.map(stream(built.models))
+        assert alone.here()
+        alone.close()
+        others[0] = True
+        crowded = executor.map(stream(built.models))
+        assert not crowded.here()
+        next(crowded)  # from the cluster
+        crowded.close()
+    finally:
+        executor.close()
+
+
 def test_the_runner_evaluates_cheap_populations_here_by_default(job, client, monkeypatch, tmp_path):
     """``run_job`` gives its executor the job's evaluator and ``ABCNS_LOCAL_POPULATION_S``
     (default ``LOCAL_POPULATION_S``; the suite sets 0, see conftest.py): with the default,

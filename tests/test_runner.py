@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 import service.run.runner as runner
-from service.run.runner import frozen_heap, run_job
+from service.run.runner import alone, frozen_heap, run_job
 from service.spec import parse
 from tests.test_store import linear_demo_raw
 
@@ -51,3 +51,17 @@ def test_overlapping_runs_unfreeze_when_the_last_ends():
         assert gc.get_freeze_count() >= first  # the second ended, the first goes on: still frozen
     assert gc.get_freeze_count() == before
 
+
+
+def test_a_run_is_alone_in_its_process_until_another_overlaps():
+    """The Dask executor evaluates a cheap population in the runner's process only while no
+    other run shares it: two jobs of `abcns serve --max-running 2` (one interpreter), §4.1's
+    40 populations each, took 6.8-6.9 s together with their populations evaluated in it,
+    against 4.6-5.0 s on the two workers."""
+    assert alone()
+    with frozen_heap():
+        assert alone()
+        with frozen_heap():
+            assert not alone()
+        assert alone()
+    assert alone()

@@ -55,7 +55,7 @@ import math
 import time
 import uuid
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import cast
 
 import dask
@@ -136,12 +136,16 @@ class DaskExecutor:
     process) and ``local_s`` > 0 (what Dask's round trips cost a population), a population
     too cheap for the cluster to shorten by more than that is evaluated here instead
     (:meth:`Stream.here`): the same results, since a batch's result does not depend on where
-    it runs."""
+    it runs. Never while other runs share this process (``alone`` says): their populations
+    would take turns on one core while the workers wait."""
 
     def __init__(self, client: Client, job_key: str, description: dict, arrays: dict, allow_import: bool = False,
-                 budget: Budget | None = None, evaluate: Evaluate | None = None, local_s: float = 0.0):
+                 budget: Budget | None = None, evaluate: Evaluate | None = None, local_s: float = 0.0,
+                 alone: Callable[[], bool] = lambda: True):
         self.client = client
-        self.evaluate, self.local_s = evaluate, local_s
+        # evaluating here: the job's evaluator, what Dask's round trips cost a population, and
+        # whether this run is alone in its process (asked as each population opens)
+        self.evaluate, self.local_s, self.alone = evaluate, local_s, alone
         comm = getattr(client, "scheduler_comm", None)  # the client's batched stream to the scheduler
         if comm is not None and getattr(comm, "interval", 0) > CLIENT_BATCH_S:
             comm.interval = CLIENT_BATCH_S
@@ -294,13 +298,14 @@ class Stream:
         ``c (1 - 1/W)`` of it and pay the executor's ``local_s`` in round trips, so the
         population stays here when ``c <= local_s W / (W - 1)``, and never when ``c`` exceeds
         ``2 local_s`` (one worker too: the runner's process is no place for dear
-        simulations). Decided once, before anything is submitted; the first population
+        simulations), nor while other runs share this process. Decided once, before anything is submitted; the first population
         (nothing measured yet) goes to the cluster. Where a batch runs changes no result."""
         if self.local is None:
             ex, w = self.ex, self.n_workers
             cost = None if ex.batch_seconds is None or ex.expected is None else ex.expected * ex.batch_seconds
             spread = 2.0 if w < 2 else min(2.0, w / (w - 1))
-            self.local = ex.evaluate is not None and ex.local_s > 0 and cost is not None and cost <= ex.local_s * spread
+            self.local = (ex.evaluate is not None and ex.local_s > 0 and cost is not None
+                          and cost <= ex.local_s * spread and ex.alone())
         return self.local
 
     def _evaluate_here(self) -> Simulated | None:

@@ -137,6 +137,13 @@ def frozen_heap() -> Iterator[None]:
                 gc.unfreeze()
 
 
+def alone() -> bool:
+    """Whether at most one run goes on in this process now (the service runs several in one
+    interpreter: a population evaluated here would take turns with the other runs' on one
+    core, while the workers wait; :class:`DaskExecutor` evaluates none here then)."""
+    return _FROZEN_RUNS <= 1
+
+
 class PopulationWriter:
     """Appends populations to the store in order on a background thread while the next
     ones are computed; the progress callback runs once its population is in the store.
@@ -259,7 +266,7 @@ def run_job(
     budget = Budget(job.stop, cancel=cancel, n_simulations=n_simulations, elapsed_before_s=elapsed_s)
     executor = (SerialExecutor(job.evaluate) if client is None
                 else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget,
-                                  evaluate=job.evaluate, local_s=local_s))
+                                  evaluate=job.evaluate, local_s=local_s, alone=alone))
     gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget,
                   noise=job.noise)
     start, sims_start = time.monotonic(), budget.n_simulations
