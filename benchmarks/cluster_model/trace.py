@@ -45,7 +45,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from unittest import mock
 
@@ -345,9 +345,12 @@ def record(variant: str, particles: int, populations: int, batch_size: int | Non
     job = build(spec, base, allow_import=True)
     for sim in job.simulators:
         sim.seconds = 0.0  # the sleep is the replay's parameter, not this run's time
-    # the kernel loaded first (numba's cache), as on the benchmark's warmed workers
+    # the kernel loaded first (numba's cache), as on the benchmark's warmed workers, and the
+    # engine's compiled parts by one population, as the benchmark's warm-up run loads them in
+    # the runner (without it population 1's step carried ~130 ms of loading)
     job.evaluate(next(draws(prior_proposer(job.models), seed=0, t=1, epsilon=np.inf,
                             batch_size=job.settings.batch_size)).batch())
+    run(job.models, job.evaluate, job.settings, replace(job.stop, max_populations=1), job.seed)
     log = _Log()
     with _instrumented(log):
         result = run(job.models, _RecordingExecutor(job.evaluate, log), job.settings, job.stop, job.seed)
