@@ -473,10 +473,11 @@ class Store:
         # store"), the arrays, and last the format version with the consolidated metadata: it
         # marks a complete store
         path.mkdir(parents=True, exist_ok=True)
-        for key in sorted(files, key=lambda key: key != "zarr.json"):
+        _replace(path / "zarr.json", files.pop("zarr.json").to_bytes())
+        for key, data in files.items():
             file = path / key
             file.parent.mkdir(parents=True, exist_ok=True)
-            file.write_bytes(files[key].to_bytes())
+            file.write_bytes(data.to_bytes())
         _rewrite_group(path, {"format_version": FORMAT_VERSION}, consolidate=True)
         return cls(path, attrs)
 
