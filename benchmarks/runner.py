@@ -79,26 +79,14 @@ def main() -> None:
     rows.append((f"engine in-process, serial ({len(reference.populations)} populations)",
                  reference.n_simulations / wall, wall, cpu / reference.n_simulations))
 
-    tmp = Path(tempfile.mkdtemp())
-    try:
-        run_job(warm, base, tmp / "warm.zarr", None)
-        stores = (tmp / f"job{i}.zarr" for i in range(args.repeats))
-        res, wall, cpu = _best(args.repeats, partial(run_job, spec, base, client=None), stores)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    res, wall, cpu = _best_run_job(spec, warm, base, None, args.repeats)
     rows.append(("abcns runner, in this process (no cluster), zarr store", res.n_simulations / wall, wall,
                  cpu / res.n_simulations))
 
     for n_workers in args.workers:
         with local_cluster(n_workers) as cluster, \
                 Client(cluster) as client:
-            tmp = Path(tempfile.mkdtemp())
-            try:
-                run_job(warm, base, tmp / "warm.zarr", client)  # workers load the kernels once
-                stores = (tmp / f"job{i}.zarr" for i in range(args.repeats))
-                res, wall, cpu = _best(args.repeats, partial(run_job, spec, base, client=client), stores)
-            finally:
-                shutil.rmtree(tmp, ignore_errors=True)
+            res, wall, cpu = _best_run_job(spec, warm, base, client, args.repeats)
         same = all(np.array_equal(p.theta, q.theta, equal_nan=True) for p, q in zip(res.populations, reference.populations))
         rows.append((f"abcns runner, LocalCluster {n_workers} worker(s), zarr store (identical: {same})",
                      res.n_simulations / wall, wall, cpu / res.n_simulations))
@@ -116,6 +104,18 @@ def main() -> None:
     if len(rows) > 4:
         print(f"2 workers / 1 worker: {rows[4][1] / rows[3][1]:.2f}")
     print(f"load average after: {os.getloadavg()[0]:.1f}")
+
+
+def _best_run_job(spec, warm, base: Path, client: Client | None, repeats: int):
+    """:func:`_best` of ``run_job`` (each into a fresh store) after one run of ``warm`` (numba's
+    cache; on a cluster, the workers load the kernels once)."""
+    tmp = Path(tempfile.mkdtemp())
+    try:
+        run_job(warm, base, tmp / "warm.zarr", client)
+        stores = (tmp / f"job{i}.zarr" for i in range(repeats))
+        return _best(repeats, partial(run_job, spec, base, client=client), stores)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _best(repeats: int, fn, args: Iterator = itertools.repeat(())):

@@ -110,8 +110,8 @@ def _seconds_env(name: str, default: float) -> float:
     return value
 
 
-_FROZEN_RUNS = 0
-_FROZEN_LOCK = threading.Lock()
+_RUNS = 0  # runs going on in this process (frozen_heap counts them; alone() asks)
+_RUNS_LOCK = threading.Lock()
 
 
 @contextmanager
@@ -124,16 +124,16 @@ def frozen_heap() -> Iterator[None]:
     workers wait) for ~110-140 ms, once every second or two on a busy run: on 16 cores, 3-4
     such gaps between populations in a 2.5 s run at 2 ms and 14 workers. Frozen, a full
     pass takes ~7 ms. It changes no result (the collector only frees unreachable cycles)."""
-    global _FROZEN_RUNS
-    with _FROZEN_LOCK:
+    global _RUNS
+    with _RUNS_LOCK:
         gc.freeze()  # also the objects of a run that starts while another goes on
-        _FROZEN_RUNS += 1
+        _RUNS += 1
     try:
         yield
     finally:
-        with _FROZEN_LOCK:
-            _FROZEN_RUNS -= 1
-            if _FROZEN_RUNS == 0:
+        with _RUNS_LOCK:
+            _RUNS -= 1
+            if _RUNS == 0:
                 gc.unfreeze()
 
 
@@ -141,7 +141,7 @@ def alone() -> bool:
     """Whether at most one run goes on in this process now (the service runs several in one
     interpreter: a population evaluated here would take turns with the other runs' on one
     core, while the workers wait; :class:`DaskExecutor` evaluates none here then)."""
-    return _FROZEN_RUNS <= 1
+    return _RUNS <= 1
 
 
 class PopulationWriter:

@@ -698,11 +698,14 @@ class Store:
 
     def populations(self) -> list[Population]:
         """Every complete population, exactly as appended (ellipsoids rebuilt by from_matrix)."""
-        n = self.n_populations
+        return self._records(self.n_populations)[0]
+
+    def _records(self, n: int, names: Sequence[str] = _POPULATION_ARRAYS) -> tuple[list[Population], dict[str, np.ndarray]]:
+        """The first ``n`` populations, and the arrays ``names`` they were read from."""
         if n == 0:
-            return []
-        a = self._read(slice(0, n))
-        return [self._population(a, i) for i in range(n)]
+            return [], {}
+        a = self._read(slice(0, n), names)
+        return [self._population(a, i) for i in range(n)], a
 
     def population(self, t: int) -> Population:
         """Population ``t`` (1-based)."""
@@ -904,12 +907,9 @@ def result_from_store(store: Store) -> Result:
     """The :class:`abcns.Result` of a store (finished or not): its attributes, then its
     complete populations and their counters in one read."""
     attrs = store.attrs
-    n = int(attrs["n_populations"])
-    if n == 0:
-        return result_of(attrs, [], 0, 0.0)
-    a = store._read(slice(0, n), (*_POPULATION_ARRAYS, "n_simulations_total"))
-    return result_of(attrs, [store._population(a, i) for i in range(n)], int(a["n_simulations_total"][-1]),
-                     float(a["elapsed_s"][-1]))
+    pops, a = store._records(int(attrs["n_populations"]), (*_POPULATION_ARRAYS, "n_simulations_total"))
+    total, elapsed = (int(a["n_simulations_total"][-1]), float(a["elapsed_s"][-1])) if pops else (0, 0.0)
+    return result_of(attrs, pops, total, elapsed)
 
 
 def dataset_result(ds: xr.Dataset) -> Result:
