@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -19,7 +18,7 @@ import xarray as xr
 import yaml
 from distributed import Client, LocalCluster
 
-from service.run.dask_executor import local_cluster
+from service.run.dask_executor import DaskExecutor, local_cluster
 from service.run.runner import run_job
 from service.run.store import Store, StoreError
 from service.spec import parse
@@ -160,27 +159,29 @@ def test_eight_workers_give_the_one_worker_result_also_when_stopped_and_resumed(
 
 
 def run_killing_workers(clusters, spec, out, n_victims: int, n_workers: int = 2) -> list[int]:
-    """Run the job on ``n_workers`` worker processes and SIGKILL ``n_victims`` of them inside
-    population 3; the nannies start new ones. Returns the killed pids."""
-    killed = []
+    """Run the job on ``n_workers`` worker processes and SIGKILL ``n_victims`` of them as
+    population 3 draws its first batch, before its tasks go to the cluster; the nannies start
+    new ones. Returns the killed pids. (The kill came from a thread 50 ms after population
+    2's progress callback: once the runs got faster, a run could end first, and nothing was
+    killed.)"""
+    killed: list[int] = []
     with pytest.MonkeyPatch.context() as mp, \
             clusters(n_workers) as client:
-        pids = client.run(os.getpid)
-        mp.setenv("ABCNS_STORE_INTERVAL_S", "0")  # population 2's callback comes as soon as it is done
+        victims = sorted(client.run(os.getpid).values())[:n_victims]
+        map_ = DaskExecutor.map
 
-        def on_population(progress):
-            if progress.population.t == 2 and not killed:
-                victims = sorted(pids.values())[:n_victims]
+        def map_killing(executor, draws):
+            def watched():
+                for draw in draws:
+                    if draw.population == 3 and not killed:
+                        for victim in victims:
+                            os.kill(victim, signal.SIGKILL)
+                            killed.append(victim)
+                    yield draw
+            return map_(executor, watched())
 
-                def kill():
-                    time.sleep(0.05)  # inside the next population
-                    for victim in victims:
-                        os.kill(victim, signal.SIGKILL)
-                        killed.append(victim)
-
-                threading.Thread(target=kill, daemon=True).start()
-
-        run_job(parse(yaml.safe_load(spec.read_text())), spec.parent, out, client, on_population=on_population)
+        mp.setattr(DaskExecutor, "map", map_killing)
+        run_job(parse(yaml.safe_load(spec.read_text())), spec.parent, out, client)
         assert len(killed) == n_victims
         alive = set(client.run(os.getpid).values())
         assert not alive & set(killed)  # they really died (the nannies started others)
