@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 from distributed import Client
@@ -149,11 +150,18 @@ class PopulationWriter:
     ones are computed; the progress callback runs once its population is in the store.
     Populations that come within ``interval_s`` (:func:`write_interval`) of the last append
     go in one append, so a job whose populations come fast pays about one append a
-    second, not one per population."""
+    second, not one per population.
 
-    def __init__(self, store: Store, job_key: str, on_population: Callable[[Progress], None] | None,
-                 interval_s: float):
-        self.store, self.job_key, self.on_population = store, job_key, on_population
+    ``store`` is either the store or, for a new one, the call that makes it: then it is made
+    on this thread first, while the run's first population goes to the cluster (making it
+    was ~50 ms before a run's first task); :attr:`store` holds it once :meth:`close` has
+    returned (None if making it failed: that error is the writer's)."""
+
+    def __init__(self, store: Store | Callable[[], Store], job_key: str,
+                 on_population: Callable[[Progress], None] | None, interval_s: float):
+        self.store: Store | None = store if isinstance(store, Store) else None
+        self._create = None if isinstance(store, Store) else store
+        self.job_key, self.on_population = job_key, on_population
         self.interval_s = interval_s
         self.queue: queue.SimpleQueue = queue.SimpleQueue()
         self.error: BaseException | None = None
@@ -176,6 +184,11 @@ class PopulationWriter:
             raise self.error
 
     def _run(self) -> None:
+        if self._create is not None:
+            try:
+                self.store = self._create()
+            except BaseException as err:  # handed to the runner's thread
+                self.error = err
         done = False
         while not done:
             items = [self.queue.get()]
@@ -192,6 +205,7 @@ class PopulationWriter:
             if not items or self.error is not None:
                 continue
             self.last_append = time.monotonic()
+            assert self.store is not None  # made, or self.error is set
             try:
                 self.store.append_many([(pop, total) for pop, total, _, _ in items])
                 infos = [info for _, _, info, _ in items if info is not None]
@@ -261,17 +275,11 @@ def run_job(
     if store is not None and store.attrs.get("status") == "finished" and store.attrs.get("stop_reason"):
         return result_from_store(store)
     history, n_simulations, elapsed_s, run_info = ([], 0, 0.0, {}) if store is None else _resumed(store, key)
-    if store is None:  # new, running, with the job's key: nothing to read back
-        store = _new_store(store_path, spec.model_dump(mode="json"), job, dhash, key)
+    # a new store (running, with the job's key) is made on the writer's thread meanwhile
+    new = partial(_new_store, store_path, spec.model_dump(mode="json"), job, dhash, key)
+    writer = PopulationWriter(store if store is not None else new, key, on_population, interval_s)
     budget = Budget(job.stop, cancel=cancel, n_simulations=n_simulations, elapsed_before_s=elapsed_s)
-    executor = (SerialExecutor(job.evaluate) if client is None
-                else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget,
-                                  evaluate=job.evaluate, local_s=local_s, alone=alone))
-    gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget,
-                  noise=job.noise)
-    start, sims_start = time.monotonic(), budget.n_simulations
-    writer = PopulationWriter(store, key, on_population, interval_s)
-    last = [start, 0.0]  # when the previous population ended, the workers' busy seconds then
+    executor: SerialExecutor | DaskExecutor | None = None
 
     def written(pop: Population) -> None:
         info = None
@@ -293,17 +301,26 @@ def run_job(
         writer.put(pop, budget.n_simulations, info, progress)
 
     try:
+        executor = (SerialExecutor(job.evaluate) if client is None
+                    else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget,
+                                      evaluate=job.evaluate, local_s=local_s, alone=alone))
+        gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget,
+                      noise=job.noise)
+        start, sims_start = time.monotonic(), budget.n_simulations
+        last = [start, 0.0]  # when the previous population ended, the workers' busy seconds then
         with frozen_heap():
             end = consume(gen, written)
         writer.close()
     except BaseException as err:
         writer.close(raise_error=False)  # what was computed is stored
-        store.set_status("failed", None, job_key=key, error=f"{type(err).__name__}: {err}")
+        if writer.store is not None:  # (None: making it failed)
+            writer.store.set_status("failed", None, job_key=key, error=f"{type(err).__name__}: {err}")
         raise
     finally:
         getattr(executor, "close", lambda: None)()  # the Dask executor releases the job's data
-    _record_end(store, key, end, run_info, budget)
-    return result_from_store(store)
+    assert writer.store is not None  # close() raised otherwise
+    _record_end(writer.store, key, end, run_info, budget)
+    return result_from_store(writer.store)
 
 
 def _resumed(store: Store, key: str) -> tuple[list[Population], int, float, dict]:
