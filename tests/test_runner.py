@@ -8,6 +8,7 @@ ms frozen); these tests check the mechanism (no timing)."""
 import gc
 import threading
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -103,3 +104,26 @@ def test_a_store_that_cannot_be_made_fails_the_run_with_its_own_error(tmp_path, 
     monkeypatch.setattr(runner, "_new_store", no_space)
     with pytest.raises(OSError, match="No space left on device"):
         run_job(parse(linear_demo_raw("full")), Path("/"), tmp_path / "full.zarr", None)
+
+
+@pytest.mark.parametrize(("interval_s", "appends"), [(0.0, [[1], [2], [3]]), (1.0, [[1, 2, 3]])])
+def test_populations_that_come_while_the_store_is_made_are_appended_as_the_interval_says(interval_s, appends):
+    """``ABCNS_STORE_INTERVAL_S=0`` writes every population on its own (the service's tests
+    rely on it: what was announced is what is stored), also those that came while the new
+    store was being made; with an interval they go in one append."""
+    made, written = threading.Event(), []
+
+    class Store:
+        def append_many(self, pops):
+            written.append([pop.t for pop, _ in pops])
+
+    def make():
+        made.wait(60)
+        return Store()
+
+    writer = runner.PopulationWriter(make, "key", None, interval_s)
+    for t in (1, 2, 3):
+        writer.put(SimpleNamespace(t=t), 10 * t, None, None)  # type: ignore[arg-type]
+    made.set()
+    writer.close()
+    assert written == appends

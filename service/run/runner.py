@@ -197,8 +197,8 @@ class PopulationWriter:
             # populations costs ~50-150 ms of CPU that the runner's own thread would miss)
             if items[0] is not None:  # (close() cuts the wait short)
                 self.closing.wait(max(0.0, self.last_append + self.interval_s - time.monotonic()))
-            while items[-1] is not None and not self.queue.empty():
-                items.append(self.queue.get())
+            while items[-1] is not None and self.interval_s > 0 and not self.queue.empty():
+                items.append(self.queue.get())  # (interval 0: every population its own append)
             if items[-1] is None:
                 done = True
                 items.pop()
