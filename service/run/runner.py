@@ -300,27 +300,27 @@ def run_job(
                             (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0, workers, efficiency)
         writer.put(pop, budget.n_simulations, info, progress)
 
-    try:
-        executor = (SerialExecutor(job.evaluate) if client is None
-                    else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget,
-                                      evaluate=job.evaluate, local_s=local_s, alone=alone))
-        gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget,
-                      noise=job.noise)
-        start, sims_start = time.monotonic(), budget.n_simulations
-        last = [start, 0.0]  # when the previous population ended, the workers' busy seconds then
-        with frozen_heap():
+    with frozen_heap():  # to the end: a full pass over the heap handed back stalled the last append ~140 ms
+        try:
+            executor = (SerialExecutor(job.evaluate) if client is None
+                        else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget,
+                                          evaluate=job.evaluate, local_s=local_s, alone=alone))
+            gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget,
+                          noise=job.noise)
+            start, sims_start = time.monotonic(), budget.n_simulations
+            last = [start, 0.0]  # when the previous population ended, the workers' busy seconds then
             end = consume(gen, written)
-        writer.close()
-    except BaseException as err:
-        writer.close(raise_error=False)  # what was computed is stored
-        if writer.store is not None:  # (None: making it failed)
-            writer.store.set_status("failed", None, job_key=key, error=f"{type(err).__name__}: {err}")
-        raise
-    finally:
-        getattr(executor, "close", lambda: None)()  # the Dask executor releases the job's data
-    assert writer.store is not None  # close() raised otherwise
-    _record_end(writer.store, key, end, run_info, budget)
-    return result_from_store(writer.store)
+            writer.close()
+        except BaseException as err:
+            writer.close(raise_error=False)  # what was computed is stored
+            if writer.store is not None:  # (None: making it failed)
+                writer.store.set_status("failed", None, job_key=key, error=f"{type(err).__name__}: {err}")
+            raise
+        finally:
+            getattr(executor, "close", lambda: None)()  # the Dask executor releases the job's data
+        assert writer.store is not None  # close() raised otherwise
+        _record_end(writer.store, key, end, run_info, budget)
+        return result_from_store(writer.store)
 
 
 def _resumed(store: Store, key: str) -> tuple[list[Population], int, float, dict]:
