@@ -853,7 +853,7 @@ def model_view(ds: xr.Dataset, model: str) -> xr.Dataset:
 
 def _read_attrs(path: Path) -> dict:
     """The group's attributes, decoded, from its ``zarr.json`` read as JSON: zarr's
-    ``open_group`` also parses the consolidated metadata of every array (~8 ms a call, on
+    ``open_group`` also parses the consolidated metadata of every array (~5 ms a call, on
     every append and every status request)."""
     if not path.exists():
         raise StoreNotFound(f"no result store at {path}: the path does not exist")
