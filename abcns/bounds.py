@@ -354,8 +354,9 @@ def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.rando
     n_in = int(np.count_nonzero(inside & uniform))
     held = 0
     for train, test in (halves, halves[::-1]):
-        fold = tuple(ell.enlarge(ell.fit(points[rows], fallback=e), enlargement)
-                     for rows, e in zip(train, bound, strict=True) if rows.size)
+        fitted = [(rows, e) for rows, e in zip(train, bound, strict=True) if rows.size]
+        fold = tuple(ell.enlarge_many(ell.fit_many([points[rows] for rows, _ in fitted], [e for _, e in fitted]),
+                                      enlargement)) if fitted else ()
         rows = np.concatenate(test)
         rows = rows[uniform[rows]]
         if fold and rows.size:

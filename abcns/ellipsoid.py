@@ -274,11 +274,12 @@ def fit(
 
 def fit_many(
     point_sets: Sequence[np.ndarray],
-    fallback: Ellipsoid | Callable[[], Ellipsoid] | None = None,
+    fallback: Ellipsoid | Callable[[], Ellipsoid] | Sequence[Ellipsoid] | None = None,
     max_condition: float = MAX_CONDITION,
 ) -> list[Ellipsoid]:
     """:func:`fit` of each set of points (of one dimension), the matrix steps stacked.
-    ``fallback`` may be a function that makes it, called only if a set needs it."""
+    ``fallback`` may be a function that makes it, called only if a set needs it, or one
+    fallback per set."""
     sets = [np.atleast_2d(np.asarray(p, dtype=float)) for p in point_sets]
     d = sets[0].shape[1]
     for p in sets:
@@ -295,15 +296,18 @@ def fit_many(
         for i, r in zip(shaped, _repair(covs, max_condition, [scales[i] for i in shaped]), strict=True):
             repaired[i] = r
     shapes, notes = [], []
-    for p, r in zip(sets, repaired, strict=True):
+    each = fallback if isinstance(fallback, Sequence) else None
+    for i, (p, r) in enumerate(zip(sets, repaired, strict=True)):
         if r is None:
             if callable(fallback):
                 fallback = fallback()
-            if fallback is None:
+            fb = each[i] if each is not None else fallback
+            if fb is None:
                 raise ValueError(f"{p.shape[0]} points in {d} dimensions define no ellipsoid and no fallback was given")
-            if fallback.n_dim != d:
-                raise ValueError(f"fallback has {fallback.n_dim} dimensions, points have {d}")
-            shapes.append(fallback.matrix)
+            assert isinstance(fb, Ellipsoid)
+            if fb.n_dim != d:
+                raise ValueError(f"fallback has {fb.n_dim} dimensions, points have {d}")
+            shapes.append(fb.matrix)
             notes.append("fallback")
         else:
             shapes.append(r[0])

@@ -110,3 +110,18 @@ def test_n_containing_is_the_solve_count_exactly():
         np.testing.assert_array_equal(ell.n_containing(ells, x), expected)
         paths.add(ell._n_containing_fast(ells, x) is None)
     assert paths == {True, False}  # both the fast path and the fallback were exercised
+
+
+def test_fit_many_with_a_fallback_per_set_is_each_fit_bit_for_bit():
+    """The coverage's half-fits go through one stacked ``fit_many``, each set with its own
+    fallback (its ellipsoid of the bound): the same bits as fitting each set alone, also a
+    set too small to define a shape (its fallback's matrix, scaled to hold its points)."""
+    rng = np.random.default_rng(3)
+    sets = [rng.normal(size=(40, 3)), rng.normal(size=(2, 3)) + 5.0, 2.0 * rng.normal(size=(25, 3))]
+    fallbacks = [ell.from_box(np.zeros(3), np.full(3, k)) for k in (1.0, 2.0, 3.0)]
+    together = ell.fit_many(sets, fallbacks)
+    for got, points, fallback in zip(together, sets, fallbacks, strict=True):
+        alone = ell.fit(points, fallback=fallback)
+        assert np.array_equal(got.centre, alone.centre) and np.array_equal(got.matrix, alone.matrix)
+        assert got.note == alone.note
+    assert together[1].note == "fallback"
