@@ -298,8 +298,9 @@ class Stream:
         ``c (1 - 1/W)`` of it and pay the executor's ``local_s`` in round trips, so the
         population stays here when ``c <= local_s W / (W - 1)``, and never when ``c`` exceeds
         ``2 local_s`` (one worker too: the runner's process is no place for dear
-        simulations), nor while other runs share this process. Decided once, before anything is submitted; the first population
-        (nothing measured yet) goes to the cluster. Where a batch runs changes no result."""
+        simulations), nor while other runs share this process. Decided once, before anything
+        is submitted; the first population (nothing measured yet) goes to the cluster. Where a
+        batch runs changes no result."""
         if self.local is None:
             ex, w = self.ex, self.n_workers
             cost = None if ex.batch_seconds is None or ex.expected is None else ex.expected * ex.batch_seconds

@@ -276,8 +276,8 @@ def run_job(
         return result_from_store(store)
     history, n_simulations, elapsed_s, run_info = ([], 0, 0.0, {}) if store is None else _resumed(store, key)
     # a new store (running, with the job's key) is made on the writer's thread meanwhile
-    new = partial(_new_store, store_path, spec.model_dump(mode="json"), job, dhash, key)
-    writer = PopulationWriter(store if store is not None else new, key, on_population, interval_s)
+    writer = PopulationWriter(store if store is not None else partial(_new_store, store_path, spec.model_dump(mode="json"),
+                                                                      job, dhash, key), key, on_population, interval_s)
     budget = Budget(job.stop, cancel=cancel, n_simulations=n_simulations, elapsed_before_s=elapsed_s)
     executor: SerialExecutor | DaskExecutor | None = None
 

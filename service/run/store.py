@@ -547,9 +547,7 @@ class Store:
 
     async def _write_rows(self, rows: dict[str, np.ndarray], n: int) -> None:
         k = len(rows["population"])
-        group = await zarr.api.asynchronous.open_group(store=str(self.path), mode="r+", zarr_format=3)
-        members = await asyncio.gather(*(group.getitem(name) for name in rows))
-        arrays = cast(list[zarr.AsyncArray[Any]], members)  # a store's group holds arrays only
+        _, arrays = await self._arrays("r+", list(rows))
         await asyncio.gather(*(arr.resize((n + k, *arr.shape[1:])) for arr in arrays))
         await asyncio.gather(*(arr.setitem(slice(n, n + k), value) for arr, value in zip(arrays, rows.values(), strict=True)))
 
@@ -654,13 +652,20 @@ class Store:
         return sync(self._read_rows(rows, names))
 
     async def _read_rows(self, rows: slice, names: Sequence[str]) -> dict[str, np.ndarray]:
-        group = await zarr.api.asynchronous.open_group(store=str(self.path), mode="r", zarr_format=3)
-        present = {name async for name in group.array_keys()}
-        names = [name for name in names if name in present]
-        members = await asyncio.gather(*(group.getitem(name) for name in names))
-        arrays = cast(list[zarr.AsyncArray[Any]], members)  # a store's group holds arrays only
+        names, arrays = await self._arrays("r", names, present_only=True)
         values = await asyncio.gather(*(arr.getitem(rows) for arr in arrays))
         return {name: np.asarray(value) for name, value in zip(names, values, strict=True)}
+
+    async def _arrays(self, mode: Literal["r", "r+"], names: Sequence[str],
+                      present_only: bool = False) -> tuple[list[str], list[zarr.AsyncArray[Any]]]:
+        """The store's arrays ``names`` (with ``present_only``, those of them it has), opened
+        together: (their names, the arrays)."""
+        group = await zarr.api.asynchronous.open_group(store=str(self.path), mode=mode, zarr_format=3)
+        if present_only:
+            present = {name async for name in group.array_keys()}
+            names = [name for name in names if name in present]
+        members = await asyncio.gather(*(group.getitem(name) for name in names))
+        return list(names), cast(list[zarr.AsyncArray[Any]], members)  # a store's group holds arrays only
 
     def _population(self, a: dict[str, np.ndarray], i: int) -> Population:
         fields: dict[str, Any] = {}
