@@ -124,10 +124,10 @@ def fit_union(points: np.ndarray, enlargement: float, max_ellipsoids: int, fallb
             points = points[~far]
         sets = _tree_sets(points, max_ellipsoids)
     if sets is None or len(sets) == 1:
-        chosen = [ell.fit(points, fallback=fallback)]
-    else:  # the points' own ellipsoid is the sets' fallback shape, made only if one needs it
-        chosen = ell.fit_many([points[r] for r in sets], fallback=lambda: ell.fit(points, fallback=fallback))
-    return tuple(ell.enlarge_many(chosen, enlargement))
+        return tuple(ell.fit_many([points], fallback, enlargement=enlargement))
+    # the points' own ellipsoid is the sets' fallback shape, made only if one needs it
+    return tuple(ell.fit_many([points[r] for r in sets], fallback=lambda: ell.fit(points, fallback=fallback),
+                              enlargement=enlargement))
 
 
 def n_inside(bound: Union, x: np.ndarray) -> np.ndarray:
@@ -245,10 +245,9 @@ def union_volume(bound: Union, box: tuple[np.ndarray, np.ndarray], n_draws: int,
 
     low, high = (np.broadcast_to(np.asarray(v, dtype=float), (bound[0].n_dim,)) for v in box)
     which, z, u = _mixture_draws(bound, n_draws, rng)
-    w, ok = compiled.mixture_weights(which, z, u[:, 0],
-                                     np.stack([e.centre for e in bound]), np.stack([e.axes for e in bound]),
-                                     np.ascontiguousarray(low), np.ascontiguousarray(high), ell.CONTAINS_SLACK,
-                                     len(bound) > 1)
+    axes, centres = ell.stacked(bound)
+    w, ok = compiled.mixture_weights(which, z, u[:, 0], centres, axes, np.ascontiguousarray(low),
+                                     np.ascontiguousarray(high), ell.CONTAINS_SLACK, len(bound) > 1)
     if not ok or within:
         x = _place(bound, which, z, u)
     if not ok:
@@ -355,8 +354,8 @@ def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.rando
     held = 0
     for train, test in (halves, halves[::-1]):
         fitted = [(rows, e) for rows, e in zip(train, bound, strict=True) if rows.size]
-        fold = tuple(ell.enlarge_many(ell.fit_many([points[rows] for rows, _ in fitted], [e for _, e in fitted]),
-                                      enlargement)) if fitted else ()
+        fold = tuple(ell.fit_many([points[rows] for rows, _ in fitted], [e for _, e in fitted],
+                                  enlargement=enlargement)) if fitted else ()
         rows = np.concatenate(test)
         rows = rows[uniform[rows]]
         if fold and rows.size:

@@ -72,9 +72,9 @@ def from_matrices(centres: Sequence[np.ndarray], matrices: Sequence[np.ndarray],
     stack = np.stack(ms)
     stack = 0.5 * (stack + stack.transpose(0, 2, 1))
     eigval, eigvec = np.linalg.eigh(stack)
-    for ev in eigval:
-        if not np.isfinite(ev).all() or ev[0] <= 0.0:
-            raise ValueError(f"ellipsoid matrix must be positive definite; eigenvalues {ev}")
+    bad = np.flatnonzero(~(np.isfinite(eigval).all(axis=1) & (eigval[:, 0] > 0.0)))
+    if bad.size:
+        raise ValueError(f"ellipsoid matrix must be positive definite; eigenvalues {eigval[bad[0]]}")
     axes = eigvec * np.sqrt(eigval)[:, None, :]
     log_det = np.sum(np.log(eigval), axis=1)
     lub = _log_unit_ball(d)
@@ -90,12 +90,27 @@ def from_box(low: np.ndarray, high: np.ndarray) -> Ellipsoid:
     return from_matrix(0.5 * (low + high), np.diag(d * half**2), note="box")
 
 
+def stacked(ells: Sequence[Ellipsoid]) -> tuple[np.ndarray, np.ndarray]:
+    """(axes (k, d, d), centres (k, d)) of ``ells``, stacked as floats (read-only). A tuple's
+    (a bound: immutable) are kept for its next calls, the last 256 by identity."""
+    return _stacked_tuple(ells) if isinstance(ells, tuple) else _stack(ells)
+
+
+def _stack(ells: Sequence[Ellipsoid]) -> tuple[np.ndarray, np.ndarray]:
+    axes = np.stack([e.axes for e in ells]).astype(float, copy=False)
+    centres = np.stack([e.centre for e in ells]).astype(float, copy=False)
+    axes.flags.writeable = centres.flags.writeable = False
+    return axes, centres
+
+
+_stacked_tuple = functools.lru_cache(maxsize=256)(_stack)
+
+
 def mahalanobis2_each(ells: Sequence[Ellipsoid], x: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distances (k, n) of the rows of ``x`` (n, d) to each of ``k``
     ellipsoids of the same dimension, in one stacked solve (LAPACK solves each matrix as it
     would alone: the same bits as one call per ellipsoid)."""
-    axes = np.stack([e.axes for e in ells])
-    centres = np.stack([e.centre for e in ells])
+    axes, centres = stacked(ells)
     diff = np.atleast_2d(x)[None, :, :] - centres[:, None, :]  # (k, n, d)
     y = np.linalg.solve(axes, diff.transpose(0, 2, 1))  # (k, d, n)
     y *= y
@@ -161,8 +176,7 @@ def _n_containing_fast(ells: Sequence[Ellipsoid], x: np.ndarray) -> np.ndarray |
     from abcns import compiled
 
     try:  # on a bad shape or a singular matrix, the exact path raises its own error
-        axes = np.stack([e.axes for e in ells]).astype(float, copy=False)
-        centres = np.stack([e.centre for e in ells]).astype(float, copy=False)
+        axes, centres = stacked(ells)
         if axes.shape[1:] != (x.shape[1], x.shape[1]) or centres.shape[1] != x.shape[1]:
             return None
         counts, ok = compiled.count_inside(np.ascontiguousarray(x.T, dtype=float), axes, centres, CONTAINS_SLACK)
@@ -276,10 +290,13 @@ def fit_many(
     point_sets: Sequence[np.ndarray],
     fallback: Ellipsoid | Callable[[], Ellipsoid] | Sequence[Ellipsoid] | None = None,
     max_condition: float = MAX_CONDITION,
+    enlargement: float | None = None,
 ) -> list[Ellipsoid]:
     """:func:`fit` of each set of points (of one dimension), the matrix steps stacked.
     ``fallback`` may be a function that makes it, called only if a set needs it, or one
-    fallback per set."""
+    fallback per set. With ``enlargement``, each fit enlarged by it: ``enlarge_many(fit_many(
+    ...), enlargement)``, bit for bit, without making the fits themselves (an ellipsoid's
+    matrix is the symmetrised one it is made from, and enlarging multiplies that)."""
     sets = [np.atleast_2d(np.asarray(p, dtype=float)) for p in point_sets]
     d = sets[0].shape[1]
     for p in sets:
@@ -321,4 +338,9 @@ def fit_many(
         elif not scale > 0.0:  # every point at the centre: keep the covariance shape as is
             scale = 1.0
         grown.append(shape * scale * (1.0 + 1e-10))
-    return from_matrices(centres, grown, notes)
+    if enlargement is None:
+        return from_matrices(centres, grown, notes)
+    if not enlargement > 0:
+        raise ValueError(f"enlargement factor must be > 0, got {enlargement}")
+    stack = np.stack(grown)
+    return from_matrices(centres, list(0.5 * (stack + stack.transpose(0, 2, 1)) * enlargement), notes)

@@ -42,6 +42,7 @@ exactly those of the published algorithm.
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass
@@ -288,6 +289,13 @@ class BoundProposer:
     # in the previous one, whose carried rows are no proposals of it)
     within: tuple[bd.Chain | None, ...] = ()
 
+    @functools.cached_property
+    def _cdf(self) -> np.ndarray:
+        """``allocation``'s cumulative shares (:func:`bounds.cumulative`), made once for every
+        batch the proposer draws."""
+        assert self.allocation is not None
+        return bd.cumulative(self.allocation)
+
     def region(self, m: int) -> Callable[[np.ndarray], np.ndarray]:
         """The test of model m's region but for its own union: the prior box (``in_prior``,
         raw parameters) and each union of its chain (in the frame)."""
@@ -314,7 +322,7 @@ class BoundProposer:
         if self.allocation is None:
             which = np.asarray(alive, dtype=np.int16)[rng.integers(len(alive), size=n)]
         else:  # rng.choice(len(models), size=n, p=allocation), by its own numbers
-            which = bd.choose(bd.cumulative(self.allocation), n, rng).astype(np.int16)
+            which = bd.choose(self._cdf, n, rng).astype(np.int16)
         theta = pad(self.models, n)
         redraws = np.zeros(n, dtype=np.int64)
         for m in alive:

@@ -85,8 +85,7 @@ class Paper:
 
     def bound(self, points: np.ndarray, survivors: np.ndarray, fallback: ell.Ellipsoid) -> bd.Union:
         """One ellipsoid fitted to the survivors (raw units), enlarged by f0."""
-        fitted = ell.fit(survivors, fallback=fallback)
-        return (ell.enlarge(fitted, self.settings.enlargement),)
+        return tuple(ell.fit_many([survivors], fallback, enlargement=self.settings.enlargement))
 
     #: the bound is not a fit of every point below eps_{t+1}: its coverage is the share it holds
     cross_validated = False

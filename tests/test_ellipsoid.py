@@ -125,3 +125,24 @@ def test_fit_many_with_a_fallback_per_set_is_each_fit_bit_for_bit():
         assert np.array_equal(got.centre, alone.centre) and np.array_equal(got.matrix, alone.matrix)
         assert got.note == alone.note
     assert together[1].note == "fallback"
+
+
+def test_fit_many_enlarged_is_the_fits_enlarged_bit_for_bit():
+    """A bound's ellipsoids (``bounds.fit_union``), the coverage's half-fits and the paper's one
+    ellipsoid are fits enlarged by f0; ``fit_many(..., enlargement=f0)`` makes them without
+    making the fits first: every field the same bits as ``enlarge_many(fit_many(...), f0)``,
+    a repaired (collinear) set and a fallback included."""
+    rng = np.random.default_rng(4)
+    line = np.outer(rng.normal(size=30), [1.0, 2.0, -1.0]) + 1e-14 * rng.normal(size=(30, 3))
+    sets = [rng.normal(size=(40, 3)), rng.normal(size=(2, 3)) + 5.0, line]
+    fallback = ell.from_box(np.zeros(3), np.full(3, 2.0))
+    for f0 in (1.1, 1.0, 0.7):
+        direct = ell.fit_many(sets, fallback, enlargement=f0)
+        after = ell.enlarge_many(ell.fit_many(sets, fallback), f0)
+        for a, b in zip(direct, after, strict=True):
+            for field in ("centre", "matrix", "axes"):
+                assert np.array_equal(getattr(a, field), getattr(b, field)), (f0, field)
+            assert a.log_volume == b.log_volume and a.note == b.note
+    assert [e.note for e in direct] == ["", "fallback", "repaired"]
+    with pytest.raises(ValueError, match="enlargement factor must be > 0"):
+        ell.fit_many(sets, fallback, enlargement=0.0)
