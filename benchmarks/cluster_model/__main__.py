@@ -51,10 +51,10 @@ def main(argv: list[str] | None = None) -> int:
             print_sensitivity()
         return 0 if ok else 1
     if args.command == "study":
-        from benchmarks.cluster_model.study import DESIGNS, SCENARIOS, WORKERS, design_study
+        from benchmarks.cluster_model.study import DESIGNS, QUICK, SCENARIOS, WORKERS, design_study
 
         workers = args.workers or ([1, 8, 14, 64, 256] if args.quick else WORKERS)
-        designs = [DESIGNS[0], DESIGNS[2], DESIGNS[4], DESIGNS[7]] if args.quick else DESIGNS
+        designs = [DESIGNS[i] for i in QUICK] if args.quick else DESIGNS
         chosen = SCENARIOS if args.scenarios is None else [SCENARIOS[i - 1] for i in _ints(args.scenarios)]
         design_study(workers, designs, chosen)
         return 0
