@@ -91,16 +91,16 @@ def from_box(low: np.ndarray, high: np.ndarray) -> Ellipsoid:
 
 
 def stacked(ells: Sequence[Ellipsoid]) -> tuple[np.ndarray, np.ndarray]:
-    """(axes (k, d, d), centres (k, d)) of ``ells``, stacked as floats (read-only). A tuple's
-    (a bound: immutable) are kept for its next calls, the last 256 by identity."""
+    """(axes (k, d, d), centres (k, d)) of ``ells``, stacked as floats, never to be written to:
+    a tuple's (a bound: immutable) are kept for its next calls, the last 256 by identity.
+    (Not flagged read-only: numba would compile its kernels once more for such arrays, ~1.4 s
+    on a cold cache.)"""
     return _stacked_tuple(ells) if isinstance(ells, tuple) else _stack(ells)
 
 
 def _stack(ells: Sequence[Ellipsoid]) -> tuple[np.ndarray, np.ndarray]:
-    axes = np.stack([e.axes for e in ells]).astype(float, copy=False)
-    centres = np.stack([e.centre for e in ells]).astype(float, copy=False)
-    axes.flags.writeable = centres.flags.writeable = False
-    return axes, centres
+    return (np.stack([e.axes for e in ells]).astype(float, copy=False),
+            np.stack([e.centre for e in ells]).astype(float, copy=False))
 
 
 _stacked_tuple = functools.lru_cache(maxsize=256)(_stack)
