@@ -297,6 +297,8 @@ def fit_many(
     fallback per set. With ``enlargement``, each fit enlarged by it: ``enlarge_many(fit_many(
     ...), enlargement)``, bit for bit, without making the fits themselves (an ellipsoid's
     matrix is the symmetrised one it is made from, and enlarging multiplies that)."""
+    if enlargement is not None and not enlargement > 0:
+        raise ValueError(f"enlargement factor must be > 0, got {enlargement}")
     sets = [np.atleast_2d(np.asarray(p, dtype=float)) for p in point_sets]
     d = sets[0].shape[1]
     for p in sets:
@@ -340,7 +342,5 @@ def fit_many(
         grown.append(shape * scale * (1.0 + 1e-10))
     if enlargement is None:
         return from_matrices(centres, grown, notes)
-    if not enlargement > 0:
-        raise ValueError(f"enlargement factor must be > 0, got {enlargement}")
     stack = np.stack(grown)
     return from_matrices(centres, list(0.5 * (stack + stack.transpose(0, 2, 1)) * enlargement), notes)
