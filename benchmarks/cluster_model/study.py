@@ -207,7 +207,7 @@ def print_validation() -> bool:
 WORKERS = [1, 2, 4, 8, 14, 16, 32, 64, 128, 256, 512, 1024]
 
 #: (label, trace, seconds per simulation): traces recorded with today's step (the N = 1000 ones
-#: in the last 16-core session, the rest after it; `record --particles N [--batch-size B]`)
+#: at 3d82148, the rest at c90f968; `record --particles N [--batch-size B]`)
 SCENARIOS = [
     ("N = 1000, 20 ms, batch 25", "evidence-1000-warm", 0.020),
     ("N = 1000, 2 ms, batch 25", "evidence-1000-warm", 0.002),
