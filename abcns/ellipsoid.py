@@ -195,9 +195,22 @@ def enlarge(ell: Ellipsoid, f0: float) -> Ellipsoid:
 
 def enlarge_many(ells: Sequence[Ellipsoid], f0: float) -> list[Ellipsoid]:
     """:func:`enlarge` of each (one stacked :func:`from_matrices`)."""
+    _check_enlargement(f0)
+    return _enlarged([e.centre for e in ells], [e.matrix for e in ells], [e.note for e in ells], f0)
+
+
+def _check_enlargement(f0: float) -> None:
     if not f0 > 0:
         raise ValueError(f"enlargement factor must be > 0, got {f0}")
-    return from_matrices([e.centre for e in ells], [e.matrix * f0 for e in ells], [e.note for e in ells])
+
+
+def _enlarged(centres: Sequence[np.ndarray], matrices: Sequence[np.ndarray], notes: Sequence[str],
+              f0: float) -> list[Ellipsoid]:
+    """The ellipsoids :func:`from_matrices` makes of ``matrices``, enlarged by ``f0``: each
+    matrix symmetrised as ``from_matrices`` does (an ellipsoid's matrix already is: the same
+    bits), times f0."""
+    stack = np.stack(matrices)
+    return from_matrices(centres, list(0.5 * (stack + stack.transpose(0, 2, 1)) * f0), notes)
 
 
 def sample(ell: Ellipsoid, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -297,8 +310,8 @@ def fit_many(
     fallback per set. With ``enlargement``, each fit enlarged by it: ``enlarge_many(fit_many(
     ...), enlargement)``, bit for bit, without making the fits themselves (an ellipsoid's
     matrix is the symmetrised one it is made from, and enlarging multiplies that)."""
-    if enlargement is not None and not enlargement > 0:
-        raise ValueError(f"enlargement factor must be > 0, got {enlargement}")
+    if enlargement is not None:
+        _check_enlargement(enlargement)
     sets = [np.atleast_2d(np.asarray(p, dtype=float)) for p in point_sets]
     d = sets[0].shape[1]
     for p in sets:
@@ -340,7 +353,4 @@ def fit_many(
         elif not scale > 0.0:  # every point at the centre: keep the covariance shape as is
             scale = 1.0
         grown.append(shape * scale * (1.0 + 1e-10))
-    if enlargement is None:
-        return from_matrices(centres, grown, notes)
-    stack = np.stack(grown)
-    return from_matrices(centres, list(0.5 * (stack + stack.transpose(0, 2, 1)) * enlargement), notes)
+    return from_matrices(centres, grown, notes) if enlargement is None else _enlarged(centres, grown, notes, enlargement)
