@@ -55,7 +55,9 @@ cluster the scheduler's process is measured separately (psutil). *workers CPU*: 
 processes' CPU time (psutil, through ``client.run``; nannies not counted). *Dask floor*:
 the same cluster running only the job's pattern of tasks that sleep (:func:`dask_floor`),
 its efficiency and Dask's own CPU per task there (this process, with a stock scheduler's;
-the workers).
+the workers). *No-barrier floor*: the same tasks submitted at once, no population between
+them (``dask_floor(barrier=False)``): the ceiling of any design that runs the job's batches
+as Dask tasks, look-ahead of any kind included.
 
 ``--timeline``: each sleepy row also taken apart from Dask's task stream (:func:`timeline`):
 the time before population 1's first task (the store created, the job's data and first
@@ -162,20 +164,29 @@ def _sleep(seconds: float) -> float:
     return seconds
 
 
-def dask_floor(client: Client, pids: list[int], units: int, rounds: int, seconds: float) -> tuple[float, float, float]:
+def dask_floor(client: Client, pids: list[int], units: int, rounds: int, seconds: float,
+               barrier: bool = True) -> tuple[float, float, float]:
     """Efficiency of Dask alone on this run's pattern of work: ``rounds`` populations of
     ``units`` tasks that only sleep ``seconds`` (a batch of the sleepy simulator, without the
     simulator, the algorithm or the store), each population submitted at once and gathered
     as its tasks complete, the next one after the last. The best a population loop on Dask
     tasks can do on this cluster. Also Dask's own CPU per task there, in ms: this process
     (client, and a LocalCluster's scheduler) with ``pids`` (a stock scheduler), and the
-    workers (sleeping costs nothing: the rest is Dask's)."""
+    workers (sleeping costs nothing: the rest is Dask's).
+
+    ``barrier=False``: the same ``rounds x units`` tasks submitted at once and gathered,
+    no population between them: what Dask gives this much work in tasks of this size with
+    no runner and no barrier, the ceiling of any design that runs the job's batches as Dask
+    tasks (perfect look-ahead included)."""
     n = max(1, sum(client.nthreads().values()))
+    tag = "abcns-floor" if barrier else "abcns-stream"
     for warm in (True, False):
         cpu0, other0, workers0 = time.process_time(), _proc_cpu(pids), workers_cpu(client)
         start = time.perf_counter()
-        for r in range(1 if warm else rounds):
-            futures = client.map(_sleep, [seconds] * units, key=[("abcns-floor", int(warm), r, i) for i in range(units)],
+        waves = 1 if warm else (rounds if barrier else 1)
+        size = units if warm or barrier else rounds * units
+        for r in range(waves):
+            futures = client.map(_sleep, [seconds] * size, key=[(tag, int(warm), r, i) for i in range(size)],
                                  pure=False)
             for _ in as_completed(futures, with_results=True):
                 pass
@@ -358,11 +369,10 @@ def sleepy_table(title: str, cluster: Callable, counts: list[int], spec: JobSpec
           f"{engine:.0f} µs CPU per simulation, of which the evaluator {kernel:.0f}")
     sched = " scheduler CPU µs/sim |" if stock else ""
     print(f"| workers | simulations | carried, dropped | executed | wall s | sims/s | ideal sims/s | efficiency | "
-          f"efficiency of proposals | steady | Dask floor | "
+          f"efficiency of proposals | steady | Dask floor | no-barrier floor | "
           f"runner CPU µs/sim |{sched} workers CPU µs/sim | Dask floor CPU ms/task: runner{' + scheduler' if stock else ''}, "
           f"workers | start-up s | load |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if stock else "") + "---:|---:|---:|---:|",
-          flush=True)
+    print("|" + "---:|" * (17 + stock), flush=True)
     timelines = []
     for n in counts:
         with cluster(n) as (client, pids, startup):
@@ -372,11 +382,13 @@ def sleepy_table(title: str, cluster: Callable, counts: list[int], spec: JobSpec
             units = round(r["simulations"] / (r["populations"] * spec.sampler.batch_size))
             floor, floor_runner, floor_workers = (np.nan,) * 3 if skip_floor else dask_floor(
                 client, pids, units, r["populations"], spec.sampler.batch_size * sleepy.SECONDS)
+            stream = np.nan if skip_floor else dask_floor(client, pids, units, r["populations"],
+                                                          spec.sampler.batch_size * sleepy.SECONDS, barrier=False)[0]
         ideal = n / sleepy.SECONDS  # simulations/s of n workers that only sleep
         extra = f" {r['other_us']:.0f} |" if stock else ""
         useful = (r["simulations"] - r["dropped"]) / r["wall"] / ideal
         print(f"| {n} | {r['simulations']} | {r['dropped']} | {r['executed']} | {r['wall']:.2f} | {r['rate']:.0f} | "
-              f"{ideal:.0f} | {r['rate'] / ideal:.2f} | {useful:.2f} | {r['steady'] / ideal:.2f} | {floor:.2f} | "
+              f"{ideal:.0f} | {r['rate'] / ideal:.2f} | {useful:.2f} | {r['steady'] / ideal:.2f} | {floor:.2f} | {stream:.2f} | "
               f"{r['runner_us']:.0f} |{extra} "
               f"{r['workers_us']:.0f} | {floor_runner:.1f}, {floor_workers:.1f} | {startup:.1f} | {r['load']:.1f} |",
               flush=True)
