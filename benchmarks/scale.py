@@ -183,9 +183,8 @@ def dask_floor(client: Client, pids: list[int], units: int, rounds: int, seconds
     for warm in (True, False):
         cpu0, other0, workers0 = time.process_time(), _proc_cpu(pids), workers_cpu(client)
         start = time.perf_counter()
-        waves = 1 if warm else (rounds if barrier else 1)
-        size = units if warm or barrier else rounds * units
-        for r in range(waves):
+        waves = [units] if warm else [units] * rounds if barrier else [rounds * units]  # tasks submitted at once
+        for r, size in enumerate(waves):
             futures = client.map(_sleep, [seconds] * size, key=[(tag, int(warm), r, i) for i in range(size)],
                                  pure=False)
             for _ in as_completed(futures, with_results=True):
