@@ -328,12 +328,11 @@ def fit_many(
         for i, r in zip(shaped, _repair(covs, max_condition, [scales[i] for i in shaped]), strict=True):
             repaired[i] = r
     shapes, notes = [], []
-    each = fallback if isinstance(fallback, Sequence) else None
     for i, (p, r) in enumerate(zip(sets, repaired, strict=True)):
         if r is None:
             if callable(fallback):
                 fallback = fallback()
-            fb = each[i] if each is not None else fallback
+            fb = fallback[i] if isinstance(fallback, Sequence) else fallback
             if fb is None:
                 raise ValueError(f"{p.shape[0]} points in {d} dimensions define no ellipsoid and no fallback was given")
             assert isinstance(fb, Ellipsoid)
