@@ -142,15 +142,23 @@ def probabilities(log_z: np.ndarray, log_z_se: np.ndarray) -> tuple[np.ndarray, 
     return p, np.sqrt(var)
 
 
-def allocation(p: np.ndarray, acceptance: np.ndarray, alive: np.ndarray, floor: float) -> np.ndarray:
-    """Proposal probabilities for the next population: proportional to p_m / a_m (so the
-    accepted new particles follow the model probabilities), mixed with the uniform choice so
-    every alive model gets at least ``floor`` (at most half of the proposals in all)."""
+def allocation(p: np.ndarray, acceptance: np.ndarray, alive: np.ndarray, floor: float,
+               least: np.ndarray | None = None) -> np.ndarray:
+    """Proposal probabilities for the next population: proportional to s_m / a_m (so the
+    accepted new particles follow the shares s), mixed with the uniform choice so every alive
+    model gets at least ``floor`` of the proposals (at most half of them in all). s is the
+    model probabilities ``p``, each raised to ``least`` (a model's least share of the new
+    particles, at most 1 / (2 n_alive) each), so a rare model keeps enough new particles for
+    its bound and its evidence (:data:`abcns.settings.LEAST_NEW_PER_DIMENSION`)."""
     n_alive = int(np.count_nonzero(alive))
     out = np.zeros(p.shape)
     if n_alive == 0:
         return out
-    want = np.where(alive, p / np.clip(acceptance, 0.01, 1.0), 0.0)
+    share = np.where(alive, p, 0.0)
+    if least is not None and share.sum() > 0:
+        share = share / share.sum()
+        share = np.where(alive, np.maximum(share, np.minimum(least, 0.5 / n_alive)), 0.0)
+    want = np.where(alive, share / np.clip(acceptance, 0.01, 1.0), 0.0)
     want = want / want.sum() if want.sum() > 0 else alive / n_alive
     f = min(floor, 0.5 / n_alive)
     out = np.where(alive, (1.0 - n_alive * f) * want + f, 0.0)

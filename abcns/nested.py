@@ -52,9 +52,10 @@ import numpy as np
 from abcns import bounds as bd
 from abcns import ellipsoid as ell
 from abcns import evidence as ev
+from abcns import likelihood
 from abcns.executor import Executor
 from abcns.filling import Budget, Carried, Filled, Filling, Propose, Stopped, draw_inside, draws, population_rng
-from abcns.noise import Floor, Noise, Tracker
+from abcns.noise import Floor, Noise, Tracker, reached
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
 from abcns.result import Population, RunEnd
@@ -161,14 +162,13 @@ def finish_population(
     lower: float | None = None,
     within: Sequence[bd.Chain] = (),
     nesting: np.random.Generator | None = None,
+    spared: np.ndarray | None = None,
 ) -> Step:
-    """eps_next (:func:`next_tolerance`, not below ``lower``), weights normalised per model,
-    the evidence estimate (``abcns.evidence.estimate``), then what the variant decides
-    (``abcns.variants``): deaths and survivor quotas, survivors drawn by weight, the next
-    bounds, the allocation; the evidence once :meth:`Step.evidence` has measured the bounds'
-    geometry. When every particle has the same distance, eps_next is eps_t (``Step.tied``)
-    and the run must stop. ``within``, ``nesting``: the next regions' chains (carry-over,
-    :func:`_nested_region`)."""
+    """eps_next (:func:`next_tolerance`, not below ``lower``), weights per model, the evidence
+    (``abcns.evidence.estimate``), what the variant decides (``abcns.variants``: deaths, but
+    not of the ``spared``, survivors, bounds, allocation); the evidence once
+    :meth:`Step.evidence` has measured the bounds. All particles at one distance: eps_next is
+    eps_t (``Step.tied``), the run must stop. ``within``, ``nesting``: carry-over's chains."""
     n_models, variant = len(models), variant_of(settings)
     found = next_tolerance(distances, settings.n_drop, lower)
     eps_next = epsilon if found is None else found
@@ -182,7 +182,7 @@ def finish_population(
     est = ev.estimate(which, distances, is_new, eps_next, n_proposed, n_accepted, previous_evidence)
 
     death = np.where(alive_now, ev.ALIVE, ev.DEAD_BEFORE).astype(np.int64)
-    quotas = variant.survive(models, est, counts, capacity, alive_now, previous_evidence, death)
+    quotas = variant.survive(models, est, counts, capacity, alive_now, previous_evidence, death, spared)
     alive_next = death == ev.ALIVE
     n_simulated = filled.simulations(n_models)
     death[(death != ev.ALIVE) & (n_simulated > 0) & (filled.failures(n_models) == n_simulated)] = ev.SIMULATIONS_FAILED
@@ -216,7 +216,7 @@ def finish_population(
     bounds, chains, geometry_jobs = zip(*regions, strict=True)
 
     acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
-    alloc, probabilities = variant.proposals(est, counts, acceptance, alive_next)
+    alloc, probabilities = variant.proposals(models, est, counts, acceptance, alive_next)
     parts = dict(log_z=est.log_z, log_z_se=np.sqrt(est.var_z), log_z_next=est.log_z_next,
                  log_z_next_se=np.sqrt(est.var_next), allocation=alloc, n_proposed=n_proposed,
                  n_accepted=n_accepted, death=death)
@@ -342,15 +342,16 @@ class BoundProposer:
 
 
 def _stop_reason(stop: StopRules, at_floor: bool, t: int, eps: float, eps_next: float, tied: bool,
-                 floor: Floor | None) -> StopReason | None:
+                 floor: Floor | None, before: Floor | None) -> StopReason | None:
     """The rule that ends the run after population t: ties, the noise floor (``at_floor``:
-    the run stops there, and this population was accepted at or below the decision
-    tolerance), then ``stop``'s rules."""
+    the run stops there, and this population was accepted at the decision tolerance:
+    :func:`abcns.noise.reached`, ``before`` the floor after population t - 1), then ``stop``'s
+    rules, which wait for the decision tolerance (:meth:`StopRules.reason_after`)."""
     if tied:
         return StopReason.TIES
-    if at_floor and floor is not None and eps <= floor.decision * (1 + 1e-12):
+    if at_floor and reached(eps, before, floor):
         return StopReason.NOISE_FLOOR  # the lowest population tolerance above the floor
-    return stop.reason_after(eps, eps_next, t)
+    return stop.reason_after(eps, eps_next, t, decision=None if floor is None else floor.decision)
 
 
 def _with_survivors(pop: Population, filled: Filled) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -378,7 +379,8 @@ def abc_ns(
 ) -> Generator[Population, None, RunEnd]:
     """Yield ABC-NS populations until a stop rule holds; return a :class:`RunEnd`.
 
-    ``history`` resumes a run: the populations already done (at least the last one);
+    ``history`` resumes a run: the populations already done (at least the last one; the last
+    two where the run stops at its noise floor, which compares with the floor before);
     ``budget`` then carries the simulations and seconds already spent. ``noise``: what is
     known of the distance's noise (``abcns.noise``): each population then carries the noise
     floor as estimated so far, and the evidence variant stops at the decision tolerance
@@ -411,6 +413,7 @@ class _Run:
         self.notes: list[str] = []
         self.frames = [bd.Frame(m, unit=settings.evidence) for m in models]
         self.floors = Tracker(noise, models, history)
+        self.shells = likelihood.records(history) if settings.evidence else []  # the reading so far
         self.at_floor = settings.evidence and stop.noise_floor and noise is not None
         self.pending: Filling | None = None  # the next population, started
         self.carry = settings.n_carry
@@ -488,15 +491,17 @@ class _Run:
         runs ahead starts simulating) before this one's bound geometry is measured."""
         floor = self.floors.after(which, distances)
         lower = floor.decision if self.at_floor and floor is not None else None
+        spared = likelihood.spared(self.shells, [m.n_dim for m in self.models], floor, self.settings.death_probability)
         step = finish_population(self.models, self.frames, t, eps, which, theta, distances, is_new, filled, previous,
                                  self.settings, population_rng(self.seed, t), lower, self._nested() if self.carry else (),
-                                 nesting_rng(self.seed, t))
+                                 nesting_rng(self.seed, t), spared)
         self.notes.extend(step.notes)
-        reason = _stop_reason(self.stop, self.at_floor, t, eps, step.epsilon_next, step.tied, floor)
+        reason = _stop_reason(self.stop, self.at_floor, t, eps, step.epsilon_next, step.tied, floor,
+                              None if previous is None else previous.floor)
         if reason is StopReason.NOISE_FLOOR:
             assert floor is not None
-            self.notes.append(f"population {t}: the decision tolerance {floor.decision:.6g} is reached (noise floor "
-                              f"{floor.floor:.6g} + its spread {floor.spread:.3g}); the run stops")
+            self.notes.append(f"population {t}: accepted at the decision tolerance {eps:.6g}; the run stops (noise "
+                              f"floor now {floor.floor:.6g} + its spread {floor.spread:.3g})")
         filling, self.filling = self.filling, None
         if reason is None and self.budget.reason() is None:
             carried = filling.carry() if filling is not None and self.carry else None
@@ -509,6 +514,8 @@ class _Run:
             step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
             evidence=step.evidence(geometry_rng(self.seed, t)), floor=floor,
         )
+        if self.settings.evidence:
+            self.shells.append(likelihood.record(pop, previous))
         return pop, reason
 
     def populations(self, history: Sequence[Population]) -> Generator[Population, None, RunEnd]:
@@ -518,7 +525,8 @@ class _Run:
             if history:
                 pop = history[-1]
                 tied = next_tolerance(pop.distances, settings.n_drop) is None
-                reason = _stop_reason(self.stop, self.at_floor, pop.t, pop.epsilon, pop.epsilon_next, tied, pop.floor)
+                reason = _stop_reason(self.stop, self.at_floor, pop.t, pop.epsilon, pop.epsilon_next, tied, pop.floor,
+                                      history[-2].floor if len(history) > 1 else None)
             else:
                 eps, self.source, self.n_pilot = initial_epsilon(self.models, settings, self.executor, budget, self.seed)
                 budget.check()

@@ -129,6 +129,19 @@ def estimate(noise: Noise, models: Sequence[Model], best: np.ndarray, alive: np.
     return Floor(d_min, m, p, variance, method, noise.n_samples)
 
 
+def reached(epsilon: float, before: Floor | None, after: Floor | None) -> bool:
+    """Whether a population accepted at ``epsilon`` is at the decision tolerance: at or below
+    the decision tolerance estimated when ``epsilon`` was chosen (``before``: the floor after
+    the previous population), or, for the first population, the one estimated after it
+    (``after``). The one place this is decided: the evidence variant accepts a population at
+    exactly ``before.decision`` when the (alpha N)-th largest distance falls below it, and
+    stops after that population, even where the floor it finds falls further (the floor only
+    falls, so that population is also the lowest at or above the final decision tolerance,
+    where :meth:`abcns.result.Result.decision_population` reads the answer)."""
+    floor = before if before is not None else after
+    return floor is not None and epsilon <= floor.decision
+
+
 def best_by_model(which: np.ndarray, distances: np.ndarray, n_models: int,
                   previous: np.ndarray | None = None) -> np.ndarray:
     """Each model's lowest distance among ``distances`` (+inf where it has none), combined

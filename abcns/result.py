@@ -9,9 +9,10 @@ import numpy as np
 
 from abcns.ellipsoid import Ellipsoid
 from abcns.evidence import DEAD_BEFORE, DEATH_RULES, Evidence, probabilities
-from abcns.noise import Floor
+from abcns.likelihood import Reading, of_floor, read, records
+from abcns.noise import Floor, reached
 from abcns.priors import Model
-from abcns.settings import StopReason
+from abcns.settings import DEATH_PROBABILITY, StopReason
 
 QUANTILES = (0.025, 0.05, 0.5, 0.95, 0.975)
 #: the share of a model's simulations that may fail or diverge before the summary warns
@@ -169,8 +170,35 @@ class Result:
         floor = self.floor
         if floor is None:
             return self.final
-        above = [p for p in self.populations if p.epsilon >= floor.decision * (1 - 1e-12)]
+        above = [p for p in self.populations if p.epsilon >= floor.decision]
         return min(above, key=lambda p: (p.epsilon, -p.t)) if above else self.populations[0]
+
+    @property
+    def reached_floor(self) -> bool | None:
+        """Whether the run got to its decision tolerance (:func:`abcns.noise.reached`: its
+        last population was accepted at it or below); None when it knows no floor."""
+        if self.floor is None:
+            return None
+        before = self.populations[-2].floor if len(self.populations) > 1 else None
+        return reached(self.final.epsilon, before, self.final.floor)
+
+    @property
+    def provisional(self) -> bool:
+        """Whether the run stopped above its decision tolerance (a budget, the user's own
+        rule, a stalled tolerance): its answer is not yet that of the data."""
+        floor = self.floor
+        return floor is not None and not self.reached_floor and self.final.epsilon > floor.decision
+
+    def reading(self) -> Reading | None:
+        """The likelihood-weighted answer (:mod:`abcns.likelihood`): the evidence variant of a
+        run that knows its noise (a floor), read over all its populations with the floor's
+        noise variance; None otherwise (the answer is then the decision population's)."""
+        floor = self.floor
+        if (floor is None or self.settings.get("sampler", {}).get("variant") != "evidence"
+                or any(p.evidence is None for p in self.populations)):
+            return None
+        log_l = of_floor(floor)
+        return None if log_l is None else read(records(self.populations), [m.n_dim for m in self.models], log_l)
 
     def alive(self, t: int | None = None) -> list[int]:
         pop = self.final if t is None else self.populations[t - 1]
@@ -253,11 +281,16 @@ class Result:
         out = []
         pop = self.decision_population()
         floor = self.floor
-        if floor is not None and pop.epsilon < floor.decision * (1 - 1e-12):
+        if floor is not None and self.provisional:
+            out.append(f"provisional: the run stopped ({self.stop_reason.value}) at eps {self.final.epsilon:.4g}, above "
+                       f"the decision tolerance {floor.decision:.4g} (noise floor {floor.floor:.4g}); its model "
+                       "probabilities and intervals are not yet those of the data: run it on (a larger budget, or "
+                       "without the rule that stopped it)")
+        if floor is not None and pop.epsilon < floor.decision:
             out.append(f"floor above the run: the noise floor's decision tolerance {floor.decision:.4g} lies above every "
                        f"tolerance of the run (the highest {pop.epsilon:.4g}); the stated noise is larger than the "
                        "data's misfit")
-        if pop is not self.final:
+        if pop is not self.final and self.reading() is None:
             named = lambda q: ", ".join(f"{m.name} {v:.2f}" for m, v in zip(self.models, q, strict=True))
             if np.max(np.abs(self.final.model_probabilities - pop.model_probabilities)) > 0.05:
                 out.append(f"below the noise floor: at the final tolerance {self.final.epsilon:.4g} (population "
@@ -326,6 +359,48 @@ class Result:
         return {"population": pop.t, "epsilon": pop.epsilon, "model_probabilities": self.model_probabilities(pop.t),
                 "model_probability_se": self.model_probability_se(pop.t)}
 
+    def _decision(self, answer: Population, reading: Reading | None) -> dict:
+        """``summary.decision``: where and how the answer is read. ``rule``: ``noise_floor``
+        when the run got to its decision tolerance, else the stop reason that ended it above
+        (``provisional``), ``final`` without a floor; ``reading``: ``likelihood`` (every
+        population weighted by the Gaussian likelihood, :mod:`abcns.likelihood`) or
+        ``tolerance`` (the decision population's particles)."""
+        reached_ = self.reached_floor
+        out = {**self._at(answer), "rule": "final" if reached_ is None else "noise_floor" if reached_ else
+               self.stop_reason.value, "provisional": self.provisional, "reading": "tolerance"}
+        if reading is not None:
+            out.update(reading="likelihood", model_probabilities=self._named(reading.probabilities),
+                       model_probability_se=self._named(reading.se),
+                       effective_particles=self._named(reading.ess))
+        return out
+
+    def _answer(self, answer: Population | None) -> dict:
+        """The answer's fields of the summary: from the likelihood reading when the run has
+        one (:meth:`reading`), else from the decision population."""
+        if answer is None:
+            return {"model_probabilities": {}, "model_probability_se": {}, "log_evidence": {}, "posterior": {},
+                    "decision": None}
+        reading = self.reading()
+        out = {"decision": self._decision(answer, reading)}
+        if reading is None:
+            out.update(model_probabilities=self.model_probabilities(answer.t),
+                       model_probability_se=self.model_probability_se(answer.t),
+                       log_evidence=self._log_evidence(answer), posterior=self.posterior(answer.t))
+            return out
+        finite = lambda x: float(x) if np.isfinite(x) else None
+        # every model alive at the answer's population, and every other whose probability
+        # is above the threshold of death by probability (a model that left the run early
+        # but that the likelihood still gives a share)
+        threshold = self.settings.get("sampler", {}).get("min_model_probability") or DEATH_PROBABILITY
+        alive = sorted(set(self.alive(answer.t)) | {i for i, p in enumerate(reading.probabilities) if p >= threshold})
+        out.update(model_probabilities=self._named(reading.probabilities), model_probability_se=self._named(reading.se),
+                   log_evidence={m.name: {"log_z": finite(reading.log_z[i]), "se": finite(reading.log_z_se[i])}
+                                 for i, m in enumerate(self.models)},
+                   posterior={self.models[i].name: posterior_summary(reading.theta[i], reading.weights[i],
+                                                                     self.models[i].parameter_names)
+                              for i in alive if reading.theta[i].shape[0]})
+        return out
+
     def summary(self) -> dict:
         """The JSON summary of docs/design.md, "The summary" (plus a few more fields). The answer (model
         probabilities, their errors, the evidence, the posterior) is read at the decision
@@ -334,6 +409,7 @@ class Result:
         what the last population gives, and the curves are per population."""
         pops = self.populations
         answer = self.decision_population() if pops else None
+        answer_ = self._answer(answer)
         return {
             "algorithm": self.algorithm,
             "status": "finished",
@@ -351,21 +427,18 @@ class Result:
             "failed_simulations": [p.n_failed for p in pops],
             "failures_by_model": self.failures(),
             "redraws": [p.n_redraws for p in pops],
-            "model_probabilities": self.model_probabilities(answer.t) if answer else {},
-            "model_probability_se": self.model_probability_se(answer.t) if answer else {},
-            "decision": ({**self._at(answer), "rule": "noise_floor" if self.floor is not None else "final"}
-                         if answer else None),
+            **{k: answer_[k] for k in ("model_probabilities", "model_probability_se", "decision")},
             "final": self._at(pops[-1]) if pops else None,
             "noise_floor": self._noise_floor(),
             "model_probabilities_by_population": [self.model_probabilities(p.t) for p in pops],
             "particle_shares": self._named(answer.particle_shares) if answer else {},
             "particle_shares_by_population": [self._named(p.particle_shares) for p in pops],
-            "log_evidence": self._log_evidence(answer) if answer else {},
+            "log_evidence": answer_["log_evidence"],
             "dead_models": self.died_at(),
             "death_rules": self.death_rules(),
             "ellipsoids": self._ellipsoid_counts() if pops else {},
             "warnings": self.warnings(),
-            "posterior": self.posterior(answer.t) if answer else {},
+            "posterior": answer_["posterior"],
             "notes": list(self.notes),
             "settings": self.settings,
             "models": [m.config_dict() for m in self.models],

@@ -26,6 +26,8 @@ class StopReason(enum.StrEnum):
     COMPLETED = "completed"  # a one-population algorithm (rejection) finished
     PILOT_FAILED = "pilot_failed"  # every prior-predictive simulation of the pilot failed or diverged
     NOISE_FLOOR = "noise_floor"  # the decision tolerance was reached (abcns.noise)
+    # above the decision tolerance, the tolerance stopped moving towards it (StopRules.reason_after)
+    STALLED = "stalled"
     TIES = "ties"  # every particle has the same distance: no lower tolerance leaves a particle
     # a population ran stop.max_simulations_without_acceptance simulations and accepted none
     NOTHING_ACCEPTED = "nothing_accepted"
@@ -57,6 +59,15 @@ MAX_CARRY_OVER = 10_000  # batches; more would only be surplus rows nobody uses
 #: into carried rows, of which ~30 % fall outside the next region: no gain in the useful
 #: simulations per second, so the default leaves every result as it was without it
 CARRY_OVER = 0
+#: an alive model's least share of a population's new particles is this many per dimension
+#: plus one, over the new particles (evidence variant; ``abcns.evidence.allocation``): an
+#: ellipsoid fitted to 20 points uniform in a 3-d ball, enlarged by 1.1, holds 0.90 of it on
+#: average, to 40 points 0.97, to 100 0.996 (10 (d + 1) points: 0.95-0.97 for d = 2..6), and
+#: a rare model fitted to a handful of points lost most of its region population after
+#: population, unmeasured (its evidence fell 100-fold on a toy whose exact p was 0.002)
+LEAST_NEW_PER_DIMENSION = 10
+#: ``NSSettings.min_model_probability``'s default: a model dies below it (evidence variant)
+DEATH_PROBABILITY = 1e-3
 MAX_ENLARGEMENT = 10.0  # f0 beyond 10 scales the ellipsoid past the prior box of any useful fit
 
 # The settings' fields are the job spec's sampler and stop sections (``service.spec`` builds
@@ -85,7 +96,14 @@ def check_seed(seed: object) -> None:
 
 #: stop rules that do not count as "a stop rule set": the safety net ends a run that cannot
 #: progress, never a healthy one, and the noise floor needs a noise model the run may not have
-SAFETY_NETS = ("max_simulations_without_acceptance", "noise_floor")
+SAFETY_NETS = ("max_simulations_without_acceptance", "noise_floor", "decrease_above_floor")
+
+#: above the decision tolerance, a population whose tolerance fell by less than this share of
+#: its distance to the decision tolerance has stalled (StopReason.STALLED): a run approaching
+#: its floor closes that distance by a share (1 - alpha)^(2/p) or more per population (0.1 or
+#: more for p <= 20, alpha <= 0.5); a run held at a model's best fit above the floor closes
+#: ever less of it (the paper variant on §4.1)
+STALL_SHARE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -93,7 +111,12 @@ class StopRules:
     """When to stop. Budgets (simulations, seconds) are checked inside a population too.
 
     ``min_epsilon_decrease``: stop when eps_t - eps_{t+1} < this (paper, §3.1; an absolute
-    difference of distances, % NMSE for the NMSE);
+    difference of distances, % NMSE for the NMSE). In a run with a noise floor (an NMSE run)
+    it ends the run only at or below the decision tolerance, unless ``decrease_above_floor``
+    (a job spec that names ``min_epsilon_decrease`` sets it: a user's own rule is theirs):
+    no default rule ends such a run above its decision tolerance, where its answer would be
+    provisional (docs/design.md, "The noise floor and the decision tolerance"); a run that
+    stalls there stops (``StopReason.STALLED``, :data:`STALL_SHARE`) and its summary says so;
     ``epsilon_target``: stop once a population was accepted at eps_t <= target;
     ``noise_floor``: the evidence variant stops at the decision tolerance, the lowest
     tolerance above the run's noise floor by its spread (``abcns.noise``), when the run knows
@@ -112,6 +135,7 @@ class StopRules:
     max_seconds: float | None = None
     noise_floor: bool = True
     max_simulations_without_acceptance: int | None = 1_000_000
+    decrease_above_floor: bool = False
 
     def __post_init__(self) -> None:
         for name in ("min_epsilon_decrease", "epsilon_target", "max_seconds"):
@@ -124,18 +148,28 @@ class StopRules:
                 f"stop.{name}",
                 f"must be an integer in [1, 2^62] or null, got {v!r}",
             )
-        _check(isinstance(self.noise_floor, bool), "stop.noise_floor", f"must be true or false, got {self.noise_floor!r}")
+        for name in ("noise_floor", "decrease_above_floor"):
+            v = getattr(self, name)
+            _check(isinstance(v, bool), f"stop.{name}", f"must be true or false, got {v!r}")
         rules = {k: v for k, v in asdict(self).items() if k not in SAFETY_NETS}
         _check(any(v is not None for v in rules.values()), "stop", "at least one stop rule must be set")
 
-    def reason_after(self, epsilon: float, epsilon_next: float, t: int, decrease: bool = True) -> StopReason | None:
+    def reason_after(self, epsilon: float, epsilon_next: float, t: int, decrease: bool = True,
+                     decision: float | None = None) -> StopReason | None:
         """The rule that ends the run after population ``t`` (accepted at ``epsilon``, the
         next tolerance ``epsilon_next``), or None to go on; ``decrease``: whether
-        ``min_epsilon_decrease`` applies (not along a given schedule). Budgets are checked
-        by :class:`abcns.filling.Budget`, inside populations too."""
+        ``min_epsilon_decrease`` applies (not along a given schedule); ``decision``: the
+        run's decision tolerance as estimated now (None without a noise floor): above it,
+        ``min_epsilon_decrease`` waits (unless ``decrease_above_floor``) and a stalled
+        tolerance stops the run. Budgets are checked by :class:`abcns.filling.Budget`, inside
+        populations too."""
         if self.epsilon_target is not None and epsilon <= self.epsilon_target:
             return StopReason.EPSILON_TARGET
-        if decrease and self.min_epsilon_decrease is not None and epsilon - epsilon_next < self.min_epsilon_decrease:
+        step = epsilon - epsilon_next
+        if decision is not None and epsilon > decision and not self.decrease_above_floor:
+            if decrease and step < STALL_SHARE * (epsilon - decision):
+                return StopReason.STALLED
+        elif decrease and self.min_epsilon_decrease is not None and step < self.min_epsilon_decrease:
             return StopReason.MIN_EPSILON_DECREASE
         if self.max_populations is not None and t >= self.max_populations:
             return StopReason.MAX_POPULATIONS
@@ -268,7 +302,7 @@ class NSSettings:
 
     @property
     def death_probability(self) -> float:
-        return 1e-3 if self.min_model_probability is None else float(self.min_model_probability)
+        return DEATH_PROBABILITY if self.min_model_probability is None else float(self.min_model_probability)
 
     @property
     def proposal_floor(self) -> float:

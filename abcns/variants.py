@@ -24,7 +24,7 @@ from abcns import bounds as bd
 from abcns import ellipsoid as ell
 from abcns import evidence as ev
 from abcns.priors import Model
-from abcns.settings import NSSettings
+from abcns.settings import LEAST_NEW_PER_DIMENSION, NSSettings
 
 
 def apportion(total: int, shares: np.ndarray) -> np.ndarray:
@@ -77,7 +77,7 @@ class Paper:
 
     def survive(self, models: Sequence[Model], est: ev.Estimate, counts: np.ndarray,
                 capacity: np.ndarray, alive_now: np.ndarray, previous_evidence: ev.Evidence | None,
-                death: np.ndarray) -> np.ndarray:
+                death: np.ndarray, spared: np.ndarray | None = None) -> np.ndarray:
         """Survivor quotas per model; ``death`` updated in place."""
         quotas = survivor_quotas(self.settings.n_survivors, counts, capacity)
         death[alive_now & (quotas == 0)] = ev.NO_PARTICLES
@@ -90,7 +90,7 @@ class Paper:
     #: the bound is not a fit of every point below eps_{t+1}: its coverage is the share it holds
     cross_validated = False
 
-    def proposals(self, est: ev.Estimate, counts: np.ndarray, acceptance: np.ndarray,
+    def proposals(self, models: Sequence[Model], est: ev.Estimate, counts: np.ndarray, acceptance: np.ndarray,
                   alive_next: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(the next population's proposal share per model, this population's probabilities)."""
         return alive_next / max(1, int(np.count_nonzero(alive_next))), counts / counts.sum()
@@ -103,14 +103,17 @@ class Evidence:
     them; proposals p / acceptance with a floor per alive model); a model dies when it has no
     particle below eps_{t+1}, or when its probability plus three standard errors there falls
     below ``min_model_probability`` in two populations in a row; bounds are unions of
-    ellipsoids fitted in the unit prior box to every particle below eps_{t+1}."""
+    ellipsoids fitted in the unit prior box to every particle below eps_{t+1}. With a noise
+    floor, a model the likelihood reading still gives a share is spared
+    (:func:`abcns.likelihood.spared`)."""
 
     settings: NSSettings
 
     def survive(self, models: Sequence[Model], est: ev.Estimate, counts: np.ndarray,
                 capacity: np.ndarray, alive_now: np.ndarray, previous_evidence: ev.Evidence | None,
-                death: np.ndarray) -> np.ndarray:
-        """Survivor quotas per model; ``death`` updated in place."""
+                death: np.ndarray, spared: np.ndarray | None = None) -> np.ndarray:
+        """Survivor quotas per model; ``death`` updated in place; ``spared``: models the
+        likelihood reading keeps from death by probability (:func:`abcns.likelihood.spared`)."""
         s = self.settings
         death[alive_now & (capacity == 0)] = ev.NO_PARTICLES
         # by probability only when the previous population's prediction was below the threshold
@@ -122,6 +125,8 @@ class Evidence:
             improbable &= p_was + 3 * se_was < s.death_probability
         else:
             improbable[:] = False
+        if spared is not None:
+            improbable &= ~spared
         death[improbable] = ev.IMPROBABLE
         alive_next = death == ev.ALIVE
         shares = np.where(alive_next, est.p_next, 0.0)
@@ -135,10 +140,12 @@ class Evidence:
     #: the bound is a fit of every point below eps_{t+1}: its coverage is cross-validated
     cross_validated = True
 
-    def proposals(self, est: ev.Estimate, counts: np.ndarray, acceptance: np.ndarray,
+    def proposals(self, models: Sequence[Model], est: ev.Estimate, counts: np.ndarray, acceptance: np.ndarray,
                   alive_next: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(the next population's proposal share per model, this population's probabilities)."""
-        return ev.allocation(est.p_next, acceptance, alive_next, self.settings.proposal_floor), est.p_now
+        s = self.settings
+        least = np.array([LEAST_NEW_PER_DIMENSION * (m.n_dim + 1) for m in models]) / max(1, s.particles - s.n_survivors)
+        return ev.allocation(est.p_next, acceptance, alive_next, s.proposal_floor, least), est.p_now
 
 
 def variant_of(settings: NSSettings) -> Paper | Evidence:

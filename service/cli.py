@@ -118,7 +118,12 @@ def where_decided(s: dict, unit: str) -> str:
         return ""
     if s.get("noise_floor") is None:
         return f"  (final population {dec['population']}, eps {dec['epsilon']:.4g}{unit}; no noise floor for this distance)"
-    return f"  (the answer: population {dec['population']}, eps {dec['epsilon']:.4g}{unit})"
+    state = (f"PROVISIONAL: stopped ({dec['rule']}) above the decision tolerance, at " if dec.get("provisional")
+             else "the answer: ")
+    if dec.get("reading") == "likelihood":
+        return (f"  ({state}every population to {dec['population']}, eps {dec['epsilon']:.4g}{unit}, weighted by the "
+                "likelihood of the noise)")
+    return f"  ({state}population {dec['population']}, eps {dec['epsilon']:.4g}{unit})"
 
 
 def decision_lines(s: dict, unit: str) -> list[str]:
@@ -129,9 +134,14 @@ def decision_lines(s: dict, unit: str) -> list[str]:
         return []
     how = ("estimated from the run's best fit" if floor["method"] == "estimated"
            else "from the stated noise, data.noise_std")
+    where = ("the run stops there and its populations are read by the likelihood" if dec.get("reading") == "likelihood"
+             else "the answer is read at the lowest tolerance at or above it")
     lines = [f"noise floor {floor['floor']:.4g}{unit} ({how}); decision tolerance {floor['decision_tolerance']:.4g}{unit} "
-             f"(floor + its spread): the answer is read at the lowest tolerance at or above it"]
-    if final and final["population"] != dec["population"]:
+             f"(floor + its spread): {where}"]
+    if dec.get("effective_particles"):
+        lines.append("effective particles of the reading: " + ", ".join(
+            f"{k} {v:.0f}" for k, v in dec["effective_particles"].items()))
+    if final and final["population"] != dec["population"] and dec.get("reading") != "likelihood":
         probs = ", ".join(f"{k} {v:.3f}" for k, v in final["model_probabilities"].items())
         lines.append(f"model probabilities at the final population {final['population']}, eps {final['epsilon']:.4g}{unit} "
                      f"(below the decision tolerance, where the noise decides; not the answer): {probs}")

@@ -470,6 +470,17 @@ def check_physical(spec: JobSpec, simulators: list[Simulator], distance: object)
                                          f"(scale {scale:.3g}); rescale the record (its units)")
 
 
+def stop_rules(stop: BaseModel) -> StopRules:
+    """The spec's stop rules. A ``min_epsilon_decrease`` the spec names is the user's own rule:
+    it may end the run above its decision tolerance (``decrease_above_floor``, unless the spec
+    says otherwise); the default one waits for the decision tolerance (abcns.StopRules)."""
+    rules = stop.model_dump()
+    named = stop.model_fields_set
+    if "min_epsilon_decrease" in named and rules["min_epsilon_decrease"] is not None and "decrease_above_floor" not in named:
+        rules["decrease_above_floor"] = True
+    return StopRules(**rules)
+
+
 def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = False) -> Job:
     """Everything checkable before a simulation: raise SpecError or return a Job."""
     check_applicable(spec)
@@ -484,7 +495,7 @@ def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = Fals
     check_physical(spec, simulators, distance)
     settings = spec.sampler.settings()
     settings.check_particles(models)
-    stop = StopRules(**spec.stop.model_dump())
+    stop = stop_rules(spec.stop)
     if isinstance(distance, NMSE):
         noise: Noise | None = distance.noise(data.noise_std)
     elif data.noise_std is not None:

@@ -246,6 +246,38 @@ def test_the_page_says_where_the_answer_is_read_and_marks_the_floor(browser):
     assert strokes and set(strokes) == {"none"}, set(strokes)
 
 
+def test_a_provisional_answer_says_so_on_the_page(browser):
+    """Issue W: once a job has ended, the page shows the summary's answer: the model read by
+    the likelihood over every population, and PROVISIONAL with the rule that stopped the run
+    above its decision tolerance (here: max_populations at eps 2.0, decision 3.2 never
+    reached), with the warning below. Served as above, with a result that says so."""
+    from service.http.page import VIEW
+
+    origin, job = "http://abcns.test", "0123456789abcdef"
+    events = [("population", {"population": t, "epsilon": 10.0 / t, "epsilon_next": 10.0 / (t + 1),
+                              "acceptance_rate": 0.5, "simulations": 1000 * t, "elapsed_s": float(t),
+                              "model_probabilities": {"linear": 0.6, "cubic": 0.4}, "simulations_per_s": None,
+                              "noise_floor": 1.0, "decision_tolerance": 1.2, "workers": 1, "efficiency": None})
+              for t in (1, 2, 3)] + [("finished", {})]
+    stream = "".join(f"id: {i}\nevent: {e}\ndata: {json.dumps(d)}\n\n" for i, (e, d) in enumerate(events, 1))
+    warning = "provisional: the run stopped (max_populations) at eps 3.333, above the decision tolerance 1.2"
+    result = {"warnings": [warning], "model_probabilities": {"linear": 0.25, "cubic": 0.75},
+              "decision": {"population": 3, "epsilon": 10.0 / 3, "rule": "max_populations", "provisional": True,
+                           "reading": "likelihood"}}
+    answers = {f"/jobs/{job}/view": ("text/html", VIEW), f"/jobs/{job}/events": ("text/event-stream", stream),
+               f"/jobs/{job}": ("application/json", json.dumps({"id": job, "name": "toy", "models": ["linear", "cubic"],
+                                                                "status": "running"})),
+               f"/jobs/{job}/result": ("application/json", json.dumps(result)),
+               "/health": ("application/json", json.dumps({"workers": 1}))}
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    page.route(f"{origin}/**", lambda route: fulfil_from(answers, route, route.request.url[len(origin):]))
+    page.goto(f"{origin}/jobs/{job}/view")
+    wait_until(lambda: "warning: provisional" in page.inner_text("#warnings"), 30, "the warning on the page")
+    assert page.inner_text("#leader") == "cubic (0.75) provisional"
+    assert page.inner_text("#answer-at") == ("PROVISIONAL (stopped: max_populations, above the decision tolerance): "
+                                             "populations 1-3 weighted by the likelihood, \u03b5 3.333 %")
+
+
 def test_the_legend_stays_while_populations_come(browser):
     """The live page makes its legend again only when the models change, not on every event:
     the legend's elements that a reader holds (a person's selection, a test reading their

@@ -126,6 +126,28 @@ def test_the_summary_gives_the_answer_at_the_decision_tolerance():
     assert not any(line.startswith(("noise floor", "model probabilities at the final")) for line in plain)
 
 
+def test_the_summary_says_how_the_answer_is_read_and_when_it_is_provisional():
+    """Issue W: read by the likelihood, the answer line says so (every population to the
+    decision, weighted by the likelihood of the noise) with the reading's effective
+    particles, and no line of the final population's probabilities (they are not another
+    answer); a run stopped above its decision tolerance is PROVISIONAL, with the rule."""
+    from toy_results import floored_result
+
+    from service.cli import summary_lines
+
+    s = floored_result().summary()
+    s["decision"].update(reading="likelihood", population=5, epsilon=2.0, rule="noise_floor", provisional=False,
+                         effective_particles={"linear": 412.4, "cubic": 37.0})
+    lines = summary_lines(s)
+    assert ("model probabilities: linear 0.900, cubic 0.100  (the answer: every population to 5, eps 2 %, weighted "
+            "by the likelihood of the noise)") in lines
+    assert "effective particles of the reading: linear 412, cubic 37" in lines
+    assert not any(line.startswith("model probabilities at the final") for line in lines)
+    s["decision"].update(rule="max_populations", provisional=True)
+    assert ("model probabilities: linear 0.900, cubic 0.100  (PROVISIONAL: stopped (max_populations) above the decision "
+            "tolerance, at every population to 5, eps 2 %, weighted by the likelihood of the noise)") in summary_lines(s)
+
+
 def test_the_progress_line_shows_the_decision_tolerance_once_known():
     from service.cli import ProgressLine
 

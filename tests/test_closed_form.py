@@ -211,20 +211,19 @@ def test_evidence_line_and_disc_match_exact_abc_probability(seed):
     assert abs(pop.particle_shares[0] - p_exact) > abs(pop.model_probabilities[0] - p_exact)
 
 
-def test_an_unmeasured_coverage_gives_the_direct_estimate_no_weight():
-    """line_and_disc seed 4 (batch 200): at population 11 the disc has 20 particles and
-    fewer than 4 new ones below the next tolerance, so its bound's coverage cannot be
-    measured (``n_coverage`` 0). Read as a coverage of 1 with no error (the old rule),
-    population 12's direct estimate is 3.5 of its standard errors below the exact log Z;
-    unmeasured, it gets no weight and the prediction carries log Z (z = -1.4). (Found on
-    seed 39 before the volume's 10,000 draws changed the stream, where the old rule gave
-    z = -25.7; the rule itself is tested exactly in tests/test_variants.py.) Exact answer,
-    so the check is the estimate's own 4 standard errors."""
+def test_a_rare_model_keeps_enough_new_particles_to_measure_its_coverage():
+    """line_and_disc seed 4 (batch 200): at population 11 the disc used to have 20
+    particles and fewer than 4 new ones below the next tolerance, so its bound's coverage
+    could not be measured (``n_coverage`` 0; the rule for that case, no weight for the direct
+    estimate, is tested exactly in tests/test_variants.py). Each alive model now keeps
+    10 (d + 1) new particles a population (``abcns.settings.LEAST_NEW_PER_DIMENSION``): the
+    disc's coverage is measured in every population (no seed of 1-40 leaves it unmeasured),
+    and population 12's log Z is within its own 4 standard errors of the exact one."""
     models, evaluate = line_and_disc()
     r = run(models, evaluate, NSSettings(particles=1000, epsilon_initial=0.3, batch_size=EVIDENCE_BATCH),
             StopRules(min_epsilon_decrease=None, max_populations=12), seed=4)
-    before, pop = r.populations[-2], r.final
-    assert before.evidence.n_coverage[1] == 0 and pop.model_counts(2)[1] > 0
+    assert all(p.evidence.n_coverage[1] >= 4 for p in r.populations[1:-1])
+    pop = r.final
     z = (pop.evidence.log_z[1] - line_and_disc_log_evidence(pop.epsilon)[1]) / pop.evidence.log_z_se[1]
     assert abs(z) < 4, (pop.t, z, pop.evidence.log_z_se[1])
 

@@ -90,9 +90,10 @@ def test_nested_models_are_decided_above_the_noise_floor():
     """Seed 1: run past the floor (``noise_floor: false``), the final population says the
     parabola (it fits the noise better), but the decision population, the lowest tolerance
     above the floor by its spread, says the line, as the evidence should (the parabola's
-    extra parameter costs prior volume and buys only noise); the summary's answer is the
-    decision's and its warning names both. With the floor stop (the default) the run ends
-    there. The threshold 0.9 is issue T's; p(line) is 0.97-0.99 on seeds 1-3."""
+    extra parameter costs prior volume and buys only noise). The summary's answer, read by
+    the likelihood over every population (``abcns.likelihood``), says the line too: it does
+    not depend on how far the run went, so no warning. With the floor stop (the default) the
+    run ends there. The threshold 0.9 is issue T's; p(line) is 0.97-0.99 on seeds 1-3."""
     models, evaluate, noise = line_and_parabola(1)
     past = abcns.run(models, evaluate, SETTINGS, StopRules(min_epsilon_decrease=1e-9, max_populations=40,
                                                            noise_floor=False), seed=1, noise=noise)
@@ -103,7 +104,7 @@ def test_nested_models_are_decided_above_the_noise_floor():
     assert summary["model_probabilities"]["line"] >= 0.9
     assert summary["decision"]["population"] == answer.t < summary["final"]["population"]
     assert summary["noise_floor"]["method"] == "estimated" and summary["noise_floor"]["n_samples"] == 100
-    assert any(w.startswith("below the noise floor") and "parabola" in w for w in summary["warnings"])
+    assert summary["decision"]["reading"] == "likelihood" and not summary["warnings"]
     assert answer.epsilon >= past.floor.decision > past.floor.floor > past.floor.best
 
     stopped = abcns.run(models, evaluate, SETTINGS, StopRules(min_epsilon_decrease=1e-9, max_populations=70),
@@ -135,7 +136,11 @@ def test_the_paper_variant_keeps_its_own_stop_rule_and_shows_the_decision():
     r = abcns.run(models, evaluate, NSSettings(particles=300, epsilon_initial=1000, batch_size=50, variant="paper"),
                   StopRules(max_populations=12), seed=2, noise=noise)
     assert r.stop_reason is StopReason.MAX_POPULATIONS
-    assert r.summary()["decision"]["rule"] == "noise_floor"
+    # the user's budget ended it above its decision tolerance: the answer is provisional
+    decision = r.summary()["decision"]
+    assert r.final.epsilon > r.floor.decision
+    assert (decision["rule"], decision["provisional"], decision["reading"]) == ("max_populations", True, "tolerance")
+    assert any(w.startswith("provisional") for w in r.warnings())
 
 
 @pytest.mark.parametrize("variant", ["evidence", "paper"])

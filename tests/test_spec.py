@@ -284,6 +284,17 @@ def test_the_json_schema_has_one_sampler_per_algorithm_generated_from_the_settin
     assert stop["min_epsilon_decrease"]["default"] == 0.01 and defs["StopSpec"]["additionalProperties"] is False
 
 
+def test_a_named_min_epsilon_decrease_is_the_users_own_rule(raw):
+    """Without it, the paper's rule waits for the decision tolerance (abcns.StopRules); named
+    in the spec, it may end the run above it (issue W)."""
+    raw.pop("stop", None)
+    assert build(parse(raw), SPEC.parent).stop.decrease_above_floor is False
+    raw["stop"] = {"min_epsilon_decrease": 0.01}
+    assert build(parse(raw), SPEC.parent).stop.decrease_above_floor is True
+    raw["stop"] = {"min_epsilon_decrease": 0.01, "decrease_above_floor": False}
+    assert build(parse(raw), SPEC.parent).stop.decrease_above_floor is False
+
+
 def test_stop_rules_come_from_the_dataclass(raw):
     """null is a value of a stop rule (off), not its default."""
     raw["stop"] = {"min_epsilon_decrease": None, "max_populations": 3}

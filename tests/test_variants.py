@@ -60,7 +60,7 @@ def test_the_paper_variant_keeps_survivors_by_counts_and_picks_models_evenly():
     quotas = paper.survive(MODELS, estimate_with([0.5, 0.5]), np.array([75, 25]), np.array([60, 20]),
                            np.array([True, True]), None, death)
     assert quotas.tolist() == [45, 15] and death.tolist() == [ev.ALIVE, ev.ALIVE]  # beta N = 60, 3:1
-    alloc, probabilities = paper.proposals(estimate_with([0.9, 0.1]), np.array([75, 25]), np.ones(2),
+    alloc, probabilities = paper.proposals(MODELS, estimate_with([0.9, 0.1]), np.array([75, 25]), np.ones(2),
                                            np.array([True, True]))
     assert alloc.tolist() == [0.5, 0.5] and probabilities.tolist() == [0.75, 0.25]  # Eq. 12: shares
 

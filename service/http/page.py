@@ -173,7 +173,7 @@ function leader(probs) { let k = 0; probs.forEach((p, i) => { if (p > probs[k]) 
 function decisionPop() {
   const p = pops[pops.length - 1];
   if (!p || p.decision_tolerance === null || p.decision_tolerance === undefined) return p;
-  const above = pops.filter(q => q.epsilon >= p.decision_tolerance * (1 - 1e-12));
+  const above = pops.filter(q => q.epsilon >= p.decision_tolerance);
   return above.length ? above.reduce((a, b) => (b.epsilon <= a.epsilon ? b : a)) : pops[0];
 }
 
@@ -239,9 +239,19 @@ async function histograms() {
   } catch (e) { /* the next population retries */ } finally { histBusy = false; }
 }
 
-async function showWarnings() {  // the summary's warnings (an undecided run, ...), once the job has ended
+// once the job has ended: the summary's answer (read by the likelihood over every population
+// where the run knows its noise; provisional when it stopped above its decision tolerance)
+// and its warnings (an undecided run, a provisional answer, ...)
+async function showWarnings() {
   try {
-    const s = await getJSON(`/jobs/${jobId}/result`);
+    const s = await getJSON(`/jobs/${jobId}/result`), dec = s.decision;
+    if (dec && s.model_probabilities && Object.keys(s.model_probabilities).length) {
+      const names = Object.keys(s.model_probabilities), probs = names.map(k => s.model_probabilities[k]), k = leader(probs);
+      text("leader", names[k] + " (" + probs[k].toFixed(2) + ")" + (dec.provisional ? " provisional" : ""));
+      const how = dec.reading === "likelihood" ? `populations 1-${dec.population} weighted by the likelihood` : `population ${dec.population}`;
+      text("answer-at", (dec.provisional ? `PROVISIONAL (stopped: ${dec.rule}, above the decision tolerance): ` : "") +
+           `${how}, \u03b5 ${fmt(dec.epsilon)}${unit}`);
+    }
     document.getElementById("warnings").replaceChildren(...(s.warnings || []).map(w => el("li", {}, "warning: " + w)));
   } catch (e) { text("error", String(e)); }
 }

@@ -1,0 +1,194 @@
+"""The Gaussian reading of a run: every population's new particles weighted by the likelihood.
+
+With the NMSE over ``n`` samples and independent Gaussian noise of variance ``v`` per sample
+in distance units (``abcns.noise``), ``d(theta) / v`` is the chi-square of the residuals, so
+the likelihood is ``L(theta) = C exp(-d(theta) / (2 v))`` and the exact evidence of model m is
+
+    Z_m = integral of prior(theta) L(theta) = integral over eps of exp(-eps / (2 v)) dX_m(eps),
+
+with ``X_m(eps)`` the prior mass below ``eps``: the ABC evidence that ABC-NS estimates at
+every population (``abcns.evidence``). This is nested sampling's own identity (Skilling
+2006). A population t accepted at eps_t holds new particles uniform (in the prior, which is
+uniform) on {d < eps_t}, and the next tolerance eps_{t+1} cuts that region into a shell
+{eps_{t+1} <= d < eps_t} and what the next populations sample. So
+
+    Z_m ~ sum_t X_m(eps_t) mean over m's new particles of population t of
+          exp(-d / (2 v)) 1{d >= eps_{t+1}},
+
+with no cut in model m's last population with new particles (the run's last, or the one
+before the model died: its particles then stand for everything below its tolerance). The
+same weights, ``X_m(eps_t) / n_{m,t} exp(-d / (2 v))``, make the particles an importance
+sample of model m's exact posterior. Survivors are left out: they were drawn by weight, and
+each was a new particle once, where it is counted.
+
+Why (issue W, docs/design.md "Reading the answer"): an ABC posterior at one tolerance is
+uniform on the region below it, so each model's intervals depend on where the run stopped,
+and with nested models the most flexible model's best fit to the noise sets the common
+tolerance below the true model's own floor (its intervals then miss the truth, and whether
+they do depends on the sampler's seed). The likelihood-weighted reading is the posterior of
+the exact Gaussian likelihood of the noise the run estimates or the spec states, whatever
+the populations' tolerances were, as long as the run reached its floor (the weights inside
+the last population's region then vary by e^-3.4 or less) and each model's earlier shells
+hold its particles.
+
+When the spec does not state the noise, its variance is integrated out under Jeffreys' prior
+(:func:`marginal`): the likelihood of the residuals' sum of squares, ~ d^(-n / 2), is then
+that of the data with the noise unknown, not that of a plug-in estimate.
+
+The standard error of log Z_m adds two parts: each population's log X_m error (taken as
+fully correlated between populations, as the evidence's prediction chains them: the
+conservative choice) weighted by its share of Z_m, and the shells' Monte Carlo means
+(independent). The effective number of particles (Kish) says how many particles the reading
+rests on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from abcns.evidence import probabilities
+from abcns.noise import METHODS, Floor
+
+
+@dataclass(frozen=True, eq=False)
+class Reading:
+    """The likelihood-weighted answer of a run, per model: ``log_z`` and ``log_z_se`` (the
+    log evidence, relative to a common constant; -inf / inf for a model with no particle),
+    ``probabilities`` and ``se`` (Z / sum Z, delta method), ``ess`` (Kish's effective
+    number of particles), and ``theta[m]`` / ``weights[m]``: the model's weighted
+    particles (``theta`` (n, d_m), weights summing to 1)."""
+
+    log_z: np.ndarray
+    log_z_se: np.ndarray
+    probabilities: np.ndarray
+    se: np.ndarray
+    ess: np.ndarray
+    theta: tuple[np.ndarray, ...]
+    weights: tuple[np.ndarray, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class Record:
+    """What the reading needs of one population: its new particles (``models``, ``theta``,
+    ``distances``), the next tolerance and each model's log X (the evidence at its tolerance)
+    with its standard error."""
+
+    models: np.ndarray
+    theta: np.ndarray
+    distances: np.ndarray
+    epsilon_next: float
+    log_z: np.ndarray
+    log_z_se: np.ndarray
+
+
+def record(pop, previous=None) -> Record:
+    """``pop``'s record (an ABC-NS population with its evidence); ``previous``: the population
+    before it, whose survivors come first among ``pop``'s particles (the new ones follow)."""
+    first = 0 if previous is None or previous.survivors is None else int(np.count_nonzero(previous.survivors))
+    return Record(pop.models[first:], pop.theta[first:], pop.distances[first:], pop.epsilon_next,
+                  pop.evidence.log_z, pop.evidence.log_z_se)
+
+
+def records(populations: Sequence) -> list[Record]:
+    """The records of a run's populations, in order."""
+    return [record(pop, populations[i - 1] if i else None) for i, pop in enumerate(populations)]
+
+
+def gaussian(variance: float, reference: float) -> Callable[[np.ndarray], np.ndarray]:
+    """log L(d) - log L(reference) for Gaussian noise of a stated ``variance`` per sample in
+    distance units: -(d - reference) / (2 v)."""
+    return lambda d: -(d - reference) / (2.0 * variance)
+
+
+def marginal(n_samples: int, reference: float) -> Callable[[np.ndarray], np.ndarray]:
+    """The same for Gaussian noise of unknown variance, integrated out under Jeffreys' prior
+    p(sigma) ~ 1 / sigma: L ~ (sum of squared residuals)^(-n / 2), so
+    -(n / 2) log(d / reference). Near the best fit it is the Gaussian one with
+    v = reference / n; farther out its tails are heavier, as the noise could be larger."""
+    return lambda d: -0.5 * n_samples * np.log(d / reference)
+
+
+def of_floor(floor: Floor) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The log likelihood a run's ``floor`` gives: :func:`gaussian` with a stated noise,
+    :func:`marginal` with an estimated one; None when the best fit is exact (d = 0: no noise
+    to weigh by)."""
+    if not floor.best > 0:
+        return None
+    if METHODS[floor.method] == "stated":
+        return gaussian(floor.variance, floor.best)
+    return marginal(floor.n_samples, floor.best)
+
+
+def spared(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, threshold: float) -> np.ndarray | None:
+    """The models the reading of ``shells`` so far (the run read as if it stopped now) keeps
+    from death by probability: those whose probability plus three standard errors is at or
+    above ``threshold``, and those it rests on fewer than 2 (d + 1) effective particles for
+    (a model's few particles far from its best fit can hide most of its evidence); None
+    without a reading (no floor, or an exact best fit)."""
+    log_l = None if floor is None or not shells else of_floor(floor)
+    if log_l is None:
+        return None
+    r = read(shells, dims, log_l)
+    return (r.probabilities + 3 * r.se >= threshold) | (r.ess < 2 * (np.asarray(dims) + 1))
+
+
+def read(shells: Sequence[Record], dims: Sequence[int], log_likelihood: Callable[[np.ndarray], np.ndarray]) -> Reading:
+    """The reading of an ABC-NS run's population ``shells`` (:func:`records`) of models of
+    ``dims`` parameters, with ``log_likelihood`` of a distance (:func:`gaussian`,
+    :func:`marginal`; relative to the best fit's, so the weights stay finite)."""
+    n_models = len(dims)
+    last = np.full(n_models, -1)  # each model's last population with new particles
+    for i, rec in enumerate(shells):
+        last[np.unique(rec.models)] = i
+    parts: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(n_models)]  # (theta, log weight)
+    log_c: list[list[float]] = [[] for _ in range(n_models)]  # log of each population's contribution
+    se_c: list[list[float]] = [[] for _ in range(n_models)]  # its log X error
+    for i, rec in enumerate(shells):
+        for m in range(n_models):
+            rows = rec.models == m
+            n = int(np.count_nonzero(rows))
+            if n == 0 or not np.isfinite(rec.log_z[m]):
+                continue
+            d = rec.distances[rows]
+            log_l = log_likelihood(d)
+            if i < last[m]:
+                log_l = np.where(d >= rec.epsilon_next, log_l, -np.inf)
+            log_w = rec.log_z[m] - np.log(n) + log_l
+            parts[m].append((rec.theta[rows, : dims[m]], log_w))
+            top = np.max(log_w)
+            if np.isfinite(top):
+                log_c[m].append(float(top + np.log(np.sum(np.exp(log_w - top)))))
+                se_c[m].append(float(rec.log_z_se[m]))
+    log_z = np.full(n_models, -np.inf)
+    log_z_se = np.full(n_models, np.inf)
+    ess = np.zeros(n_models)
+    thetas, weights = [], []
+    for m in range(n_models):
+        if not log_c[m]:
+            thetas.append(np.zeros((0, dims[m])))
+            weights.append(np.zeros(0))
+            continue
+        theta = np.concatenate([p[0] for p in parts[m]])
+        log_w = np.concatenate([p[1] for p in parts[m]])
+        shift = np.max(log_w)
+        w = np.exp(log_w - shift)
+        total = float(np.sum(w))
+        log_z[m] = shift + np.log(total)
+        share = np.exp(np.asarray(log_c[m]) - log_z[m])
+        chained = float(np.sum(share * np.asarray(se_c[m])))
+        # the shells' means: each population's part is X / n sum of n draws; its variance is
+        # X^2 / n var(draw), estimated from the same draws
+        var_mc = 0.0
+        for _, lw in parts[m]:
+            wi = np.exp(lw - shift)
+            var_mc += wi.size * np.var(wi) if wi.size > 1 else wi.sum() ** 2
+        log_z_se[m] = float(np.sqrt(chained**2 + var_mc / total**2))
+        keep = w > 0
+        thetas.append(theta[keep])
+        weights.append(w[keep] / total)
+        ess[m] = total**2 / float(np.sum(w**2))
+    p, se = probabilities(log_z, log_z_se)
+    return Reading(log_z, log_z_se, p, se, ess, tuple(thetas), tuple(weights))

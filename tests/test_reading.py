@@ -1,0 +1,183 @@
+"""The answer of an NMSE run (issue W): no default rule ends it above its decision tolerance,
+the floor stop ends at the first population accepted there, and the answer is read by
+weighting every population with the Gaussian likelihood (``abcns.likelihood``), so the model
+probabilities and intervals are those of exact Bayesian inference with the same noise.
+
+The toy: a straight line with Gaussian noise (sd 0.1, 100 points), fitted by a line
+(a, b) and by a parabola (a, b, c), both linear in their parameters, so the exact
+posterior and evidence are closed-form (a Gaussian in a box the posterior lies well inside:
+the box's cut is below 1e-12 of the mass for these data). The spec states the noise (sd
+0.1), as exact Bayes knows it.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+import abcns
+from abcns import OK, Model, NSSettings, StopReason, StopRules, per_model
+from abcns.distances import NMSE
+from abcns.noise import reached
+
+X = np.linspace(-1, 1, 100)
+SIGMA = 0.1
+DESIGNS = {"line": np.stack([np.ones_like(X), X], axis=1), "parabola": np.stack([np.ones_like(X), X, X**2], axis=1)}
+
+
+def data(seed: int) -> np.ndarray:
+    return 1.0 + 2.0 * X + SIGMA * np.random.default_rng(100 + seed).standard_normal(X.size)
+
+
+def problem(seed: int, width: float = 3.0, stated: bool = True):
+    """(models, evaluate, noise) of data set ``seed``; the parabola's c ~ U(-width, width);
+    the noise stated (sd 0.1) or estimated from the best fit."""
+    y = data(seed)
+    nmse = NMSE(y)
+
+    def simulator(design):
+        return lambda theta, _rng: (nmse(theta @ design.T), np.full(theta.shape[0], OK, np.int8))
+
+    models = [Model("line", {"a": (0, 2), "b": (0, 4)}),
+              Model("parabola", {"a": (0, 2), "b": (0, 4), "c": (-width, width)})]
+    return models, per_model([simulator(DESIGNS["line"]), simulator(DESIGNS["parabola"])]), nmse.noise(SIGMA if stated else None)
+
+
+def exact(seed: int, width: float = 3.0) -> tuple[dict[str, float], dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """The exact model probabilities and each model's posterior (mean, sd) per parameter:
+    least squares with known noise, the evidence a Gaussian integral over the prior box."""
+    y = data(seed)
+    log_z, post = {}, {}
+    for (name, design), volume in zip(DESIGNS.items(), (8.0, 8.0 * 2 * width)):
+        beta = np.linalg.lstsq(design, y, rcond=None)[0]
+        chi2 = float(np.sum((y - design @ beta) ** 2)) / SIGMA**2
+        precision = design.T @ design / SIGMA**2
+        p = design.shape[1]
+        log_z[name] = -chi2 / 2 + p / 2 * math.log(2 * math.pi) - 0.5 * np.linalg.slogdet(precision)[1] - math.log(volume)
+        post[name] = (beta, np.sqrt(np.diag(np.linalg.inv(precision))))
+    top = max(log_z.values())
+    z = {k: math.exp(v - top) for k, v in log_z.items()}
+    return {k: v / sum(z.values()) for k, v in z.items()}, post
+
+
+SETTINGS = NSSettings(particles=300, epsilon_initial=1000, batch_size=50)
+
+
+def test_the_default_rules_wait_for_the_decision_tolerance():
+    """Seed 3, the noise estimated (no ``noise_std``): the paper's rule (eps_t - eps_{t+1} <
+    0.01) used to end this run above its decision tolerance, and the summary said nothing.
+    By default it now waits: the run stops at the floor. Set by the user
+    (``decrease_above_floor``, as a job spec that names ``min_epsilon_decrease`` does), it
+    still ends the run there, and the answer says it is provisional."""
+    models, evaluate, noise = problem(3, stated=False)
+    r = abcns.run(models, evaluate, SETTINGS, StopRules(), seed=3, noise=noise)
+    assert r.stop_reason is StopReason.NOISE_FLOOR
+    assert reached(r.final.epsilon, r.populations[-2].floor, r.final.floor)
+    s = r.summary()
+    assert s["decision"]["rule"] == "noise_floor" and s["decision"]["provisional"] is False
+    assert not [w for w in s["warnings"] if w.startswith("provisional")]
+
+    early = abcns.run(models, evaluate, SETTINGS, StopRules(decrease_above_floor=True), seed=3, noise=noise)
+    assert early.stop_reason is StopReason.MIN_EPSILON_DECREASE
+    assert early.final.epsilon > early.floor.decision
+    s = early.summary()
+    assert s["decision"]["rule"] == "min_epsilon_decrease" and s["decision"]["provisional"] is True
+    provisional = [w for w in s["warnings"] if w.startswith("provisional")]
+    assert len(provisional) == 1 and f"{early.final.epsilon:.4g}" in provisional[0]
+    assert f"{early.floor.decision:.4g}" in provisional[0]
+
+
+def test_above_the_floor_the_paper_rule_waits_and_a_stall_stops_the_run():
+    """``min_epsilon_decrease`` (0.01 by default) ends a run with a floor only at or below its
+    decision tolerance, unless the user set it (``decrease_above_floor``); above it, a
+    population that closes less than :data:`abcns.settings.STALL_SHARE` of its distance to
+    the decision tolerance stops the run (``stalled``: the tolerance is held at a model's
+    best fit above the floor, the paper variant's §4.1 stall)."""
+    rules = StopRules()
+    # above the decision tolerance 1.0: a step of 0.005 waits, a step of 1e-4 of 2.0 stalls
+    assert rules.reason_after(3.0, 2.995, 10, decision=1.0) is None
+    assert rules.reason_after(3.0, 3.0 - 1e-4, 10, decision=1.0) is StopReason.STALLED
+    # at or below it, the paper's rule applies
+    assert rules.reason_after(1.0, 0.995, 10, decision=1.0) is StopReason.MIN_EPSILON_DECREASE
+    # without a floor, as before
+    assert rules.reason_after(3.0, 2.995, 10) is StopReason.MIN_EPSILON_DECREASE
+    # the user's own rule ends the run where it holds
+    mine = StopRules(decrease_above_floor=True)
+    assert mine.reason_after(3.0, 2.995, 10, decision=1.0) is StopReason.MIN_EPSILON_DECREASE
+    # along a given schedule (ABC-SMC) neither rule applies
+    assert rules.reason_after(3.0, 3.0 - 1e-4, 10, decrease=False, decision=1.0) is None
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_the_floor_stop_ends_at_the_first_population_accepted_at_the_decision_tolerance(seed):
+    """docs/design.md: the run stops after the population accepted at the decision tolerance.
+    The floor falls as the run finds better fits, so the tolerance the last population was
+    accepted at (the decision tolerance estimated after the population before) can lie above
+    the one estimated after it; the run used to go on, accepting population after population
+    at a slightly lower tolerance (seeds 1 and 3 of this toy with c ~ U(-30, 30): 3 and 2 of
+    them). Now exactly one population is accepted at the decision tolerance: the last."""
+    models, evaluate, noise = problem(seed, width=30.0)
+    r = abcns.run(models, evaluate, SETTINGS, StopRules(min_epsilon_decrease=1e-9, max_populations=60), seed=seed,
+                  noise=noise)
+    assert r.stop_reason is StopReason.NOISE_FLOOR
+    pops = r.populations
+    at = [p.t for i, p in enumerate(pops) if reached(p.epsilon, pops[i - 1].floor if i else None, p.floor)]
+    assert at == [pops[-1].t]
+    assert pops[-1].epsilon == pops[-2].floor.decision
+    assert r.decision_population() is r.final
+
+
+def check_against_exact(summary: dict, seed: int, width: float, models: tuple[str, ...]) -> None:
+    """The summary's probabilities within 3 of their standard errors (plus 0.002 for a
+    probability's own rounding in the delta method) of the exact ones; each named model's
+    95 % intervals 0.8-1.25 times the exact width and its means within 0.25 exact standard
+    deviations (issue W's bounds)."""
+    p_exact, post = exact(seed, width)
+    for name, p in p_exact.items():
+        se = summary["model_probability_se"][name]
+        assert abs(summary["model_probabilities"][name] - p) <= 3 * se + 0.002, (name, summary["model_probabilities"],
+                                                                                   se, p_exact)
+    for name in models:
+        mean, sd = post[name]
+        for j, (par, q) in enumerate(summary["posterior"][name].items()):
+            ratio = (q["q97_5"] - q["q2_5"]) / (2 * 1.959964 * sd[j])
+            shift = (q["mean"] - mean[j]) / sd[j]
+            assert 0.8 <= ratio <= 1.25 and abs(shift) <= 0.25, (name, par, ratio, shift)
+
+
+@pytest.mark.slow
+def test_nested_models_read_by_the_likelihood_match_exact_bayes():
+    """Seed 25: the parabola fits this noise draw better than the line by chi^2 7.2 (the
+    largest of seeds 1-40), more than the line's own spread at the floor (p + sqrt(2 p) =
+    4.0), so the common decision tolerance lies below the line's best fit: read there, the
+    line had no particle and p(line) = 0, against an exact 0.668. Read by the likelihood
+    over all populations, both models' probabilities and intervals are exact Bayes's. Two
+    sampler seeds on the same data agree within their standard errors (the answer does not
+    hang on the sampler's seed)."""
+    models, evaluate, noise = problem(25)
+    answers = []
+    for run_seed in (25, 26):
+        r = abcns.run(models, evaluate, NSSettings(particles=1000, epsilon_initial=1000), StopRules(), seed=run_seed,
+                      noise=noise)
+        s = r.summary()
+        assert s["decision"]["reading"] == "likelihood" and s["decision"]["rule"] == "noise_floor"
+        check_against_exact(s, 25, 3.0, ("line", "parabola"))
+        answers.append((s["model_probabilities"]["line"], s["model_probability_se"]["line"]))
+    (p1, se1), (p2, se2) = answers
+    assert abs(p1 - p2) <= 3 * math.hypot(se1, se2)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1, 2, 3, 4])
+def test_a_rare_model_is_kept_and_its_probability_is_right(seed):
+    """c ~ U(-30, 30): the parabola's exact probability is 0.0014-0.0058 on seeds 1-6, above
+    the threshold of death by probability (1e-3). Before, it held 10-18 of 300 particles, its
+    bounds were fitted to a handful of them and missed most of its region, its log evidence
+    fell 5 below the truth with a standard error of 0.3, and it was removed in seeds 1, 4 and
+    6 (p = 0 reported). Now it keeps 10 (d + 1) new particles a population, is not removed
+    while the likelihood gives it a share, and its probability is the exact one within 3 of
+    its standard errors."""
+    models, evaluate, noise = problem(seed, width=30.0)
+    r = abcns.run(models, evaluate, SETTINGS, StopRules(), seed=seed, noise=noise)
+    assert "parabola" not in r.death_rules()
+    check_against_exact(r.summary(), seed, 30.0, ("line",))
