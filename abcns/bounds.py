@@ -12,9 +12,6 @@ from the generator it is given.
 - :func:`sample_union` : points uniform on the union (an ellipsoid is chosen by volume, a
   point uniform in it is kept with probability 1 / the number of ellipsoids holding it);
 - :func:`union_volume` : Monte Carlo estimate of log vol(union ∩ box) and its standard error;
-- :func:`nest`, :func:`settle`, :func:`in_chain` : the earlier unions a bound is intersected
-  with, so that each population's region lies inside the previous one's
-  (``sampler.carry_over``);
 - :func:`coverage` : two-fold cross-validated share of points that the bound's ellipsoids,
   refitted to the other half of their points, hold (how much of the accepted region the
   bound misses).
@@ -32,9 +29,6 @@ from abcns import ellipsoid as ell
 from abcns.priors import Model, in_box
 
 Union = tuple[ell.Ellipsoid, ...]
-#: the earlier unions a bound's region also lies in: the region is ``union ∩ box ∩ each of
-#: them`` (empty: the union and the box alone)
-Chain = tuple[Union, ...]
 #: halves replace a node only when their ellipsoids' total volume is below this share of it
 #: (a convex region split by chance fluctuations of few points leaves gaps)
 SPLIT_GAIN = 0.8
@@ -230,10 +224,9 @@ def sample_union(bound: Union, n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def union_volume(bound: Union, box: tuple[np.ndarray, np.ndarray], n_draws: int,
-                 rng: np.random.Generator, within: Chain = ()) -> tuple[float, float]:
-    """(log vol(union ∩ box ∩ within), its standard error) by ``n_draws`` Monte Carlo draws;
-    ``box`` is (low, high), a point inside when ``low <= x <= high``; ``within`` the earlier
-    unions of a nested region (:func:`nest`), tested on the points in numpy.
+                 rng: np.random.Generator) -> tuple[float, float]:
+    """(log vol(union ∩ box), its standard error) by ``n_draws`` Monte Carlo draws; ``box``
+    is (low, high), a point inside when ``low <= x <= high``.
 
     vol = sum_k vol(E_k) * E[1{x in box} / q(x)] for x from the volume-weighted mixture,
     q(x) the number of ellipsoids holding x (1 for a single ellipsoid). The weights come
@@ -248,70 +241,15 @@ def union_volume(bound: Union, box: tuple[np.ndarray, np.ndarray], n_draws: int,
     axes, centres = ell.stacked(bound)
     w, ok = compiled.mixture_weights(which, z, u[:, 0], centres, axes, np.ascontiguousarray(low),
                                      np.ascontiguousarray(high), ell.CONTAINS_SLACK, len(bound) > 1)
-    if not ok or within:
-        x = _place(bound, which, z, u)
     if not ok:
+        x = _place(bound, which, z, u)
         held = np.all((x >= low) & (x <= high), axis=-1)
         w = held / n_inside(bound, x) if len(bound) > 1 else held.astype(float)
-    if within:
-        w = w * in_chain(within, x)
     mean = float(np.mean(w))
     if mean <= 0.0:
         return -np.inf, np.inf
     se = float(np.std(w, ddof=1)) / np.sqrt(n_draws) / mean if n_draws > 1 else np.inf
     return float(_volume_shares(bound)[0] + np.log(mean)), se
-
-
-def in_chain(chain: Chain, x: np.ndarray) -> np.ndarray:
-    """Which rows of ``x`` lie in every union of ``chain`` (all of them when it is empty)."""
-    inside = np.ones(x.shape[0], dtype=bool)
-    for union in chain:
-        inside &= n_inside(union, x) > 0
-    return inside
-
-
-def holds_ellipsoid(outer: ell.Ellipsoid, inner: ell.Ellipsoid) -> bool:
-    """True when ``inner`` certainly lies inside ``outer`` (a sufficient test): in the
-    coordinates where ``outer`` is the unit ball, ``inner`` has centre v and axes M, and
-    every point of it lies within |v| + ||M||_2 of the origin."""
-    v = np.linalg.solve(outer.axes, inner.centre - outer.centre)
-    m = np.linalg.solve(outer.axes, inner.axes)
-    return bool(np.linalg.norm(v) + np.linalg.norm(m, 2) <= 1.0 - 1e-9)
-
-
-def nest(chain: Chain | None, bound: Union) -> Chain:
-    """The chain of the region inside ``bound``'s region: ``chain`` and ``bound``, less the
-    earlier unions that certainly hold all of ``bound`` (each of its ellipsoids inside one of
-    theirs: they cut nothing from a region inside ``bound``, now or later). An empty
-    ``bound`` (the prior box, or a dead model) adds nothing; None is an empty chain (a
-    region not nested, :func:`settle`)."""
-    chain = chain or ()
-    if not bound:
-        return chain
-    kept = tuple(u for u in chain if not all(any(holds_ellipsoid(o, e) for o in u) for e in bound))
-    return (*kept, bound)
-
-
-#: draws of the nesting check (:func:`settle`), and the share of a new union's part inside the
-#: box that its chain must keep for its region to stay nested: below it proposals would be
-#: mostly redrawn (a dying model's last few points near the box's edge made a region of
-#: under 1e-5 of its union on §4.1, and the run stopped with PROPOSAL_EXHAUSTED)
-NEST_DRAWS = 1000
-NEST_SHARE = 0.05
-
-
-def settle(chain: Chain, bound: Union, box: tuple[np.ndarray, np.ndarray], rng: np.random.Generator) -> Chain | None:
-    """``chain`` when the region ``bound ∩ box ∩ chain`` keeps at least ``NEST_SHARE`` of
-    ``bound ∩ box`` (by ``NEST_DRAWS`` draws from ``bound``), else None: the region is then
-    ``bound ∩ box`` alone, not nested in the previous one. Empty for an empty ``bound``."""
-    if not bound:
-        return ()
-    if not chain:
-        return chain
-    x = sample_union(bound, NEST_DRAWS, rng)
-    in_box = np.all((x >= box[0]) & (x <= box[1]), axis=-1)
-    kept = int(np.count_nonzero(in_box & in_chain(chain, x)))
-    return chain if kept >= NEST_SHARE * max(1, int(np.count_nonzero(in_box))) else None
 
 
 def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.random.Generator,

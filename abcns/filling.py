@@ -18,11 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from abcns.executor import OK, Draw, Executor, Propose, Simulated
+from abcns.executor import OK, Draw, Executor, Propose
 from abcns.settings import Stopped, StopReason, StopRules
 
-__all__ = ["Budget", "Carried", "Filled", "Filling", "Holds", "Propose", "Stopped", "draw_inside", "draws", "fill",
-           "population_rng"]
+__all__ = ["Budget", "Filled", "Filling", "Propose", "Stopped", "draw_inside", "draws", "fill", "population_rng"]
 
 
 def population_rng(seed: int, t: int) -> np.random.Generator:
@@ -130,17 +129,11 @@ class Filled:
     n_redraws: int
     simulated_models: np.ndarray  # (n_simulations,) the model of every simulation counted
     failed_models: np.ndarray  # (n_failed,) the model of every simulation that failed or diverged
-    proposed_models: np.ndarray  # the model of every simulation that was a proposal of this population
 
     def counts(self, n_models: int) -> tuple[np.ndarray, np.ndarray]:
-        """(proposals, accepted particles) per model: the simulations of this population's
-        proposals (every simulation but the carried rows outside its bound)."""
-        return (np.bincount(self.proposed_models, minlength=n_models),
+        """(simulations, accepted particles) per model."""
+        return (np.bincount(self.simulated_models, minlength=n_models),
                 np.bincount(self.models, minlength=n_models))
-
-    def simulations(self, n_models: int) -> np.ndarray:
-        """Simulations per model, carried rows outside the bound included."""
-        return np.bincount(self.simulated_models, minlength=n_models)
 
     def failures(self, n_models: int) -> np.ndarray:
         """Simulations that failed or diverged, per model."""
@@ -148,53 +141,23 @@ class Filled:
 
 
 def draws(propose: Propose, *, seed: int, t: int, epsilon: float, batch_size: int,
-          keep_all: bool = False, first: int = 1) -> Iterator[Draw]:
-    """The endless stream of population ``t``'s draws, batch indices ``first``, ``first`` + 1, ..."""
-    for b in itertools.count(first):
+          keep_all: bool = False) -> Iterator[Draw]:
+    """The endless stream of population ``t``'s draws, batch indices 1, 2, ..."""
+    for b in itertools.count(1):
         yield Draw(t, b, batch_size, float(epsilon), seed, propose, keep_all)
-
-
-#: which rows (models (n,), theta (n, d_max)) lie in a population's region
-Holds = Callable[[np.ndarray, np.ndarray], np.ndarray]
-
-
-@dataclass
-class Carried:
-    """Population t's stream after the last batch t used (its results, every row's
-    parameters with them): population t + 1 uses its next ``batches`` first, each row a
-    proposal of t + 1 when it lies in t + 1's region (drawn from t's region, which holds
-    t + 1's, such a row is uniform there), accepted below t + 1's tolerance (t's was larger,
-    so a row a simulator stopped early at t's is rejected at t + 1's too)."""
-
-    results: Iterator[Simulated]
-    batches: int
-
-    def close(self) -> None:
-        close = getattr(self.results, "close", None)
-        if close is not None:
-            close()
 
 
 class Filling:
     """A population being filled: ``executor.map`` is called when this is made, so an executor
     that runs draws ahead (Dask) starts simulating while the caller finishes other work;
     :meth:`finish` consumes the results in submission order. Nothing is consumed, and no
-    budget checked, before :meth:`finish`; :meth:`close` drops the stream unconsumed.
-
-    ``carried``: the previous population's stream, whose batches come first (``holds``
-    says which of their rows lie in this population's region). ``carry_next``: batches of
-    this stream the next population will use (hinted to the executor, and the stream left
-    open by :meth:`finish`: :meth:`carry` hands it on). With either, every batch returns
-    every row's parameters."""
+    budget checked, before :meth:`finish`; :meth:`close` drops the stream unconsumed."""
 
     def __init__(self, propose: Propose, n_needed: int, epsilon: float, executor: Executor, *,
-                 seed: int, t: int, batch_size: int, accept_all: bool = False, first: int = 1,
-                 carried: Carried | None = None, holds: Holds | None = None, carry_next: int = 0):
+                 seed: int, t: int, batch_size: int, accept_all: bool = False):
         self.n_needed, self.epsilon, self.accept_all, self.t = n_needed, epsilon, accept_all, t
-        self.carried, self.holds, self.carry_next = carried, holds, carry_next
-        self.full_theta = accept_all or carry_next > 0 or carried is not None
         self.results = executor.map(draws(propose, seed=seed, t=t, epsilon=epsilon, batch_size=batch_size,
-                                          keep_all=self.full_theta, first=first))
+                                          keep_all=accept_all))
         self.expect = getattr(self.results, "expect", None)  # an executor that runs ahead takes hints:
         if self.expect is not None:  # this many batches were every simulation kept (exactly, with accept_all)
             self.expect(n_needed / batch_size, at_least=not accept_all)
@@ -203,29 +166,6 @@ class Filling:
         close = getattr(self.results, "close", None)
         if close is not None:
             close()
-        if self.carried is not None:
-            self.carried.close()
-
-    def carry(self) -> Carried:
-        """This stream after the last batch :meth:`finish` used, for the next population."""
-        return Carried(self.results, self.carry_next)
-
-    def _batches(self) -> Iterator[tuple[Simulated, bool]]:
-        """(batch, carried): the carried batches first (their stream closed after them), then
-        this population's own."""
-        if self.carried is not None:
-            carried = self.carried
-            hint = getattr(carried.results, "expect", None)
-            for left in range(carried.batches, 0, -1):
-                if hint is not None:  # no more of the previous stream than the batches still carried
-                    hint(left)
-                batch = next(carried.results, None)
-                if batch is None:
-                    break
-                yield batch, True
-            carried.close()
-        for batch in self.results:
-            yield batch, False
 
     def finish(self, budget: Budget) -> Filled:
         """Run batches until ``n_needed`` particles have distance < ``epsilon``.
@@ -233,26 +173,20 @@ class Filling:
         With ``accept_all`` every simulation is kept, failed ones too (the pilot). Budgets are
         checked before each batch is consumed and the simulation budget per simulation; on a
         stop, :class:`Stopped` is raised after the simulations done are added to
-        ``budget.n_simulations``. The stream is closed on return (surplus cancelled), unless
-        the next population carries it over (``carry_next``) and the population is full.
+        ``budget.n_simulations``. The stream is closed on return (surplus cancelled).
         """
         n_needed, epsilon = self.n_needed, self.epsilon
         kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         simulated: list[np.ndarray] = []
-        proposed: list[np.ndarray] = []
         failed: list[np.ndarray] = []
         n_kept = n_sims = n_failed = n_redraws = n_batches = 0
-        full = False
         try:
             budget.check()
-            for batch, carried in self._batches():  # in submission order
+            for batch in self.results:  # in submission order
                 if batch.stop is not None:
                     raise Stopped(batch.stop)
                 ok = batch.status == OK
                 accept = batch.kept(epsilon, self.accept_all)
-                counted = self.holds(batch.models, batch.theta) if carried and self.holds is not None else None
-                if counted is not None:
-                    accept &= counted
                 # the row at which this batch completes the population, if it does
                 cum = np.cumsum(accept)
                 n_rows = min(len(batch), int(np.searchsorted(cum, n_needed - n_kept)) + 1)
@@ -261,10 +195,8 @@ class Filling:
                     n_rows = left
                 rows = slice(0, n_rows)
                 take = np.flatnonzero(accept[rows])  # a prefix of the kept rows, whose theta the batch holds
-                kept.append((batch.models[take], batch.theta[take] if self.full_theta else batch.theta[: take.size],
-                             batch.distances[take]))
+                kept.append((batch.models[take], batch.theta[: take.size], batch.distances[take]))
                 simulated.append(batch.models[rows])
-                proposed.append(simulated[-1] if counted is None else simulated[-1][counted[rows]])
                 n_kept += take.size
                 n_sims += n_rows
                 failed.append(batch.models[rows][~ok[rows]])
@@ -272,23 +204,19 @@ class Filling:
                 n_redraws += int(batch.redraws[rows].sum())
                 budget.n_simulations += n_rows
                 if n_kept >= n_needed:
-                    full = True
                     break
                 if cut:
                     raise Stopped(StopReason.MAX_SIMULATIONS)
                 self._check_acceptance(n_kept, n_sims, budget.stop)
                 n_batches += 1
-                if self.expect is not None and not carried:  # batches still needed at the acceptance so far
-                    self.expect((n_needed - n_kept) * n_batches / max(n_kept, 0.5) + self.carry_next)
+                if self.expect is not None:  # batches still needed at this population's acceptance so far
+                    self.expect((n_needed - n_kept) * n_batches / max(n_kept, 0.5))
                 budget.check()
         finally:
-            if not (full and self.carry_next > 0):
-                self.close()
-            elif self.carried is not None:
-                self.carried.close()
+            self.close()
         models, theta, distances = (np.concatenate(parts) for parts in zip(*kept, strict=True))
         return Filled(models, theta, distances, n_sims, n_failed, n_redraws, np.concatenate(simulated),
-                      np.concatenate(failed), np.concatenate(proposed))
+                      np.concatenate(failed))
 
     def _check_acceptance(self, n_kept: int, n_sims: int, stop: StopRules) -> None:
         """Stop (NOTHING_ACCEPTED, with the sentence that says why) when this population has

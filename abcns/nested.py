@@ -54,7 +54,7 @@ from abcns import ellipsoid as ell
 from abcns import evidence as ev
 from abcns import likelihood
 from abcns.executor import Executor
-from abcns.filling import Budget, Carried, Filled, Filling, Propose, Stopped, draw_inside, draws, population_rng
+from abcns.filling import Budget, Filled, Filling, Stopped, draw_inside, fill, population_rng
 from abcns.noise import Floor, Noise, Tracker, reached
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
@@ -87,11 +87,6 @@ def ns_weights(distances: np.ndarray, epsilon: float, epsilon_next: float, form:
     else:
         w = kernel / epsilon
     return np.where((distances < epsilon_next) & (kernel > 0), w, 0.0)
-
-
-def nesting_rng(seed: int, t: int) -> np.random.Generator:
-    """The generator of the check that population t + 1's regions stay nested (carry-over)."""
-    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(t, 0, 2)))
 
 
 def geometry_rng(seed: int, t: int) -> np.random.Generator:
@@ -131,7 +126,6 @@ class Step:
     evidence_parts: dict  # the Evidence fields but the geometry
     geometry_jobs: tuple[Geometry | None, ...]
     tied: bool = False  # every particle has the same distance: no lower tolerance exists
-    within: tuple[bd.Chain | None, ...] = ()  # carry-over: the next regions' chains (None: not nested)
 
     def evidence(self, geometry: np.random.Generator) -> ev.Evidence:
         """The population's evidence bookkeeping, its bounds' geometry measured now with
@@ -160,15 +154,13 @@ def finish_population(
     settings: NSSettings,
     rng: np.random.Generator,
     lower: float | None = None,
-    within: Sequence[bd.Chain] = (),
-    nesting: np.random.Generator | None = None,
     spared: np.ndarray | None = None,
 ) -> Step:
     """eps_next (:func:`next_tolerance`, not below ``lower``), weights per model, the evidence
     (``abcns.evidence.estimate``), what the variant decides (``abcns.variants``: deaths, but
     not of the ``spared``, survivors, bounds, allocation); the evidence once
     :meth:`Step.evidence` has measured the bounds. All particles at one distance: eps_next is
-    eps_t (``Step.tied``), the run must stop. ``within``, ``nesting``: carry-over's chains."""
+    eps_t (``Step.tied``), the run must stop."""
     n_models, variant = len(models), variant_of(settings)
     found = next_tolerance(distances, settings.n_drop, lower)
     eps_next = epsilon if found is None else found
@@ -184,8 +176,7 @@ def finish_population(
     death = np.where(alive_now, ev.ALIVE, ev.DEAD_BEFORE).astype(np.int64)
     quotas = variant.survive(models, est, counts, capacity, alive_now, previous_evidence, death, spared)
     alive_next = death == ev.ALIVE
-    n_simulated = filled.simulations(n_models)
-    death[(death != ev.ALIVE) & (n_simulated > 0) & (filled.failures(n_models) == n_simulated)] = ev.SIMULATIONS_FAILED
+    death[(death != ev.ALIVE) & (n_proposed > 0) & (filled.failures(n_models) == n_proposed)] = ev.SIMULATIONS_FAILED
     notes = [f"population {t}: {models[m].name} dies ({ev.DEATH_RULES[int(death[m])]}; p = {est.p_next[m]:.3g} at "
              "the next tolerance)" for m in map(int, np.flatnonzero(alive_now & ~alive_next))]
     if quotas.sum() < settings.n_survivors:
@@ -194,13 +185,15 @@ def finish_population(
 
     weights = np.zeros_like(raw)
     survivors = np.zeros(which.shape[0], dtype=bool)
-    regions: list[tuple[bd.Union, bd.Chain | None, Geometry | None]] = []  # per model: bound, chain, geometry
+    bounds: list[bd.Union] = []
+    geometry_jobs: list[Geometry | None] = []
     for m, model in enumerate(models):
         rows = np.flatnonzero((which == m) & positive)
         if rows.size:
             weights[rows] = raw[rows] / raw[rows].sum()
         if not alive_next[m] or quotas[m] == 0:
-            regions.append(((), (), None))
+            bounds.append(())
+            geometry_jobs.append(None)
             continue
         keep = rng.choice(rows, size=int(quotas[m]), replace=False, p=weights[rows])
         survivors[keep] = True
@@ -209,11 +202,9 @@ def finish_population(
         prev_bound = previous.ellipsoids[m] if previous is not None else ()
         bound = variant.bound(points, theta[np.sort(keep), : model.n_dim], _fallback(prev_bound, frame, settings))
         notes += [f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)" for e in bound if e.note]
-        chain = _nested_region(t, model.name, bound, frame, within[m] if within else (), nesting, notes)
-        regions.append((bound, chain, _geometry_job(bound, frame, points, is_new[rows],
-                                                    settings.enlargement if variant.cross_validated else None,
-                                                    chain or ())))
-    bounds, chains, geometry_jobs = zip(*regions, strict=True)
+        bounds.append(bound)
+        geometry_jobs.append(_geometry_job(bound, frame, points, is_new[rows],
+                                           settings.enlargement if variant.cross_validated else None))
 
     acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
     alloc, probabilities = variant.proposals(models, est, counts, acceptance, alive_next)
@@ -223,22 +214,8 @@ def finish_population(
     if found is None:
         notes.append(f"population {t}: every particle has the distance {float(distances[0]):.6g}; no tolerance below "
                      "it leaves a particle, so the run stops (ties)")
-    return Step(eps_next, weights, survivors, bounds, probabilities, notes, parts, geometry_jobs,
-                tied=found is None, within=chains)
-
-
-def _nested_region(t: int, name: str, bound: bd.Union, frame: bd.Frame, within: bd.Chain,
-                   nesting: np.random.Generator | None, notes: list[str]) -> bd.Chain | None:
-    """The chain of a model's next region (carry-over: ``within``, kept where it leaves
-    enough of ``bound``, :func:`bounds.settle`, as ``_Run._settled`` makes it again on a
-    resume); None, with a note, when the region is not nested."""
-    if nesting is None:
-        return ()
-    chain = bd.settle(within, bound, frame.box, nesting)
-    if chain is None:
-        notes.append(f"population {t}: the bound of {name} lies mostly outside the previous one; its region is not "
-                     "nested (no carried rows of it are proposals)")
-    return chain
+    return Step(eps_next, weights, survivors, tuple(bounds), probabilities, notes, parts, tuple(geometry_jobs),
+                tied=found is None)
 
 
 def _fallback(previous_bound: bd.Union, frame: bd.Frame, settings: NSSettings) -> ell.Ellipsoid:
@@ -251,21 +228,19 @@ def _fallback(previous_bound: bd.Union, frame: bd.Frame, settings: NSSettings) -
 
 
 def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, new: np.ndarray,
-                  enlargement: float | None, within: bd.Chain = ()) -> Geometry:
+                  enlargement: float | None) -> Geometry:
     """The measurement of one model's new bound, for :meth:`Step.evidence`: (log prior mass
     of the bound, its standard error, the share of the accepted region it holds, points
     tested). The coverage is cross-validated on the ``new`` points (uniform in the region
     sampled) when the bound is a fit of ``points`` with this ``enlargement`` (the evidence
-    variant), else the share of ``points`` the bound holds; then the volume by Monte Carlo
-    (of the bound's region: inside the prior box and, with carry-over, ``within``; the
-    points lie in the previous region already, so the coverage is the region's too)."""
+    variant), else the share of ``points`` the bound holds; then the volume by Monte Carlo."""
 
     def measure(geometry: np.random.Generator) -> GeometryResult:
         if enlargement is not None:
             cover, n_cover = bd.coverage(points, bound, enlargement, geometry, new)
         else:
             cover, n_cover = float(np.mean(bd.n_inside(bound, points) > 0)), points.shape[0]
-        log_v, log_v_se = bd.union_volume(bound, frame.box, VOLUME_DRAWS, geometry, within)
+        log_v, log_v_se = bd.union_volume(bound, frame.box, VOLUME_DRAWS, geometry)
         return log_v - frame.log_box_volume, log_v_se, cover, n_cover
 
     return measure
@@ -275,19 +250,14 @@ def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, new: np.
 class BoundProposer:
     """Each proposal picks a model (with equal probability among those with a bound when
     ``allocation`` is None, the paper's rule; else by ``allocation``), then a point uniform
-    in its bound, redrawn until inside the prior box (and, with ``within``, inside every
-    earlier union of the model's chain: the region is nested in the previous population's).
-    ``redraws[i]`` is the number of draws outside that region before proposal i, exactly as
-    a one-at-a-time loop would count them."""
+    in its bound, redrawn until inside the prior box. ``redraws[i]`` is the number of
+    out-of-box draws before proposal i, exactly as a one-at-a-time loop would count them."""
 
     models: tuple[Model, ...]
     frames: tuple[bd.Frame, ...]
     bounds: tuple[bd.Union, ...]
     allocation: np.ndarray | None
     max_redraws: int
-    # carry-over: per model, the earlier unions its region lies in (None: a region not nested
-    # in the previous one, whose carried rows are no proposals of it)
-    within: tuple[bd.Chain | None, ...] = ()
 
     @functools.cached_property
     def _cdf(self) -> np.ndarray:
@@ -295,27 +265,6 @@ class BoundProposer:
         batch the proposer draws."""
         assert self.allocation is not None
         return bd.cumulative(self.allocation)
-
-    def region(self, m: int) -> Callable[[np.ndarray], np.ndarray]:
-        """The test of model m's region but for its own union: the prior box (``in_prior``,
-        raw parameters) and each union of its chain (in the frame)."""
-        frame = self.frames[m]
-        chain = self.within[m] if self.within else None
-        if not chain:
-            return frame.in_prior
-        return lambda theta: frame.in_prior(theta) & bd.in_chain(chain, frame.to_frame(theta))
-
-    def holds(self, models: np.ndarray, theta: np.ndarray) -> np.ndarray:
-        """Which rows (models, raw parameters) of the previous population's stream are
-        proposals of this one: those in the region this proposer draws from, of a model
-        whose region is nested in the previous one's (so they are uniform there)."""
-        inside = np.zeros(models.shape[0], dtype=bool)
-        for m, bound in enumerate(self.bounds):
-            rows = np.flatnonzero(models == m)
-            if bound and rows.size and self.within[m] is not None:
-                x = theta[rows, : self.models[m].n_dim]
-                inside[rows] = self.region(m)(x) & (bd.n_inside(bound, self.frames[m].to_frame(x)) > 0)
-        return inside
 
     def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         alive = [m for m, b in enumerate(self.bounds) if b]
@@ -334,9 +283,8 @@ class BoundProposer:
             def draw(k: int, g: np.random.Generator, b: bd.Union = bound, f: bd.Frame = frame) -> np.ndarray:
                 return f.from_frame(bd.sample_union(b, k, g))
 
-            # the model's prior box (model.in_prior's test: the frame holds its low and high), and
-            # with carry-over the earlier bounds
-            theta[rows, : model.n_dim], redraws[rows] = draw_inside(draw, self.region(m), rows.size, rng,
+            # the model's prior box (model.in_prior's test: the frame holds its low and high)
+            theta[rows, : model.n_dim], redraws[rows] = draw_inside(draw, frame.in_prior, rows.size, rng,
                                                                     self.max_redraws)
         return which, theta, redraws
 
@@ -398,12 +346,7 @@ def abc_ns(
 
 
 class _Run:
-    """One ABC-NS run's state between populations (:func:`abc_ns`).
-
-    With carry-over (``settings.n_carry`` batches, the evidence variant), population t + 1
-    first uses the next batches of population t's stream (:class:`abcns.filling.Carried`),
-    and its region is nested in t's: ``within`` holds, per model, the chain of earlier
-    unions the region of the population being filled lies in (``abcns.bounds.nest``)."""
+    """One ABC-NS run's state between populations (:func:`abc_ns`)."""
 
     def __init__(self, models: Sequence[Model], executor: Executor, settings: NSSettings, stop: StopRules,
                  seed: int, budget: Budget, history: Sequence[Population], noise: Noise | None):
@@ -416,75 +359,19 @@ class _Run:
         self.shells = likelihood.records(history) if settings.evidence else []  # the reading so far
         self.at_floor = settings.evidence and stop.noise_floor and noise is not None
         self.pending: Filling | None = None  # the next population, started
-        self.carry = settings.n_carry
-        no_bounds: tuple[bd.Union, ...] = tuple(() for _ in models)
-        # the proposer of the population being filled: its bounds (none: the priors) and chains
-        self.bounds: tuple[bd.Union, ...] = no_bounds
-        self.within: tuple[bd.Chain | None, ...] = tuple(() for _ in models)
-        self.filling: Filling | None = None  # the population being filled (its stream carried over)
-        if history and self.carry:
-            if len(history) != history[-1].t:
-                raise ValueError("carry-over resumes from the whole history (every population, in order)")
-            for pop in history[:-1]:  # population t's regions, made again as the run made them
-                self.within, self.bounds = self._settled(pop), pop.ellipsoids
-
-    def _settled(self, pop: Population) -> tuple[bd.Chain | None, ...]:
-        """The chains of the regions of the population after ``pop`` (from its bounds), as
-        :func:`finish_population` settled them."""
-        rng = nesting_rng(self.seed, pop.t)
-        return tuple(bd.settle(chain, bound, frame.box, rng)
-                     for chain, bound, frame in zip(self._nested(), pop.ellipsoids, self.frames, strict=True))
-
-    def _nested(self) -> tuple[bd.Chain, ...]:
-        """The chains the next population's regions are nested in, before :func:`bounds.settle`
-        (none without carry-over)."""
-        if not self.carry:
-            return tuple(() for _ in self.models)
-        return tuple(bd.nest(chain, bound) for chain, bound in zip(self.within, self.bounds, strict=True))
 
     def end(self, reason: StopReason) -> RunEnd:
         return RunEnd(reason, self.budget.n_simulations, self.n_pilot, self.source, tuple(self.notes))
 
-    def proposer(self, bounds: Sequence[bd.Union], allocation: np.ndarray) -> BoundProposer:
+    def start(self, t: int, eps: float, bounds: Sequence[bd.Union], allocation: np.ndarray, n_survivors: int) -> Filling:
+        """Open population t: proposals from ``bounds`` by the evidence's ``allocation`` (the
+        evidence variant) or the paper's rule; N particles in every population (when fewer
+        than beta N survive, more are new)."""
         s = self.settings
-        return BoundProposer(tuple(self.models), tuple(self.frames), tuple(bounds),
-                             allocation if s.evidence else None, s.max_redraws, self.within if self.carry else ())
-
-    def start(self, t: int, eps: float, bounds: Sequence[bd.Union], allocation: np.ndarray, n_survivors: int,
-              carried: Carried | None, within: tuple[bd.Chain | None, ...]) -> Filling:
-        """Open population t: proposals from ``bounds`` (nested in ``within``) by the
-        evidence's ``allocation`` (the evidence variant) or the paper's rule, after the
-        ``carried`` batches; N particles in every population (when fewer than beta N
-        survive, more are new)."""
-        s = self.settings
-        self.within, self.bounds = within, tuple(bounds)
-        propose = self.proposer(bounds, allocation)
+        propose = BoundProposer(tuple(self.models), tuple(self.frames), tuple(bounds),
+                                allocation if s.evidence else None, s.max_redraws)
         return Filling(propose, s.particles - n_survivors, eps, self.executor, seed=self.seed, t=t,
-                       batch_size=s.batch_size, carried=carried, holds=propose.holds if carried else None,
-                       carry_next=self.carry)
-
-    def resumed(self, history: Sequence[Population]) -> Filling:
-        """Open the population after ``history`` (a resumed run). With carry-over, its first
-        batches are the last population t's stream after the batches t used, made again: their
-        indices follow from t's simulations (the carried rows t used came first: all ``carry``
-        batches, unless it filled within them)."""
-        s, pop = self.settings, history[-1]
-        assert pop.evidence is not None and pop.survivors is not None  # set on every ABC-NS population
-        carried = None
-        if self.carry:
-            carried_rows = min(pop.n_simulations, self.carry * s.batch_size) if pop.t > 1 else 0
-            used = -(-(pop.n_simulations - carried_rows) // s.batch_size)
-            if pop.t == 1:
-                propose: Propose = prior_proposer(self.models)
-            else:
-                previous = history[-2]
-                assert previous.evidence is not None
-                propose = self.proposer(self.bounds, previous.evidence.allocation)
-            results = self.executor.map(draws(propose, seed=self.seed, t=pop.t, epsilon=pop.epsilon,
-                                              batch_size=s.batch_size, keep_all=True, first=used + 1))
-            carried = Carried(results, self.carry)
-        return self.start(pop.t + 1, pop.epsilon_next, pop.ellipsoids, pop.evidence.allocation,
-                          int(np.count_nonzero(pop.survivors)), carried, self._settled(pop))
+                       batch_size=s.batch_size)
 
     def complete(self, t, eps, which, theta, distances, is_new, filled, previous) -> tuple[Population, StopReason | None]:
         """Finish population t; when the run goes on, open population t + 1 (an executor that
@@ -493,8 +380,7 @@ class _Run:
         lower = floor.decision if self.at_floor and floor is not None else None
         spared = likelihood.spared(self.shells, [m.n_dim for m in self.models], floor, self.settings.death_probability)
         step = finish_population(self.models, self.frames, t, eps, which, theta, distances, is_new, filled, previous,
-                                 self.settings, population_rng(self.seed, t), lower, self._nested() if self.carry else (),
-                                 nesting_rng(self.seed, t), spared)
+                                 self.settings, population_rng(self.seed, t), lower, spared)
         self.notes.extend(step.notes)
         reason = _stop_reason(self.stop, self.at_floor, t, eps, step.epsilon_next, step.tied, floor,
                               None if previous is None else previous.floor)
@@ -502,13 +388,9 @@ class _Run:
             assert floor is not None
             self.notes.append(f"population {t}: accepted at the decision tolerance {eps:.6g}; the run stops (noise "
                               f"floor now {floor.floor:.6g} + its spread {floor.spread:.3g})")
-        filling, self.filling = self.filling, None
         if reason is None and self.budget.reason() is None:
-            carried = filling.carry() if filling is not None and self.carry else None
             self.pending = self.start(t + 1, step.epsilon_next, step.bounds, step.evidence_parts["allocation"],
-                                      int(np.count_nonzero(step.survivors)), carried, step.within or self.within)
-        elif filling is not None:
-            filling.close()
+                                      int(np.count_nonzero(step.survivors)))
         pop = population_from(
             t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, self.budget.elapsed(),
             step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
@@ -529,18 +411,18 @@ class _Run:
                                       history[-2].floor if len(history) > 1 else None)
             else:
                 eps, self.source, self.n_pilot = initial_epsilon(self.models, settings, self.executor, budget, self.seed)
-                budget.check()
-                self.filling = Filling(prior_proposer(self.models), settings.particles, eps, self.executor,
-                                       seed=self.seed, t=1, batch_size=settings.batch_size, carry_next=self.carry)
-                filled = self.filling.finish(budget)
+                filled = fill(prior_proposer(self.models), settings.particles, eps, self.executor, budget,
+                              seed=self.seed, t=1, batch_size=settings.batch_size)
                 pop, reason = self.complete(1, eps, filled.models, filled.theta, filled.distances,
                                             np.ones(filled.models.shape[0], bool), filled, None)
                 yield pop
             while reason is None:
                 budget.check()
                 assert pop.evidence is not None and pop.survivors is not None  # set on every ABC-NS population
-                filling = self.pending or self.resumed(history)
-                self.pending, self.filling = None, filling
+                filling = self.pending or self.start(  # a resumed run opens it here
+                    pop.t + 1, pop.epsilon_next, pop.ellipsoids, pop.evidence.allocation,
+                    int(np.count_nonzero(pop.survivors)))
+                self.pending = None
                 filled = filling.finish(budget)
                 pop, reason = self.complete(pop.t + 1, pop.epsilon_next, *_with_survivors(pop, filled), filled, pop)
                 yield pop
@@ -548,7 +430,6 @@ class _Run:
             self.notes.extend(stopped.notes)
             return self.end(stopped.reason)
         finally:
-            for open_filling in (self.pending, self.filling):
-                if open_filling is not None:
-                    open_filling.close()
+            if self.pending is not None:
+                self.pending.close()
         return self.end(reason)

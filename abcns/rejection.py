@@ -89,7 +89,7 @@ def population_from(
         distances=distances, weights=weights, n_accepted=int(filled.models.shape[0]),
         n_simulations=filled.n_simulations, n_failed=filled.n_failed, n_redraws=filled.n_redraws,
         elapsed_s=elapsed_s, model_probabilities=model_probabilities,
-        n_simulations_by_model=filled.simulations(n_models), n_failed_by_model=filled.failures(n_models), **extra,
+        n_simulations_by_model=filled.counts(n_models)[0], n_failed_by_model=filled.failures(n_models), **extra,
     )
 
 

@@ -53,12 +53,6 @@ MAX_PARTICLES = 10**8  # a population of 10^8 particles of 8 parameters is ~7 GB
 MAX_BATCH_SIZE = 10**7
 MAX_COUNT = 2**62  # simulations, populations, pilot sizes, redraws: counters in int64
 MAX_SEED = 2**63 - 1  # numpy's SeedSequence takes any non-negative int; the store keeps int64
-MAX_CARRY_OVER = 10_000  # batches; more would only be surplus rows nobody uses
-#: batches a population carries over by default (``NSSettings.carry_over``): none. Measured
-#: on 16 cores (docs/benchmarks.md, "Carry-over"), carrying 2-16 batches turned the surplus
-#: into carried rows, of which ~30 % fall outside the next region: no gain in the useful
-#: simulations per second, so the default leaves every result as it was without it
-CARRY_OVER = 0
 #: an alive model's least share of a population's new particles is this many per dimension
 #: plus one, over the new particles (evidence variant; ``abcns.evidence.allocation``): an
 #: ellipsoid fitted to 20 points uniform in a 3-d ball, enlarged by 1.1, holds 0.90 of it on
@@ -221,13 +215,6 @@ class NSSettings:
         falls below this in two populations in a row (evidence variant; default 1e-3).
     min_proposal_share : share of proposals every alive model gets at least (evidence
         variant; default 0.05, and at most half of all proposals go to such floors).
-    carry_over : batches of a population's stream, after the last one it used, that the
-        next population uses first (evidence variant; default ``CARRY_OVER``, 0: none).
-        Workers simulate them while the population's tail and step finish, so a cluster
-        does not wait at the end of each population; each population's bound is then
-        nested in the previous one's (``abcns.bounds.nest``), and the carried rows that
-        fall outside it are simulations, not proposals. A property of the job, like
-        ``batch_size``: the same seed gives the same result on any number of workers.
     """
 
     particles: int = 1000
@@ -244,23 +231,20 @@ class NSSettings:
     max_ellipsoids: int | None = None
     min_model_probability: float | None = None
     min_proposal_share: float | None = None
-    carry_over: int | None = None
 
     def __post_init__(self) -> None:
         _check_common(self.particles, self.batch_size, self.epsilon_initial, self.pilot_size)
         _check(self.variant in ("evidence", "paper"), "sampler.variant", f"must be 'evidence' or 'paper', got {self.variant!r}")
         if self.variant == "paper":
-            for name in ("max_ellipsoids", "min_model_probability", "min_proposal_share", "carry_over"):
+            for name in ("max_ellipsoids", "min_model_probability", "min_proposal_share"):
                 _check(getattr(self, name) is None, f"sampler.{name}",
-                       "applies to variant 'evidence' only (the paper variant has one ellipsoid, particle shares, "
-                       "equal proposals and a barrier between populations)")
+                       "applies to variant 'evidence' only (the paper variant has one ellipsoid, particle shares "
+                       "and equal proposals)")
         _check(
             self.max_ellipsoids is None or (isinstance(self.max_ellipsoids, int) and not isinstance(self.max_ellipsoids, bool)
                                             and 1 <= self.max_ellipsoids <= 64),
             "sampler.max_ellipsoids", f"must be an integer in [1, 64], got {self.max_ellipsoids!r}",
         )
-        _check(self.carry_over is None or _is_int(self.carry_over, 0, MAX_CARRY_OVER), "sampler.carry_over",
-               f"must be an integer in [0, {MAX_CARRY_OVER}] (batches), got {self.carry_over!r}")
         for name, top in (("min_model_probability", 0.5), ("min_proposal_share", 0.5)):
             v = getattr(self, name)
             _check(v is None or (_is_number(v) and 0 <= v <= top), f"sampler.{name}",
@@ -292,13 +276,6 @@ class NSSettings:
     def n_ellipsoids(self) -> int:
         """Most ellipsoids per model (1 in the paper variant)."""
         return 1 if not self.evidence else (8 if self.max_ellipsoids is None else self.max_ellipsoids)
-
-    @property
-    def n_carry(self) -> int:
-        """Batches the next population carries over (0 in the paper variant)."""
-        if not self.evidence:
-            return 0
-        return CARRY_OVER if self.carry_over is None else self.carry_over
 
     @property
     def death_probability(self) -> float:

@@ -34,7 +34,7 @@ def seeds_of(text: str) -> list[int]:
     return out
 
 
-def one(seed: int, data: int, variant: str, max_populations: int | None, carry_over: int | None = None) -> dict:
+def one(seed: int, data: int, variant: str, max_populations: int | None) -> dict:
     from abcns import run
     from examples.make_data import duffing_41
     from service.spec import build, load
@@ -44,8 +44,7 @@ def one(seed: int, data: int, variant: str, max_populations: int | None, carry_o
         made = duffing_41(data)
         spec = spec.model_copy(update={"data": spec.data.model_copy(
             update={"input": made["force"].tolist(), "observed": made["displacement"].tolist()})})
-    sampler = {"variant": variant} if carry_over is None else {"variant": variant, "carry_over": carry_over}
-    spec = spec.model_copy(update={"sampler": spec.sampler.model_copy(update=sampler)})
+    spec = spec.model_copy(update={"sampler": spec.sampler.model_copy(update={"variant": variant})})
     job = build(spec, base)
     stop = job.stop if max_populations is None else replace(job.stop, max_populations=max_populations)
     start = time.monotonic()
@@ -65,16 +64,14 @@ def main() -> None:
     parser.add_argument("--variant", default="evidence", choices=("evidence", "paper"))
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--max-populations", type=int, default=None)
-    parser.add_argument("--carry-over", type=int, default=None, help="sampler.carry_over (default: the spec's)")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows as JSON")
     args = parser.parse_args()
     seeds = seeds_of(args.seeds)
     start = time.monotonic()
     with ProcessPoolExecutor(args.processes) as pool:
         rows = list(pool.map(one, seeds, [args.data] * len(seeds), [args.variant] * len(seeds),
-                             [args.max_populations] * len(seeds), [args.carry_over] * len(seeds)))
-    print(f"## §4.1 model selection, data {args.data}, variant {args.variant}, carry_over {args.carry_over}, "
-          f"seeds {args.seeds} "
+                             [args.max_populations] * len(seeds)))
+    print(f"## §4.1 model selection, data {args.data}, variant {args.variant}, seeds {args.seeds} "
           f"({time.monotonic() - start:.0f} s on {args.processes} processes)\n")
     print("| seed | p(cubic-quintic) | stop | populations | final ε | simulations | to ε ≤ 10 | to ε ≤ 1 | to ε ≤ 0.1 "
           "| to ε ≤ 0.015 | cubic dies at | wall (s) |")

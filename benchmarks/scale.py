@@ -42,10 +42,7 @@ Figures only (nothing is asserted about speed). Four parts (the fourth only when
    workers reseed from the OS: runs are not reproducible, and the count varies a little.
 
 Columns. *simulations*: what the algorithm used (the result's serial-equivalent count; the
-same for every N, the run being deterministic). *carried, dropped*: of those, the rows a
-population carried over from the previous one's stream that fell outside its region
-(``sampler.carry_over``): simulated and counted, but no proposals; *efficiency of
-proposals* leaves them out. *executed*: rows the workers actually
+same for every N, the run being deterministic). *executed*: rows the workers actually
 simulated (the sleepy plugin counts them), with the surplus tasks the executor submitted
 ahead and cancelled too late. *wall*: ``run_job`` from call to return (store creation, data to
 the cluster, evaluator built on each worker; the workers are started and warmed before).
@@ -109,15 +106,12 @@ D41 = ROOT / "examples" / "duffing_41" / "spec.yaml"
 os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)
 
 
-def sleepy_spec(populations: int, batch_size: int | None, variant: str | None = None,
-                carry_over: int | None = None) -> tuple[JobSpec, Path]:
+def sleepy_spec(populations: int, batch_size: int | None, variant: str | None = None) -> tuple[JobSpec, Path]:
     """The authors' demo, cubic model only, simulated by the sleepy plugin (``variant``: the
-    sampler's, else the demo's: paper; ``carry_over``: the sampler's, else its default)."""
+    sampler's, else the demo's: paper)."""
     raw = yaml.safe_load(DEMO.read_text())
     if variant is not None:
         raw["sampler"]["variant"] = variant
-    if carry_over is not None:
-        raw["sampler"]["carry_over"] = carry_over
     raw["name"] = "authors-demo-sleepy"
     raw["models"] = [{**m, "simulator": sleepy.NAME} for m in raw["models"] if m["name"] == "cubic"]
     # the default unit (the demo's spec says 200, the size its figures were measured with)
@@ -282,11 +276,9 @@ def measure(client: Client, pids: list[int], spec: JobSpec, base: Path, tmp: Pat
     shutil.rmtree(store.parent, ignore_errors=True)
     n = res.n_simulations
     pops = res.populations
-    # carried rows outside the next population's region: simulated, but no proposals of it
-    dropped = sum(p.n_simulations - int(p.evidence.n_proposed.sum()) for p in pops if p.evidence is not None)
     # populations 2 on: the rate once the job is under way (no store creation, no first population)
     steady = sum(p.n_simulations for p in pops[1:]) / (pops[-1].elapsed_s - pops[0].elapsed_s) if len(pops) > 1 else np.nan
-    out: dict = {"populations": len(res.populations), "simulations": n, "dropped": dropped, "executed": executed, "wall": wall,
+    out: dict = {"populations": len(res.populations), "simulations": n, "executed": executed, "wall": wall,
                  "rate": n / wall, "steady": steady, "runner_us": 1e6 * cpu / n, "other_us": 1e6 * other / n if pids else None,
                  "workers_us": 1e6 * w_cpu / n, "stop": res.stop_reason.value, "load": os.getloadavg()[0]}
     if stream is not None:
@@ -367,11 +359,11 @@ def sleepy_table(title: str, cluster: Callable, counts: list[int], spec: JobSpec
     print(f"the same job in this process with the plain Duffing (engine + kernel, no sleep, no Dask, no store): "
           f"{engine:.0f} µs CPU per simulation, of which the evaluator {kernel:.0f}")
     sched = " scheduler CPU µs/sim |" if stock else ""
-    print(f"| workers | simulations | carried, dropped | executed | wall s | sims/s | ideal sims/s | efficiency | "
-          f"efficiency of proposals | steady | Dask floor | no-barrier floor | "
+    print(f"| workers | simulations | executed | wall s | sims/s | ideal sims/s | efficiency | steady | Dask floor | "
+          f"no-barrier floor | "
           f"runner CPU µs/sim |{sched} workers CPU µs/sim | Dask floor CPU ms/task: runner{' + scheduler' if stock else ''}, "
           f"workers | start-up s | load |")
-    print("|" + "---:|" * (17 + stock), flush=True)
+    print("|" + "---:|" * (15 + stock), flush=True)
     timelines = []
     for n in counts:
         with cluster(n) as (client, pids, startup):
@@ -385,9 +377,8 @@ def sleepy_table(title: str, cluster: Callable, counts: list[int], spec: JobSpec
                                                           spec.sampler.batch_size * sleepy.SECONDS, barrier=False)[0]
         ideal = n / sleepy.SECONDS  # simulations/s of n workers that only sleep
         extra = f" {r['other_us']:.0f} |" if stock else ""
-        useful = (r["simulations"] - r["dropped"]) / r["wall"] / ideal
-        print(f"| {n} | {r['simulations']} | {r['dropped']} | {r['executed']} | {r['wall']:.2f} | {r['rate']:.0f} | "
-              f"{ideal:.0f} | {r['rate'] / ideal:.2f} | {useful:.2f} | {r['steady'] / ideal:.2f} | {floor:.2f} | {stream:.2f} | "
+        print(f"| {n} | {r['simulations']} | {r['executed']} | {r['wall']:.2f} | {r['rate']:.0f} | "
+              f"{ideal:.0f} | {r['rate'] / ideal:.2f} | {r['steady'] / ideal:.2f} | {floor:.2f} | {stream:.2f} | "
               f"{r['runner_us']:.0f} |{extra} "
               f"{r['workers_us']:.0f} | {floor_runner:.1f}, {floor_workers:.1f} | {startup:.1f} | {r['load']:.1f} |",
               flush=True)
@@ -527,7 +518,6 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=None, help="override the sleepy job's sampler.batch_size")
     parser.add_argument("--variant", choices=["paper", "evidence"], default=None,
                         help="the sleepy job's ABC-NS variant (default: the demo's, paper)")
-    parser.add_argument("--carry-over", type=int, default=None, help="the sleepy job's sampler.carry_over")
     parser.add_argument("--sleep-ms", type=float, default=None,
                         help="the sleepy simulator's sleep per simulation (default 2 ms)")
     parser.add_argument("--d41-workers", type=_counts, default=[1, 2])
@@ -551,10 +541,9 @@ def main() -> None:
         args.workers, args.stock_workers, args.populations = [1, 2], [1], 1
         args.d41_workers, args.d41_populations = [1, 2], 1
 
-    spec, base = sleepy_spec(args.populations, args.batch_size, args.variant, args.carry_over)
+    spec, base = sleepy_spec(args.populations, args.batch_size, args.variant)
     print(f"# scale-out: {spec.name}, cubic model, {spec.sampler.variant} variant, {spec.sampler.particles} particles, "
-          f"batch size {spec.sampler.batch_size}, carry-over {spec.sampler.settings().n_carry}, "
-          f"{args.populations} populations, "
+          f"batch size {spec.sampler.batch_size}, {args.populations} populations, "
           f"{1e3 * sleepy.SECONDS:g} ms sleep per simulation; {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory(prefix="abcns-scale-") as tmpdir:
         tmp = Path(tmpdir)

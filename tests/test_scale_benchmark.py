@@ -41,10 +41,10 @@ def test_scale_benchmark_runs():
                            "--timeline"],
                           cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
-    assert ("| workers | simulations | carried, dropped | executed | wall s | sims/s | ideal sims/s | efficiency | "
-            "efficiency of proposals |") in done.stdout
+    assert "| workers | simulations | executed | wall s | sims/s | ideal sims/s | efficiency |" in done.stdout
     assert "| steady | Dask floor | no-barrier floor |" in done.stdout  # both floors, measured (not nan)
-    floors = [line.split("|")[11:13] for line in done.stdout.splitlines() if line.startswith("| 1 | ")]
+    rows = [line.split("|") for line in done.stdout.splitlines() if line.startswith("| 1 | ")]
+    floors = [row[9:11] for row in rows if len(row) >= 17]  # the sleepy tables' rows (15 or 16 columns)
     assert floors and all(0 < float(v) <= 1.05 for row in floors for v in row), floors
     assert "end to end / (N x kernel alone)" in done.stdout
     assert done.stdout.count("| workers | wall s | start ms | end ms | gaps ms | spans s / simulations s |") == 2

@@ -180,7 +180,8 @@ def test_a_field_the_algorithm_does_not_read_is_refused_naming_it(raw, algorithm
 
 @pytest.mark.parametrize("algorithm", list(SAMPLERS))
 def test_a_field_no_algorithm_reads_is_an_unknown_field(raw, algorithm):
-    for name in ("colour", "max_redraws"):  # max_redraws: a safety bound of abcns, not a spec field
+    # max_redraws: a safety bound of abcns, not a spec field; carry_over: a field removed (issue X)
+    for name in ("colour", "max_redraws", "carry_over"):
         with pytest.raises(SpecError, match="Extra inputs are not permitted") as err:
             parse(with_sampler(raw, {"algorithm": algorithm, name: 3}))
         assert err.value.field == f"sampler.{name}"

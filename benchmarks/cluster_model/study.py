@@ -221,8 +221,8 @@ SCENARIOS = [
 
 #: today's design (a LocalCluster: the scheduler in the runner's process), then the scheduler
 #: in its own process (as on any real cluster), then the look-ahead designs (shares of the next
-#: population's expected batches), with task sizes; "carry": the surplus put to use
-#: (``sampler.carry_over``). The step is each trace's own (today's code).
+#: population's expected batches), with task sizes; "carry": the surplus put to use (t + 1
+#: first consumes t's next batches). The step is each trace's own (today's code).
 DESIGNS = [
     Design(),
     Design(scheduler="own"),

@@ -173,22 +173,7 @@ class DaskExecutor:
         # the compute time on the workers of every task consumed, and its batches, since the
         # executor opened: the useful work, for the efficiency a user sees (runner.Progress)
         self.busy_s, self.busy_batches = 0.0, 0
-        # the streams not yet closed: two are open at once while a population uses the
-        # batches the previous one carried over (``sampler.carry_over``); the tasks in flight
-        # are counted over both, so the next population's first tasks take the room the
-        # carried ones leave, not room of their own
-        self.streams: list[Stream] = []
         self.last_here = False  # the last stream closed was evaluated in this process (Stream.here)
-
-    def in_flight(self) -> int:
-        """Tasks submitted and not yet completed, over every open stream."""
-        return sum(stream._in_flight() for stream in self.streams)
-
-    def top_up(self) -> None:
-        """Each open stream's :meth:`Stream._top_up`, the oldest first (while a population
-        waits for a carried batch, its own stream fills the room the carried tasks leave)."""
-        for stream in list(self.streams):
-            stream._top_up()
 
     def close(self) -> None:
         """Release the job's data on the cluster."""
@@ -231,9 +216,7 @@ class DaskExecutor:
         return max(1, int(left / self.batch_seconds))
 
     def map(self, draws: Iterable[Draw]) -> Stream:
-        stream = Stream(self, iter(draws))
-        self.streams.append(stream)
-        return stream
+        return Stream(self, iter(draws))
 
     def _measured(self, seconds: float, size: int, on_worker: bool = True) -> None:
         if on_worker:
@@ -329,7 +312,7 @@ class Stream:
             return
         groups: list[list[Draw]] = []
         want = max(self.left or 1, 1)
-        room = IN_FLIGHT_PER_THREAD * self.n_workers - self.ex.in_flight()
+        room = IN_FLIGHT_PER_THREAD * self.n_workers - self._in_flight()
         while not self.exhausted and ((self.submitted - self.consumed < want and len(groups) < room)
                                       or len(self.pending) + len(groups) == 0):
             group = list(itertools.islice(self.draws, self.ex.group_size(want, self.consumed, self.n_workers)))
@@ -362,8 +345,8 @@ class Stream:
             if future.key in self.done or not any(f.key == future.key for f, _ in self.pending):
                 continue  # reported again after it was taken without ``as_completed``: already used
             self.done[future.key] = result
-            if self.ex.in_flight() < self.n_workers:
-                self.ex.top_up()
+            if self._in_flight() < self.n_workers:
+                self._top_up()
         result = self.done.pop(task.key)
         if task.status == "finished" and result is not _UNTRACKED:
             return result
@@ -427,8 +410,6 @@ class Stream:
         if self.closed:
             return
         self.closed = True
-        if self in self.ex.streams:
-            self.ex.streams.remove(self)
         self.ex.expected = max(self.consumed, 1)
         self.ex.last_here = bool(self.local)
         # releasing a task the caller no longer needs cancels it (the scheduler forgets a
