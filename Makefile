@@ -57,8 +57,9 @@ bench: $(RUNTIME)
 # abcns side by side with pyABC (the optional extra .[bench]): writes benchmarks/peers/RESULTS.md (~30-45 min on 2 cores)
 bench-peers: $(DEV)
 	$(PIP) install --quiet -e '.[dev,bench]'
-	$(BIN)/python -m pytest -m peers tests/test_bench_peers.py
+	$(BIN)/python -m pytest -m peers tests/test_bench_peers.py tests/test_exact_bayes_benchmark.py
 	$(BIN)/python -m benchmarks.peers --seeds 3
+	$(BIN)/python -m benchmarks.exact_bayes --seeds 1-5
 
 clean:
 	rm -rf $(VENV)

@@ -22,10 +22,11 @@ Families (the simpler model is nested in the more complex one):
 - ``paper41``: §4.1's models and priors (cubic vs cubic-quintic, k5 ~ U(1e4, 1e6), which
   excludes 0), truth cubic-quintic (k5 = 1e5): the paper's own problem on fresh data.
 
-Printed: per run the probability of the true model at the decision tolerance, that
+Printed: per run the probability of the true model in the answer (``summary()``: every
+population weighted by the likelihood, ``abcns.likelihood``), the decision
 tolerance and the noise floor, the final tolerance and the probability there; then the
 share of runs choosing the true model with p >= 0.9 and, over (parameter, run) pairs of the
-true model, how often its 50 % and 95 % posterior intervals (at the decision population)
+true model, how often its 50 % and 95 % posterior intervals (the answer's particles)
 hold the truth.
 """
 
@@ -104,18 +105,26 @@ def one(family: str, truth: str, noise: float, seed: int, floor: bool) -> dict:
     truth_values = {**BASE, **values}
     noise_nmse = float(NMSE(data["observed"], FIT)(data["clean"][None, :])[0])
     cover: dict[str, dict[str, bool]] = {}
-    if r.model_names.index(name) in r.alive(answer.t):
+    i = r.model_names.index(name)
+    reading = r.reading()  # the answer's particles: every population weighted by the likelihood
+    if reading is not None:
+        theta, weights = reading.theta[i], reading.weights[i]
+    elif i in r.alive(answer.t):
+        theta, _, _ = r.particles(name, answer.t)
+        weights = np.ones(theta.shape[0])
+    else:
+        theta, weights = np.zeros((0, r.models[i].n_dim)), np.zeros(0)
+    if theta.shape[0]:
         from abcns.result import weighted_quantiles
 
-        theta, _, _ = r.particles(name, answer.t)
-        for j, par in enumerate(r.models[r.model_names.index(name)].parameter_names):
-            q = weighted_quantiles(theta[:, j], np.ones(theta.shape[0]), (0.025, 0.25, 0.75, 0.975))
+        for j, par in enumerate(r.models[i].parameter_names):
+            q = weighted_quantiles(theta[:, j], weights, (0.025, 0.25, 0.75, 0.975))
             x = truth_values[par]
             cover[par] = {"50": bool(q[1] <= x <= q[2]), "95": bool(q[0] <= x <= q[3])}
     floor_ = r.floor
     return {
         "family": family, "truth": truth, "noise": noise, "seed": seed, "true_model": name,
-        "p_true": r.model_probabilities(answer.t)[name], "p_true_final": r.model_probabilities()[name],
+        "p_true": r.summary()["model_probabilities"][name], "p_true_final": r.model_probabilities()[name],
         "decision_epsilon": answer.epsilon, "decision_t": answer.t, "final_epsilon": r.final.epsilon,
         "populations": len(r.populations), "stop": r.stop_reason.value, "simulations": r.n_simulations,
         "floor": floor_.floor if floor_ else None, "noise_nmse": noise_nmse,
@@ -140,7 +149,7 @@ def main() -> None:
         rows = list(pool.map(one, *zip(*cases), [not args.no_floor] * len(cases)))
     print(f"# nested models at the noise floor ({time.monotonic() - start:.0f} s on {args.processes} processes; "
           f"stop at the floor: {not args.no_floor})\n")
-    print("| family | truth | noise | seed | p(true) at decision | decision ε (t) | noise floor | noise alone | "
+    print("| family | truth | noise | seed | p(true), the answer | decision ε (t) | noise floor | noise alone | "
           "final ε | p(true) final | stop | simulations |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
