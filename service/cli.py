@@ -1,6 +1,7 @@
 """The ``abcns`` command line.
 
     abcns run SPEC --out STORE [--scheduler tcp://HOST:PORT | --workers N] [--seed N] [--quiet] [--json] [--dashboard]
+    abcns run SPEC [SPEC ...] --out-dir DIR [the same options]
     abcns summary STORE [--json]
     abcns plot STORE [STORE ...] --out DIR [--spec SPEC ...]
     abcns serve [...]
@@ -9,8 +10,11 @@
 
 ``run`` and ``submit`` print a line per population (not with ``--quiet``) and end with a
 short summary (the full JSON summary with ``--json``, or later with ``abcns summary STORE
---json``). With the paper's NMSE (Eq. 7) the tolerances and distances are in percent and
-marked ``%``. Errors are one line on stderr, with an exit code per kind (:data:`EXIT_CODES`).
+--json``). ``run`` with ``--out-dir`` runs each spec as a job of its own on the cluster's
+workers (:mod:`service.run.jobs`), a store per job, a line per population of each job
+prefixed with its store's name, then each job's summary. With the paper's NMSE (Eq. 7) the
+tolerances and distances are in percent and marked ``%``. Errors are one line on stderr,
+with an exit code per kind (:data:`EXIT_CODES`).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import sys
 import time
 from collections.abc import Callable, Mapping
 from contextlib import ExitStack
+from functools import partial
 from pathlib import Path
 from typing import Annotated, Any, NoReturn, cast
 
@@ -181,10 +186,12 @@ class ProgressLine:
     kernels), the model probabilities and the workers now. On a terminal one line is
     rewritten in place; otherwise a line per population."""
 
-    def __init__(self, unit: str, quiet: bool, workers: Callable[[], int],
-                 start: tuple[int, float] = (0, 0.0)):
-        self.unit, self.quiet = unit, quiet
-        self.live = sys.stdout.isatty() and not quiet
+    def __init__(self, unit: str, quiet: bool, workers: Callable[[], int | None],
+                 start: tuple[int, float] = (0, 0.0), prefix: str = ""):
+        """``prefix`` starts every line (a job's name among several: then a line per
+        population, never one rewritten)."""
+        self.unit, self.quiet, self.prefix = unit, quiet, prefix
+        self.live = sys.stdout.isatty() and not quiet and not prefix
         self.workers = workers
         self.last = start  # (simulations, elapsed s) when the previous population ended
         self.n_workers: int | None = None
@@ -216,7 +223,7 @@ class ProgressLine:
         probs = " ".join(f"{name}={'-' if p is None else format(p, '.2f')}" for name, p in probabilities.items())
         workers = self.workers_now()
         dec = "" if decision is None else f"  decision {decision:.4g}{self.unit}"
-        line = (f"population {t:4d}  eps {epsilon:11.5g}{self.unit}{dec}  acceptance {acceptance:5.2f}  "
+        line = (f"{self.prefix}population {t:4d}  eps {epsilon:11.5g}{self.unit}{dec}  acceptance {acceptance:5.2f}  "
                 f"sims {simulations:8d}  {rate} sims/s  {probs}  workers {'-' if workers is None else workers}"
                 + ("" if efficiency is None else f"  efficiency {efficiency:.2f}"))
         if self.live:
@@ -294,11 +301,23 @@ SIMS_HELP = ("The line per population shows the tolerance (eps; the NMSE in %), 
              "stops when eps falls by less than 0.01 percentage points.")
 
 
+MANY_HELP = ("Several specs (or one, with --out-dir) run as one job each on the cluster's workers, at most one job per "
+             "worker process at a time, a store per job in --out-dir named after the spec's name (a name given twice: "
+             "NAME.zarr, then NAME-2.zarr, ...); a job whose populations are cheap runs whole on its worker, one "
+             "with dear simulations spreads its batches over the cluster. A line per population of each job, "
+             "prefixed with its store's name; the exit code is 0 when every job finished, else the worst of "
+             "theirs (1 over 4 over 2). The stores are written by the workers: --out-dir must be a folder they "
+             "can write (the embedded cluster; a --scheduler cluster on a shared file system).")
+
+
 @app.command(help="Run (or resume) a job and print its summary. On a terminal one progress line is rewritten in "
-                  "place; otherwise a line per population. " + SIMS_HELP)
+                  "place; otherwise a line per population. " + MANY_HELP + " " + SIMS_HELP)
 def run(
-    spec: Annotated[Path, typer.Argument(metavar="SPEC", help="The job spec, YAML or JSON.")],
-    out: Annotated[Path, typer.Option("--out", help="The job's zarr store (created, or resumed if unfinished).")],
+    specs: Annotated[list[Path], typer.Argument(metavar="SPEC...", help="The job spec(s), YAML or JSON.")],
+    out: Annotated[Path | None, typer.Option("--out", help="The job's zarr store (created, or resumed if "
+                                                           "unfinished); one spec.")] = None,
+    out_dir: Annotated[Path | None, typer.Option("--out-dir", help="A folder of stores, one per spec (created, "
+                                                                   "or resumed if unfinished).")] = None,
     scheduler: Annotated[str | None, typer.Option(help="The address of a running Dask scheduler "
                                                        "(tcp://HOST:PORT).")] = None,
     workers: Annotated[int | None, typer.Option(help="Worker processes of the embedded cluster "
@@ -315,6 +334,16 @@ def run(
 
     if scheduler and workers:
         _fail("give --scheduler or --workers, not both")
+    if out is not None and out_dir is not None:
+        _fail("give --out (one spec's store) or --out-dir (a store per spec), not both")
+    if out_dir is not None:
+        run_many(specs, out_dir, scheduler, workers, seed, quiet, as_json, dashboard)
+        return
+    if out is None:
+        _fail("give --out STORE for one spec, or --out-dir DIR for a store per spec")
+    if len(specs) > 1:
+        _fail(f"--out names one store, for one spec; {len(specs)} specs need --out-dir DIR (a store per spec)")
+    spec = specs[0]
     try:
         job_spec, base = load(spec)
         built = build(job_spec.model_copy(update={"seed": seed}) if seed is not None else job_spec, base,
@@ -323,24 +352,8 @@ def run(
         _fail(str(err))
     memory_warning(built)
     names = [m.name for m in job_spec.models]
-
-    from distributed import Client
-
-    from service.run.dask_executor import local_cluster
-
-    if dashboard and importlib.util.find_spec("bokeh") is None:
-        typer.echo("warning: the Dask dashboard needs bokeh (pip install 'abcns[dashboard]'); running without it", err=True)
-        dashboard = False
     with ExitStack() as stack:
-        if scheduler:
-            client = stack.enter_context(connect(scheduler))
-        else:
-            cluster = stack.enter_context(local_cluster(workers or os.cpu_count() or 1, dashboard))
-            client = stack.enter_context(Client(cluster))
-        if dashboard or scheduler:
-            link = dashboard_link(client)
-            if link:
-                typer.echo(f"Dask dashboard: {link}", err=True)
+        client = open_client(stack, scheduler, workers, dashboard)
         line = ProgressLine(percent(job_spec.distance.name), quiet, lambda: len(client.nthreads()), resume_point(out))
 
         def progress(p: Progress) -> None:
@@ -364,6 +377,114 @@ def run(
     for text in summary_lines(s, job_spec.distance.name):
         typer.echo(text)
     typer.echo(f"store: {out}  (full JSON summary: abcns summary {out} --json)")
+
+
+def open_client(stack: ExitStack, scheduler: str | None, workers: int | None, dashboard: bool):
+    """A client of the scheduler at ``scheduler``, else of an embedded cluster of ``workers``
+    processes (one per core by default), closed with ``stack``; the dashboard's link printed
+    when there is one (``--dashboard``, or a scheduler's)."""
+    from distributed import Client
+
+    from service.run.dask_executor import local_cluster
+
+    if dashboard and importlib.util.find_spec("bokeh") is None:
+        typer.echo("warning: the Dask dashboard needs bokeh (pip install 'abcns[dashboard]'); running without it", err=True)
+        dashboard = False
+    if scheduler:
+        client = stack.enter_context(connect(scheduler))
+    else:
+        cluster = stack.enter_context(local_cluster(workers or os.cpu_count() or 1, dashboard))
+        client = stack.enter_context(Client(cluster))
+    if dashboard or scheduler:
+        link = dashboard_link(client)
+        if link:
+            typer.echo(f"Dask dashboard: {link}", err=True)
+    return client
+
+
+#: a job's outcome (service.run.jobs.Outcome.status) as an exit code, and the order of the
+#: codes from the best to the worst (a run of several jobs exits with its worst job's)
+OUTCOME_CODES = {"finished": 0, "refused": BAD_INPUT, "failed": JOB_FAILED, "cancelled": JOB_FAILED, "error": 1}
+WORST = (0, BAD_INPUT, JOB_FAILED, 1)
+
+
+def run_many(specs: list[Path], out_dir: Path, scheduler: str | None, workers: int | None, seed: int | None,
+             quiet: bool, as_json: bool, dashboard: bool) -> None:
+    """``abcns run SPEC... --out-dir DIR``: every spec checked here first (one wrong: exit 2,
+    nothing runs), then each job on the cluster (service.run.jobs), a line per population
+    of each, prefixed with its store's name; then each job's summary, its failure on stderr;
+    the exit code is the worst job's."""
+    from service.run.jobs import JobRun, placement_text, run_jobs, store_names
+    from service.run.runner import local_population_s
+    from service.spec import build, load
+
+    loaded = []
+    for path in specs:
+        try:
+            job_spec, base = load(path)
+            if seed is not None:
+                job_spec = job_spec.model_copy(update={"seed": seed})
+            built = build(job_spec, base, allow_import=True)
+        except SpecError as err:
+            _fail(f"{path}: {err}")
+        memory_warning(built)
+        loaded.append((path, job_spec, base))
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        local_s = local_population_s()
+        jobs = [JobRun.of(job_spec, base, out_dir / f"{stem}.zarr", stem)
+                for (_, job_spec, base), stem in zip(loaded, store_names([s.name for _, s, _ in loaded]), strict=True)]
+    except (OSError, SpecError) as err:
+        _fail(str(err))
+    seen_workers: dict[int, int | None] = {}
+    lines = [ProgressLine(percent(job.spec.distance.name), quiet, partial(seen_workers.get, i),
+                          resume_point(job.store), prefix=f"[{job.label}] ") for i, job in enumerate(jobs)]
+
+    def on_event(i: int, event: dict) -> None:
+        job = jobs[i]
+        if event["kind"] == "start":
+            whole = (event.get("placement") or {}).get("mode") == "whole"
+            seen_workers[i] = 1 if whole else None
+            if not quiet:
+                typer.echo(f"[{job.label}] {placement_text(event.get('placement'))}")
+        elif event["kind"] == "population":
+            if event.get("workers") is not None:
+                seen_workers[i] = event["workers"]
+            names = [m.name for m in job.spec.models]
+            lines[i].show(event["t"], event["epsilon"], event["acceptance"], event["simulations"], event["elapsed_s"],
+                          dict(zip(names, event["probabilities"], strict=True)), event.get("decision"),
+                          event.get("efficiency"))
+
+    with ExitStack() as stack:
+        client = open_client(stack, scheduler, workers, dashboard)
+        try:
+            outcomes = run_jobs(client, jobs, allow_import=True, local_s=local_s, on_event=on_event)
+        except KeyboardInterrupt:
+            typer.echo("stopped: each job stops at its next batch; run again to resume", err=True)
+            raise typer.Exit(130) from None
+    codes = [OUTCOME_CODES.get(o.status, 1) for o in outcomes]
+    if as_json:
+        typer.echo(json.dumps([{"spec": str(path), "store": str(job.store), "outcome": o.status, "error": o.error,
+                                **(o.summary or {"status": o.status, "n_populations": 0})}
+                               for (path, _, _), job, o in zip(loaded, jobs, outcomes, strict=True)], indent=2))
+    else:
+        for (path, _, _), job, o in zip(loaded, jobs, outcomes, strict=True):
+            typer.echo("")
+            typer.echo(f"== {job.label} ({path}): {job.store} ({placement_text(o.placement)})")
+            if o.summary is not None:
+                for text in summary_lines(o.summary, job.spec.distance.name):
+                    typer.echo(text)
+        counts = {status: sum(o.status == status for o in outcomes) for status in OUTCOME_CODES}
+        typer.echo("")
+        typer.echo(f"{len(jobs)} jobs: " + ", ".join(f"{n} {status}" for status, n in counts.items() if n)
+                   + f"  (full JSON summaries: abcns summary {out_dir}/NAME.zarr --json)")
+    for job, o in zip(jobs, outcomes, strict=True):
+        if o.status != "finished":
+            where = f"; the populations before it are in {job.store}" if o.summary else ""
+            typer.echo(f"error: job {job.label}: {o.error}{where}", err=True)
+    worst = max(codes, key=WORST.index) if codes else 0
+    if worst:
+        raise typer.Exit(worst)
 
 
 @app.command(name="summary")

@@ -21,12 +21,13 @@ import queue
 import shutil
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 from distributed import Client
 
 from abcns import Population, Result, RunEnd, SpecError, StopReason
@@ -80,6 +81,8 @@ def summary(store: Store) -> dict:
     if store.attrs.get("error"):
         out["error"] = store.attrs["error"]
     out["n_populations"] = store.n_populations
+    if run.get("placement"):  # where the job ran and why (service.run.jobs)
+        out["placement"] = run["placement"]
     return out
 
 
@@ -242,27 +245,22 @@ def _existing_store(path: Path, key: str, owned: bool) -> Store | None:
 
 
 def run_job(
-    spec: JobSpec,
-    base_dir: Path | None,
-    store_path: Path,
-    client: Client | None,
-    *,
-    seed: int | None = None,
-    on_population: Callable[[Progress], None] | None = None,
-    cancel: Callable[[], bool] | None = None,
-    allow_import: bool = False,
-    owned_store: bool = False,
+    spec: JobSpec, base_dir: Path | None, store_path: Path, client: Client | None, *, seed: int | None = None,
+    on_population: Callable[[Progress], None] | None = None, cancel: Callable[[], bool] | None = None,
+    allow_import: bool = False, owned_store: bool = False, data: Mapping[str, np.ndarray] | None = None,
+    local_s: float | None = None, placement: dict | None = None,
 ) -> Result:
     """Run (or resume) one job to its end; return its result. ``client``: a Dask client, or
     None to run in this process. ``allow_import`` lets the spec name local
     ``package.module:factory`` simulators (the CLI, the examples; never HTTP). ``owned_store``:
     the store path belongs to the caller (the service's job folder), so a store whose
     creation a killed process left unfinished is made again; elsewhere (``--out``) it is an
-    error, never deleted."""
+    error, never deleted. ``data``, ``local_s``, ``placement``: a job run on a worker
+    (:mod:`service.run.jobs`: the caller's records, 25 ms rule and placement; :func:`with_records`)."""
     if seed is not None:
         spec = spec.model_copy(update={"seed": seed})
-    job: Job = build(spec, base_dir, allow_import)  # every check before anything runs
-    interval_s, local_s = write_interval(), local_population_s()
+    job: Job = build(with_records(spec, data), base_dir, allow_import)  # every check before anything runs
+    interval_s, local_s = write_interval(), local_population_s() if local_s is None else local_s
     arrays = {"force": job.force, "observed": job.observed}
     dhash = data_hash(*(a for a in (job.force, job.observed) if a is not None))
     key = job_key(spec, job.seed, dhash)
@@ -275,6 +273,7 @@ def run_job(
     if store is not None and store.attrs.get("status") == "finished" and store.attrs.get("stop_reason"):
         return result_from_store(store)
     history, n_simulations, elapsed_s, run_info = ([], 0, 0.0, {}) if store is None else _resumed(store, key)
+    _place(store, key, run_info, placement)
     # a new store (running, with the job's key) is made on the writer's thread meanwhile
     writer = PopulationWriter(store if store is not None else partial(_new_store, store_path, spec.model_dump(mode="json"),
                                                                       job, dhash, key), key, on_population, interval_s)
@@ -321,6 +320,27 @@ def run_job(
         assert writer.store is not None  # close() raised otherwise
         _record_end(writer.store, key, end, run_info, budget)
         return result_from_store(writer.store)
+
+
+def _place(store: Store | None, key: str, run_info: dict, placement: dict | None) -> None:
+    """Record where the job runs and why (:mod:`service.run.jobs`) with the run information
+    (a resumed store: now); run in the caller's process, an earlier placement no longer holds."""
+    if placement is None:
+        run_info.pop("placement", None)
+        return
+    run_info["placement"] = placement
+    if store is not None:
+        store.set_status("running", job_key=key, run=run_info)
+
+
+def with_records(spec: JobSpec, data: Mapping[str, np.ndarray] | None) -> JobSpec:
+    """The spec to build the job from: ``spec`` with the records in ``data`` (the records the
+    spec's files hold, as the caller read them: a worker elsewhere has not its files) inline;
+    the store and job key keep the spec as given. A copy, not validated again."""
+    if not data:
+        return spec
+    inline = {key: np.asarray(value, dtype=float).tolist() for key, value in data.items()}
+    return spec.model_copy(update={"data": spec.data.model_copy(update=inline)})
 
 
 def _resumed(store: Store, key: str) -> tuple[list[Population], int, float, dict]:

@@ -1,0 +1,429 @@
+"""Many jobs on one Dask cluster: each job's population loop runs on a worker, never in the
+caller's interpreter, and no two job loops ever share a worker process (nor its GIL).
+
+One population of a job is made from the previous one's particles, so a job's populations
+are synchronous, and a cheap job gains nothing from being spread over workers (§4.1's
+Duffing: ~10 ms of simulations a population; Dask's round trips cost more). What keeps the
+cluster busy is running many jobs at once, each where it runs fastest (docs/design.md, "The
+contracts": workers never wait, across jobs).
+
+**A job is one Dask task.** :func:`run_one`, a plain top-level function of picklable
+arguments (the spec as its JSON dump, the records of its data files read by the caller and
+sent inline, so a worker needs none of the caller's files; the store's path; the seed and
+the caller's settings), calls :func:`service.run.runner.run_job` on the worker. The worker
+writes the job's zarr store, so the stores' folder must be one the workers can write (the
+embedded cluster, one machine, or a shared file system). Progress (a start event with the
+placement, then one event per population) comes back through Dask's event log
+(``Worker.log_event``, ``Client.subscribe_topic``, a topic per call of :func:`run_jobs`);
+the task returns the job's outcome and JSON summary. Where a job runs never changes its
+result: a batch's result does not depend on where it runs (the determinism contract), and
+the in-process engine and the Dask executor give the same bits.
+
+**Placement by cost, decided once on the worker before the run.** The task times the job's
+own evaluator on one batch of the first population's kind of proposals (``batch_size``
+draws from the priors, with a generator of its own, so the job's random stream is
+untouched): a warm-up call (it loads the compiled kernels, as the run's first batch would),
+then at most three timed calls (fewer once 20 ms are measured), the fastest of them giving
+``c``, the seconds a simulation costs. A population's simulations are estimated at ``c x
+particles`` (a population simulates about as many proposals as it has particles: §4.1's
+run ~0.5-2 N per population, the first ~5 N, a rare one ~7 N). Today's rule of the runner
+(:meth:`service.run.dask_executor.Stream.here`, ``ABCNS_LOCAL_POPULATION_S``: 25 ms) says
+what a population must cost for the cluster to shorten it by more than Dask's round trips
+cost: ``local_s x min(2, W / (W - 1))`` over ``W`` worker threads. At or below it the job
+runs **whole** on its worker: ``run_job(..., client=None)`` inside the task, the in-process
+engine, no task per batch, the worker's thread held for the whole job. Above it the job
+**spreads**: the task secedes (``distributed.worker_client``, which gives the worker's
+thread back to the cluster and rejoins at the end) and hands that client to ``run_job``, so
+the Dask executor fans the job's batches out over every worker with a free thread (and its
+own per-population rule still keeps a population that turns out cheap in the job's
+process). With one worker thread in the cluster a job always runs whole (spreading would
+send its batches back to its own process); with ``local_s`` 0 ("always on the cluster", as
+for one job) it always spreads. The decision is recorded in the store (the run information's
+``placement``, also in the summary: ``mode``, ``worker``, ``simulation_s``, ``population_s``,
+``limit_s``, ``worker_threads``, ``pilot``: the warm calls, or the first call alone when
+that already put a population under the limit) and sent with the job's start event. Near the limit either
+placement costs about the same (that is what the limit means), so the estimate's error
+there matters little; a whole job whose later populations turn dear stays whole (on a full
+cluster, more jobs than workers, spreading them would gain nothing: every worker already
+runs a job of its own).
+
+**One job loop per worker process: a worker resource.** Each job task asks for the
+resource ``abcns-job`` (:data:`JOB_RESOURCE`), of which every worker has one. Dask keeps a
+task's resources while it is seceded: the worker releases them only when the task ends, in
+any state (``WorkerState._execute_done_common``), and the scheduler only when the task
+leaves processing; so a spread job's seceded task still holds its worker's slot while its
+batches use the freed thread, and a second job task can never start in that process. (A
+thread count would not do: a seceded task frees its thread, and the scheduler would start
+the next job beside it.) The workers get the resource from a worker plugin
+(:class:`JobSlot`, registered once per cluster, idempotent; it also reaches workers that
+join later, a nanny's replacement included) that declares ``abcns-job=1`` on a worker that
+does not declare it already, so the embedded cluster and a stock ``dask worker`` need
+nothing (``dask worker --resources abcns-job=1`` is the same). The scheduler places a task
+with a resource on any worker that has it, busy or not; a worker then queues it behind the
+job it runs, while another worker may be free (a seceded job even makes its worker look
+idle). So :func:`run_jobs` hands a job to the scheduler only when a worker's slot is free,
+pinned there (``workers=[address]``, loosely: if that worker dies the scheduler runs the task
+on another, where ``run_job`` resumes the store), and keeps the rest in order on the
+client: a slot that frees takes the next job.
+
+A job that fails (its simulator raises, its store holds another job) fails alone: the task
+returns its outcome and message, and the other jobs go on. Releasing a job's task (the
+caller stops, Ctrl-C) cancels the run at its next batch (the task looks at its own state on
+the worker, no round trip); its store keeps the complete populations, and running it again
+resumes.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import re
+import time
+import traceback
+import uuid
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from distributed import Client, Future, get_worker, worker_client
+from distributed.diagnostics.plugin import WorkerPlugin
+
+from abcns import SpecError
+from abcns.executor import Batch, BatchError
+from service.run.runner import Progress, local_population_s, run_job, summary, with_records
+from service.run.store import Store, StoreError
+from service.spec import Job, JobSpec, build, load_array
+
+#: the worker resource a job task holds while it runs (one per worker process)
+JOB_RESOURCE = "abcns-job"
+#: the name of :class:`JobSlot` among the cluster's plugins
+PLUGIN_NAME = "abcns-job-slot"
+#: the pilot: timed calls of the evaluator at most, and the measured time after which it stops
+PILOT_CALLS = 3
+PILOT_S = 0.02
+#: seconds between two looks at the cluster's workers while jobs wait for a slot
+LOOK_S = 1.0
+
+
+class JobSlot(WorkerPlugin):
+    """Declares one :data:`JOB_RESOURCE` on every worker that does not declare it already
+    (``dask worker --resources abcns-job=N`` keeps its N)."""
+
+    idempotent = True  # registered again (another run on the same cluster): nothing changes
+
+    async def setup(self, worker) -> None:
+        if JOB_RESOURCE not in worker.state.total_resources:
+            await worker.set_resources(**{JOB_RESOURCE: 1})
+
+
+def ensure_job_slots(client: Client) -> None:
+    """Register :class:`JobSlot` on the cluster (the current workers and those to come)."""
+    client.register_plugin(JobSlot(), name=PLUGIN_NAME)
+
+
+def job_workers(client: Client) -> dict[str, int]:
+    """The workers that have a job slot, and their threads."""
+    workers = client.scheduler_info(n_workers=-1)["workers"]
+    return {addr: int(w.get("nthreads", 1)) for addr, w in workers.items()
+            if (w.get("resources") or {}).get(JOB_RESOURCE, 0) >= 1}
+
+
+# ---------------------------------------------------------------------------- the jobs
+
+
+@dataclass
+class JobRun:
+    """One job of a call of :func:`run_jobs`: its spec, the records of its data files (read
+    here, sent inline), its store and a label (the progress lines', unique in the call)."""
+
+    spec: JobSpec
+    store: Path
+    label: str
+    data: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, spec: JobSpec, base_dir: Path | None, store: Path, label: str) -> JobRun:
+        """The job of ``spec`` whose data files are relative to ``base_dir`` (read now)."""
+        data = {key: load_array(source, base_dir, f"data.{key}") for key in ("input", "observed")
+                if isinstance(source := getattr(spec.data, key), str)}
+        return cls(spec, Path(store).absolute(), label, data)
+
+
+def store_names(names: Sequence[str]) -> list[str]:
+    """A distinct store name for each spec name, in order: the name made safe for a file
+    name (characters other than letters, digits, ``.``, ``_`` and ``-`` become ``-``); the
+    first spec of a name keeps it, the next ones get ``-2``, ``-3``, ... (the first free),
+    so adding a spec at the end of a command line never renames the stores of the others."""
+    taken: set[str] = set()
+    out = []
+    for name in names:
+        stem = re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-.") or "job"
+        candidate, k = stem, 1
+        while candidate.lower() in taken:
+            k += 1
+            candidate = f"{stem}-{k}"
+        taken.add(candidate.lower())
+        out.append(candidate)
+    return out
+
+
+@dataclass
+class Outcome:
+    """How a job ended: ``status`` (``finished``, ``cancelled``, ``failed``: the job's own
+    failure, a simulator's exception; ``refused``: its spec, data or store; ``error``: a bug),
+    its message, the placement and the store's JSON summary (None when it has no store)."""
+
+    status: str
+    error: str | None = None
+    placement: dict | None = None
+    summary: dict | None = None
+
+
+# ---------------------------------------------------------------------------- on a worker
+
+
+def pilot_batch(job: Job, size: int, rng: np.random.Generator) -> Batch:
+    """``size`` proposals as the first population makes them: a model with equal
+    probability, a point uniform in its prior box (epsilon infinite: every row in full)."""
+    models = rng.integers(len(job.models), size=size)
+    theta = np.full((size, max(m.n_dim for m in job.models)), np.nan)
+    for m, model in enumerate(job.models):
+        rows = np.flatnonzero(models == m)
+        theta[rows, :model.n_dim] = model.sample_prior(rows.size, rng)
+    return Batch(0, 0, models, theta, math.inf, np.random.SeedSequence(0), np.zeros(size, dtype=np.int64))
+
+
+def simulation_seconds(job: Job, limit_s: float) -> tuple[float, float, bool]:
+    """(seconds a simulation costs, seconds the pilot took, whether warm calls measured it):
+    the job's evaluator timed on one batch of prior proposals, after a warm-up call; when
+    the warm-up call alone (an upper bound: it loads the kernels) already puts a population
+    (``c x particles``) at or below ``limit_s``, that call's time."""
+    settings = job.settings
+    size = max(1, min(int(settings.batch_size), int(settings.particles)))
+    batch = pilot_batch(job, size, np.random.default_rng(job.seed))
+    start = time.perf_counter()
+    job.evaluate(batch)  # the warm-up: loads the kernels (the run's first batch would)
+    first = time.perf_counter() - start
+    if first / size * settings.particles <= limit_s:
+        return first / size, first, False
+    best, spent = math.inf, 0.0
+    for _ in range(PILOT_CALLS):
+        t0 = time.perf_counter()
+        job.evaluate(batch)
+        took = time.perf_counter() - t0
+        best, spent = min(best, took), spent + took
+        if spent >= PILOT_S:
+            break
+    return best / size, first + spent, True
+
+
+def limit_seconds(local_s: float, threads: int) -> float:
+    """What a population's simulations may cost for its job to run whole: ``local_s x
+    min(2, W / (W - 1))`` (the Dask executor's rule, :meth:`Stream.here`); unbounded on one
+    worker thread; 0 when ``local_s`` is 0 (every population on the cluster)."""
+    if local_s <= 0:
+        return 0.0
+    if threads < 2:
+        return math.inf
+    return local_s * min(2.0, threads / (threads - 1))
+
+
+def place(job: Job, local_s: float, threads: int, worker: str) -> dict:
+    """The job's placement (``mode`` whole or spread) and what it was decided from."""
+    limit = limit_seconds(local_s, threads)
+    out: dict[str, Any] = {"worker": worker, "worker_threads": threads, "local_s": local_s,
+                           "limit_s": None if math.isinf(limit) else limit, "particles": int(job.settings.particles)}
+    if limit == 0 or math.isinf(limit):  # nothing to measure
+        out.update(mode="spread" if limit == 0 else "whole", simulation_s=None, population_s=None, pilot_s=0.0)
+        return out
+    try:
+        c, spent, warm = simulation_seconds(job, limit)
+    except Exception as err:  # the run says what is wrong, with its batch
+        out.update(mode="whole", simulation_s=None, population_s=None, pilot_s=None,
+                   note=f"the pilot failed ({type(err).__name__}); the run reports it")
+        return out
+    cost = c * job.settings.particles
+    out.update(mode="whole" if cost <= limit else "spread", simulation_s=c, population_s=cost, pilot_s=spent,
+               pilot="warm calls" if warm else "first call (at most)")
+    return out
+
+
+def _released(worker, key) -> bool:
+    """Whether the caller released this task (it is cancelled on the worker, or gone)."""
+    ts = worker.state.tasks.get(key)
+    return ts is None or ts.state in ("cancelled", "released", "forgotten")
+
+
+def run_one(spec_json: dict, data: dict[str, np.ndarray], store: str, *, seed: int | None = None,
+            allow_import: bool = False, local_s: float, threads: int, topic: str | None = None,
+            index: int = 0) -> dict:
+    """The Dask task of one job: decide its placement (:func:`place`), run (or resume) it
+    with :func:`run_job` whole here or spread from here, and return its outcome as a dict
+    (:class:`Outcome`'s fields). Holds the worker's :data:`JOB_RESOURCE` (the caller asks
+    for it). Never raises for the job's own failure: the other jobs go on."""
+    worker = get_worker()
+    key = worker.get_current_task()
+
+    def emit(kind: str, **msg: Any) -> None:
+        if topic is not None:
+            worker.log_event(topic, {"job": index, "kind": kind, **msg})
+
+    placement: dict | None = None
+    path = Path(store)
+    try:
+        spec = JobSpec.model_validate(spec_json)
+        if seed is not None:
+            spec = spec.model_copy(update={"seed": seed})
+        if _finished(path):  # run_job gives its result at once (or refuses another job's store)
+            run_job(spec, None, path, None, data=data, allow_import=allow_import)
+            return _outcome(path, None, "finished")
+        job = build(with_records(spec, data), None, allow_import)  # the job as run_job builds it
+        placement = place(job, local_s, threads, worker.address)
+        emit("start", placement=placement)
+
+        def progress(p: Progress) -> None:
+            pop = p.population
+            emit("population", t=pop.t, epsilon=float(pop.epsilon), acceptance=float(pop.acceptance_rate),
+                 simulations=int(p.n_simulations_total), elapsed_s=float(p.elapsed_s),
+                 probabilities=[float(x) for x in pop.model_probabilities.tolist()],
+                 decision=None if pop.floor is None else float(pop.floor.decision),
+                 workers=p.workers, efficiency=p.efficiency)
+
+        run = partial(run_job, spec, None, path, data=data, on_population=progress, allow_import=allow_import,
+                      cancel=lambda: _released(worker, key), local_s=local_s, placement=placement)
+        if placement["mode"] == "whole":
+            run(None)
+        else:
+            with worker_client() as client:  # secedes: the worker's thread goes to the batches
+                run(client)
+        status = Store.open(path).attrs.get("status")
+        return _outcome(path, placement, "finished" if status == "finished" else "cancelled",
+                        None if status == "finished" else "the job was cancelled")
+    except BatchError as err:  # a bug in a simulator: which batch, which exception
+        return _outcome(path, placement, "failed", f"the job failed in {err}")
+    except SpecError as err:
+        return _outcome(path, placement, "refused", str(err))
+    except Exception as err:  # a bug; the other jobs go on, the caller says so
+        return _outcome(path, placement, "error", f"{type(err).__name__}: {err}\n{traceback.format_exc()}")
+
+
+def _finished(path: Path) -> bool:
+    try:
+        attrs = Store.open(path).attrs
+    except (StoreError, OSError, KeyError, ValueError):
+        return False
+    return attrs.get("status") == "finished" and bool(attrs.get("stop_reason"))
+
+
+def _outcome(path: Path, placement: dict | None, status: str, error: str | None = None) -> dict:
+    try:
+        s = summary(Store.open(path))
+    except Exception:  # no store (refused before it was made), or unreadable
+        s = None
+    return {"status": status, "error": error, "placement": placement if placement is not None
+            else (s or {}).get("placement"), "summary": s}
+
+
+# ---------------------------------------------------------------------------- the caller
+
+
+def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None, allow_import: bool = False,
+             local_s: float | None = None, on_event: Callable[[int, dict], None] | None = None,
+             poll_s: float = 0.2) -> list[Outcome]:
+    """Run ``jobs`` on the cluster of ``client``, each as one task (:func:`run_one`) on a
+    worker with a free job slot, in the order given as slots free; return their outcomes in
+    that order. ``on_event(index, event)`` is called on this thread for each job's events:
+    ``{"kind": "start", "placement": {...}}``, then ``{"kind": "population", "t": ...,
+    "epsilon": ..., "acceptance": ..., "simulations": ..., "elapsed_s": ...,
+    "probabilities": [...], "decision": ..., "workers": ..., "efficiency": ...}``. ``local_s``:
+    :func:`service.run.runner.local_population_s` (None: this process's). Interrupted
+    (KeyboardInterrupt), the jobs' tasks are released: each run stops at its next batch."""
+    local_s = local_population_s() if local_s is None else local_s
+    ensure_job_slots(client)
+    nonce = uuid.uuid4().hex[:8]
+    topic = f"abcns-jobs-{nonce}"
+    events: queue.SimpleQueue = queue.SimpleQueue()
+    client.subscribe_topic(topic, lambda event: events.put(event[1]))  # on the client's loop: only queued
+    waiting = deque(range(len(jobs)))
+    running: dict[int, tuple[Future, str]] = {}
+    outcomes: list[Outcome | None] = [None] * len(jobs)
+    next_look = 0.0
+
+    def deliver(wait_s: float = 0.0) -> None:
+        """Hand every queued event to ``on_event``, waiting ``wait_s`` at most for the first."""
+        while True:
+            try:
+                msg = events.get(timeout=wait_s) if wait_s > 0 else events.get_nowait()
+            except queue.Empty:
+                return
+            wait_s = 0.0
+            if on_event is not None and isinstance(msg, dict) and "job" in msg:
+                on_event(int(msg["job"]), {k: v for k, v in msg.items() if k != "job"})
+
+    try:
+        while waiting or running:
+            if waiting and time.monotonic() >= next_look:
+                next_look = time.monotonic() + LOOK_S
+                slots = job_workers(client)
+                threads = sum(client.nthreads().values())
+                held = {addr for _, addr in running.values()}
+                for addr in (a for a in slots if a not in held):
+                    if not waiting:
+                        break
+                    i = waiting.popleft()
+                    job = jobs[i]
+                    future = client.submit(run_one, job.spec.model_dump(mode="json"), job.data, str(job.store),
+                                           seed=seed, allow_import=allow_import, local_s=local_s, threads=threads,
+                                           topic=topic, index=i, key=f"abcns-job-{nonce}-{i}", workers=[addr],
+                                           allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)
+                    running[i] = (future, addr)
+            deliver(poll_s)
+            for i, (future, _) in list(running.items()):
+                if future.done():
+                    deliver()  # its last population's event came before its end
+                    outcomes[i] = _collect(future)
+                    future.release()
+                    del running[i]
+                    next_look = 0.0  # a slot is free
+        deliver(min(poll_s, 0.05))  # an event still on its way after the last task's end
+    finally:
+        for future, _ in running.values():
+            future.release()  # each run stops at its next batch (run_one's cancel)
+        client.unsubscribe_topic(topic)
+    return [o if o is not None else Outcome("error", "no outcome") for o in outcomes]
+
+
+def _collect(future: Future) -> Outcome:
+    """The outcome of a finished job task; a task that erred (its worker died again and
+    again: ``KilledWorker``) is a failed job."""
+    if future.status == "finished":
+        out = future.result()
+        return Outcome(out["status"], out["error"], out["placement"], out["summary"])
+    try:
+        err = future.exception()
+    except Exception as e:  # cancelled
+        err = e
+    return Outcome("failed", f"{type(err).__name__}: {err}")
+
+
+def placement_text(placement: Mapping[str, Any] | None) -> str:
+    """The placement in words, for a progress or summary line."""
+    if not placement:
+        return "placement unknown"
+    mode, worker, limit, cost, c = (placement.get(k) for k in ("mode", "worker", "limit_s", "population_s",
+                                                               "simulation_s"))
+    where = f"whole on {worker}" if mode == "whole" else f"spread over the cluster from {worker}"
+    if cost is None or c is None or limit is None:
+        why = ("one worker thread in the cluster" if limit is None
+               else "ABCNS_LOCAL_POPULATION_S is 0: every population on the cluster" if limit == 0
+               else placement.get("note", "not measured"))
+    else:
+        sign = "<=" if mode == "whole" else ">"
+        most = "at most " if placement.get("pilot", "").startswith("first") else "~"
+        why = (f"a population {most}{cost * 1e3:.3g} ms of simulations ({c * 1e6:.3g} us each x "
+               f"{placement['particles']} particles) {sign} {limit * 1e3:.3g} ms")
+    return f"{where}: {why}"

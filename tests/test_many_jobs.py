@@ -1,0 +1,176 @@
+"""`abcns run SPEC... --out-dir DIR`: many jobs on one cluster (service/run/jobs.py), each
+job's population loop on a worker, at most one per worker process; a result bit-identical
+to the job's run alone in this process; a cheap job whole on one worker (no task per
+batch); a failing job fails alone. One LocalCluster of 2 worker processes for the module,
+reached by the CLI with --scheduler."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from itertools import pairwise
+from pathlib import Path
+
+import pytest
+import yaml
+from distributed import Client, get_task_stream
+from test_distributed import assert_same_store
+
+from service.run.dask_executor import local_cluster
+from service.run.runner import run_job
+from service.run.store import Store
+from service.spec import load
+
+pytestmark = pytest.mark.distributed
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+DEMO = ROOT / "data" / "authors-demo" / "demo_data.npz"
+POPULATIONS = 3
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """2 single-threaded worker processes; a client of the test's own (the task stream)."""
+    with local_cluster(2) as c, Client(c) as client:
+        client.wait_for_workers(2, timeout=120)
+        yield client
+
+
+def write_spec(folder: Path, seed: int, name: str = "demo", simulator: str | None = None) -> Path:
+    """The authors' demo with the evidence variant, shortened: 200 particles, 3 populations."""
+    raw = yaml.safe_load((ROOT / "examples" / "authors_demo" / "evidence.yaml").read_text())
+    raw["data"].update(input=f"{DEMO}:force", observed=f"{DEMO}:displacement")
+    raw["sampler"] = {"particles": 200}
+    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": POPULATIONS}
+    raw.update(name=name, seed=seed)
+    if simulator is not None:
+        for model in raw["models"]:
+            model["simulator"] = simulator
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{name}-{seed}.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+def alone(spec: Path, out: Path) -> Path:
+    """The job run alone in this process (no cluster)."""
+    job_spec, base = load(spec)
+    run_job(job_spec, base, out, None)
+    return out
+
+
+def abcns_run(*args, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([BIN / "abcns", "run", *map(str, args)], capture_output=True, text=True, timeout=600,
+                          env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})
+
+
+def job_tasks(records: list[dict]) -> list[dict]:
+    return [r for r in records if str(r["key"]).startswith("abcns-job-")]
+
+
+def test_three_jobs_together_give_each_job_s_result_alone(cluster, tmp_path):
+    """Three jobs of one name (stores demo, demo-2, demo-3) at once on 2 workers, each
+    spread (the suite's ABCNS_LOCAL_POPULATION_S=0: every population on the cluster): the
+    populations of each equal, bit for bit, its run alone in this process; a line per
+    population of each job, prefixed with its store's name; never two jobs at once in one
+    worker process."""
+    specs = [write_spec(tmp_path / "specs", seed) for seed in (1, 2, 3)]
+    with get_task_stream(cluster) as stream:
+        done = abcns_run(*specs, "--out-dir", tmp_path / "out", "--scheduler", cluster.scheduler.address)
+    assert done.returncode == 0, done.stderr[-3000:]
+    stems = ["demo", "demo-2", "demo-3"]
+    assert {p.name for p in (tmp_path / "out").iterdir()} == {f"{s}.zarr" for s in stems}
+    for spec, stem in zip(specs, stems, strict=True):
+        assert_same_store(alone(spec, tmp_path / f"alone-{stem}.zarr"), tmp_path / "out" / f"{stem}.zarr")
+        store = Store.open(tmp_path / "out" / f"{stem}.zarr")
+        assert store.attrs["status"] == "finished"
+        assert store.attrs["run"]["placement"]["mode"] == "spread"
+        pops = [line for line in done.stdout.splitlines() if line.startswith(f"[{stem}] population ")]
+        assert len(pops) == POPULATIONS, done.stdout
+    assert "3 jobs: 3 finished" in done.stdout
+    # one job loop per worker process: the job tasks on one worker never overlap in time
+    by_worker: dict[str, list[tuple[float, float]]] = {}
+    for record in job_tasks(stream.data):
+        compute = [s for s in record["startstops"] if s["action"] == "compute"]
+        by_worker.setdefault(record["worker"], []).append((compute[0]["start"], compute[-1]["stop"]))
+    assert sum(map(len, by_worker.values())) == 3
+    for spans in by_worker.values():
+        spans.sort()
+        assert all(a[1] <= b[0] for a, b in pairwise(spans)), spans
+
+
+def test_a_cheap_job_runs_whole_on_one_worker(cluster, tmp_path):
+    """With the default rule (25 ms), the shortened demo (a population: ~200 simulations of
+    a few microseconds) runs whole on its worker: the store and the summary say so, and the
+    cluster ran one task for it, the job's (no batch, no data task); the same result as alone.
+    Run again, the finished store is not run again."""
+    spec = write_spec(tmp_path / "specs", 4, name="cheap")
+    with get_task_stream(cluster) as stream:
+        done = abcns_run(spec, "--out-dir", tmp_path / "out", "--scheduler", cluster.scheduler.address,
+                         env={"ABCNS_LOCAL_POPULATION_S": "0.025"})
+    assert done.returncode == 0, done.stderr[-3000:]
+    out = tmp_path / "out" / "cheap.zarr"
+    placement = Store.open(out).attrs["run"]["placement"]
+    assert placement["mode"] == "whole" and placement["population_s"] <= placement["limit_s"] == 0.05, placement
+    assert placement["worker"] in cluster.scheduler_info()["workers"]
+    keys = [str(r["key"]) for r in stream.data]
+    assert len(keys) == 1 and keys[0].startswith("abcns-job-"), keys
+    assert stream.data[0]["worker"] == placement["worker"]
+    assert "[cheap] whole on tcp://" in done.stdout
+    s = json.loads(subprocess.run([BIN / "abcns", "summary", out, "--json"], capture_output=True, text=True,
+                                  timeout=120).stdout)
+    assert s["placement"]["mode"] == "whole"
+    assert_same_store(alone(spec, tmp_path / "alone.zarr"), out)
+    # run again: the finished store is not run again (no pilot, no population), the same summary
+    again = abcns_run(spec, "--out-dir", tmp_path / "out", "--scheduler", cluster.scheduler.address, "--json",
+                      env={"ABCNS_LOCAL_POPULATION_S": "0.025"})
+    assert again.returncode == 0, again.stderr[-3000:]
+    (only,) = json.loads(again.stdout)
+    assert only["outcome"] == "finished" and only["store"] == str(out)
+    assert {k: v for k, v in only.items() if k not in ("spec", "store", "outcome", "error")} == s
+
+
+def test_a_failing_job_fails_alone_naming_the_job(cluster, tmp_path):
+    """A job whose simulator raises (tests/faulty_plugin.py, in its first batches) fails with a
+    message naming it, its batch and the exception, exit code 4; the two others finish."""
+    specs = [write_spec(tmp_path / "specs", 1, name="good"),
+             write_spec(tmp_path / "specs", 2, name="faulty", simulator="tests.faulty_plugin:Faulty"),
+             write_spec(tmp_path / "specs", 3, name="good")]
+    done = abcns_run(*specs, "--out-dir", tmp_path / "out", "--scheduler", cluster.scheduler.address, "--quiet")
+    assert done.returncode == 4, done.stderr[-3000:]
+    errors = [line for line in done.stderr.splitlines() if line.startswith("error: ")]
+    assert len(errors) == 1, done.stderr[-3000:]
+    # population 0: the prior-predictive pilot that sets the first tolerance (the spec gives none)
+    assert re.match(r"error: job faulty: the job failed in population 0, batch \d+: model '(linear|cubic)' "
+                    r"\(simulator 'tests\.faulty_plugin:Faulty'\): RuntimeError: a bug in the user's simulator; "
+                    r"the populations before it are in \S+faulty\.zarr$", errors[0]), errors
+    assert "Traceback" not in done.stderr
+    assert "3 jobs: 2 finished, 1 failed" in done.stdout
+    for stem in ("good", "good-2"):
+        assert Store.open(tmp_path / "out" / f"{stem}.zarr").attrs["status"] == "finished"
+    assert Store.open(tmp_path / "out" / "faulty.zarr").attrs["status"] == "failed"
+
+
+def test_out_and_out_dir_are_exclusive_and_several_specs_need_out_dir(tmp_path):
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    spec = str(write_spec(tmp_path, 1))
+    both = CliRunner().invoke(app, ["run", spec, "--out", str(tmp_path / "a.zarr"), "--out-dir", str(tmp_path / "d")])
+    assert both.exit_code == 2 and "error: give --out (one spec's store) or --out-dir (a store per spec), not both" \
+        in both.output, both.output
+    many = CliRunner().invoke(app, ["run", spec, spec, "--out", str(tmp_path / "a.zarr")])
+    assert many.exit_code == 2 and "2 specs need --out-dir DIR" in many.output, many.output
+    neither = CliRunner().invoke(app, ["run", spec])
+    assert neither.exit_code == 2 and "give --out STORE for one spec, or --out-dir DIR" in neither.output, neither.output
+    assert not (tmp_path / "a.zarr").exists() and not (tmp_path / "d").exists()
+
+
+def test_store_names_are_distinct_and_stable():
+    from service.run.jobs import store_names
+
+    assert store_names(["a", "b", "a", "a b/c", "a", "a-2"]) == ["a", "b", "a-2", "a-b-c", "a-3", "a-2-2"]
