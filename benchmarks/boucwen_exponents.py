@@ -267,11 +267,15 @@ def fmt_p(x: float | None) -> str:
     return fmt(x, ".1e" if x is not None and 0 < abs(x) < 1e-3 else ".4f")
 
 
-def print_runs(rows: list[dict]) -> None:
-    header = ("| truth | seed | p(true) ± se | leading | rule | provisional | stop | populations | simulations | "
-              "wall s | 95 % intervals hold the truth | warnings |")
+def head(header: str) -> None:
+    """A markdown table's header and its rule."""
     print(header)
     print("|" + "---|" * header.count(" | ") + "---|")
+
+
+def print_runs(rows: list[dict]) -> None:
+    head("| truth | seed | p(true) ± se | leading | rule | provisional | stop | populations | simulations | "
+         "wall s | 95 % intervals hold the truth | warnings |")
     for r in rows:
         held = sum(r["cover"].values())
         missed = [k for k, v in r["cover"].items() if not v]
@@ -282,10 +286,8 @@ def print_runs(rows: list[dict]) -> None:
 
 
 def print_checks(rows: list[dict]) -> None:
-    header = ("| truth | seed | z RMS (N) | noise NMSE % | substeps | integration / noise | best linear NMSE % | "
-              "best other n: NMSE % | best other / noise |")
-    print(header)
-    print("|" + "---|" * header.count(" | ") + "---|")
+    head("| truth | seed | z RMS (N) | noise NMSE % | substeps | integration / noise | best linear NMSE % | "
+         "best other n: NMSE % | best other / noise |")
     for r in rows:
         noise = r["noise_nmse"]
         print(f"| {r['true_model']} | {r['seed']} | {r['z_rms']:.2f} | {noise:.4f} | {r['substeps']} | "
