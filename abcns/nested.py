@@ -55,7 +55,7 @@ from abcns import evidence as ev
 from abcns import likelihood
 from abcns.executor import Executor
 from abcns.filling import Budget, Filled, Filling, Stopped, draw_inside, fill, population_rng
-from abcns.noise import Floor, Noise, Tracker, reached
+from abcns.noise import Floor, Noise, Tracker, reached, waited_for
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
 from abcns.result import Population, RunEnd
@@ -290,16 +290,17 @@ class BoundProposer:
 
 
 def _stop_reason(stop: StopRules, at_floor: bool, t: int, eps: float, eps_next: float, tied: bool,
-                 floor: Floor | None, before: Floor | None) -> StopReason | None:
+                 floor: Floor | None, before: Floor | None, decisions: Sequence[float | None]) -> StopReason | None:
     """The rule that ends the run after population t: ties, the noise floor (``at_floor``:
     the run stops there, and this population was accepted at the decision tolerance:
     :func:`abcns.noise.reached`, ``before`` the floor after population t - 1), then ``stop``'s
-    rules, which wait for the decision tolerance (:meth:`StopRules.reason_after`)."""
+    rules, which wait for the decision tolerance (:meth:`StopRules.reason_after`) while it
+    holds still (:func:`abcns.noise.waited_for` of ``decisions``, one per population)."""
     if tied:
         return StopReason.TIES
     if at_floor and reached(eps, before, floor):
         return StopReason.NOISE_FLOOR  # the lowest population tolerance above the floor
-    return stop.reason_after(eps, eps_next, t, decision=None if floor is None else floor.decision)
+    return stop.reason_after(eps, eps_next, t, decision=waited_for(decisions))
 
 
 def _with_survivors(pop: Population, filled: Filled) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -356,6 +357,7 @@ class _Run:
         self.notes: list[str] = []
         self.frames = [bd.Frame(m, unit=settings.evidence) for m in models]
         self.floors = Tracker(noise, models, history)
+        self.decisions = [None if p.floor is None else p.floor.decision for p in history]
         self.shells = likelihood.records(history) if settings.evidence else []  # the reading so far
         self.at_floor = settings.evidence and stop.noise_floor and noise is not None
         self.pending: Filling | None = None  # the next population, started
@@ -382,8 +384,9 @@ class _Run:
         step = finish_population(self.models, self.frames, t, eps, which, theta, distances, is_new, filled, previous,
                                  self.settings, population_rng(self.seed, t), lower, spared)
         self.notes.extend(step.notes)
+        self.decisions.append(None if floor is None else floor.decision)
         reason = _stop_reason(self.stop, self.at_floor, t, eps, step.epsilon_next, step.tied, floor,
-                              None if previous is None else previous.floor)
+                              None if previous is None else previous.floor, self.decisions)
         if reason is StopReason.NOISE_FLOOR:
             assert floor is not None
             self.notes.append(f"population {t}: accepted at the decision tolerance {eps:.6g}; the run stops (noise "
@@ -408,7 +411,7 @@ class _Run:
                 pop = history[-1]
                 tied = next_tolerance(pop.distances, settings.n_drop) is None
                 reason = _stop_reason(self.stop, self.at_floor, pop.t, pop.epsilon, pop.epsilon_next, tied, pop.floor,
-                                      history[-2].floor if len(history) > 1 else None)
+                                      history[-2].floor if len(history) > 1 else None, self.decisions)
             else:
                 eps, self.source, self.n_pilot = initial_epsilon(self.models, settings, self.executor, budget, self.seed)
                 filled = fill(prior_proposer(self.models), settings.particles, eps, self.executor, budget,

@@ -10,7 +10,7 @@ import numpy as np
 from abcns.ellipsoid import Ellipsoid
 from abcns.evidence import DEAD_BEFORE, DEATH_RULES, Evidence, probabilities
 from abcns.likelihood import Reading, of_floor, read, records
-from abcns.noise import Floor, reached
+from abcns.noise import Floor, reached, waited_for
 from abcns.priors import Model
 from abcns.settings import DEATH_PROBABILITY, StopReason
 
@@ -183,11 +183,18 @@ class Result:
         return reached(self.final.epsilon, before, self.final.floor)
 
     @property
+    def floor_settled(self) -> bool:
+        """Whether the run's decision tolerance held still at its end (:func:`abcns.noise.waited_for`);
+        not when the best fit fell with the tolerance (noise-free data, a model that fits exactly)."""
+        return waited_for([None if p.floor is None else p.floor.decision for p in self.populations]) is not None
+
+    @property
     def provisional(self) -> bool:
         """Whether the run stopped above its decision tolerance (a budget, the user's own
         rule, a stalled tolerance): its answer is not yet that of the data."""
         floor = self.floor
-        return floor is not None and not self.reached_floor and self.final.epsilon > floor.decision
+        return (floor is not None and not self.reached_floor and self.final.epsilon > floor.decision
+                and self.floor_settled)
 
     def reading(self) -> Reading | None:
         """The likelihood-weighted answer (:mod:`abcns.likelihood`): the evidence variant of a
@@ -195,7 +202,7 @@ class Result:
         noise variance; None otherwise (the answer is then the decision population's)."""
         floor = self.floor
         if (floor is None or self.settings.get("sampler", {}).get("variant") != "evidence"
-                or any(p.evidence is None for p in self.populations)):
+                or any(p.evidence is None for p in self.populations) or not self.floor_settled):
             return None
         log_l = of_floor(floor)
         return None if log_l is None else read(records(self.populations), [m.n_dim for m in self.models], log_l)
@@ -281,6 +288,10 @@ class Result:
         out = []
         pop = self.decision_population()
         floor = self.floor
+        if floor is not None and not self.reached_floor and not self.floor_settled:
+            out.append(f"no noise floor: the best fit fell with the tolerance to {floor.best:.4g} (the decision tolerance "
+                       "halved within the last populations): noise-free data or a model that fits them exactly; the "
+                       "answer is the final population's")
         if floor is not None and self.provisional:
             out.append(f"provisional: the run stopped ({self.stop_reason.value}) at eps {self.final.epsilon:.4g}, above "
                        f"the decision tolerance {floor.decision:.4g} (noise floor {floor.floor:.4g}); its model "

@@ -181,3 +181,20 @@ def test_a_rare_model_is_kept_and_its_probability_is_right(seed):
     r = abcns.run(models, evaluate, SETTINGS, StopRules(), seed=seed, noise=noise)
     assert "parabola" not in r.death_rules()
     check_against_exact(r.summary(), seed, 30.0, ("line",))
+
+
+def test_noise_free_data_stop_by_the_paper_rule_and_say_there_is_no_floor():
+    """Data a model fits exactly (the authors' demo data are such): the best fit falls with
+    the tolerance, so the decision tolerance never holds still and waiting for it would never
+    end. The decision tolerance halves within 5 populations (``abcns.noise.waited_for``): the
+    paper's rule applies, the run stops, and the summary says there is no floor (not
+    provisional). ``max_populations`` 200 is a guard: waiting, the run reached it."""
+    y = 1.0 + 2.0 * X
+    nmse = NMSE(y)
+    line = lambda theta, _rng: (nmse(theta @ DESIGNS["line"].T), np.full(theta.shape[0], OK, np.int8))
+    r = abcns.run([Model("line", {"a": (0, 2), "b": (0, 4)})], per_model([line]), SETTINGS,
+                  StopRules(max_populations=200), seed=1, noise=nmse.noise())
+    assert r.stop_reason is StopReason.MIN_EPSILON_DECREASE
+    s = r.summary()
+    assert s["decision"]["provisional"] is False and s["decision"]["reading"] == "tolerance"
+    assert any(w.startswith("no noise floor") for w in s["warnings"])
