@@ -162,8 +162,8 @@ def test_the_page_says_when_a_run_is_undecided(browser, service):
     page.goto(f"{service.url}/jobs/{job_id}/view#token={TOKEN}")
     wait_until(lambda: page.inner_text("#status") == "finished", 600, "the job to finish on the page", 0.5)
     result = httpx.get(f"{service.url}/jobs/{job_id}/result", headers=AUTH, timeout=60).json()
-    assert result["warnings"] and result["warnings"][0].startswith("undecided"), result["warnings"]
-    assert result["epsilon"][-1] == pytest.approx(7.874, abs=1e-3)
+    assert any(w.startswith("undecided") for w in result["warnings"]), result["warnings"]
+    assert 7.874 <= result["epsilon"][-1] < 7.95  # held at the cubic's best fit; the stall rule ends it there (issue W)
     wait_until(lambda: "warning: undecided" in page.inner_text("#warnings"), 30, "the warning on the page")
     # a finished job's page draws the last population's marginals
     last = str(len(result["epsilon"]))
