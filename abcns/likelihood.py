@@ -21,7 +21,7 @@ same weights, ``X_m(eps_t) / n_{m,t} exp(-d / (2 v))``, make the particles an im
 sample of model m's exact posterior. Survivors are left out: they were drawn by weight, and
 each was a new particle once, where it is counted.
 
-Why (issue W, docs/design.md "Reading the answer"): an ABC posterior at one tolerance is
+Why (issue W, docs/design.md "Reading by the likelihood"): an ABC posterior at one tolerance is
 uniform on the region below it, so each model's intervals depend on where the run stopped,
 and with nested models the most flexible model's best fit to the noise sets the common
 tolerance below the true model's own floor (its intervals then miss the truth, and whether

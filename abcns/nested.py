@@ -154,7 +154,7 @@ def finish_population(
     settings: NSSettings,
     rng: np.random.Generator,
     lower: float | None = None,
-    spared: np.ndarray | None = None,
+    spared: Callable[[], np.ndarray | None] | None = None,
 ) -> Step:
     """eps_next (:func:`next_tolerance`, not below ``lower``), weights per model, the evidence
     (``abcns.evidence.estimate``), what the variant decides (``abcns.variants``: deaths, but
@@ -380,7 +380,8 @@ class _Run:
         runs ahead starts simulating) before this one's bound geometry is measured."""
         floor = self.floors.after(which, distances)
         lower = floor.decision if self.at_floor and floor is not None else None
-        spared = likelihood.spared(self.shells, [m.n_dim for m in self.models], floor, self.settings.death_probability)
+        spared = functools.partial(likelihood.spared, self.shells, [m.n_dim for m in self.models], floor,
+                                   self.settings.death_probability)
         step = finish_population(self.models, self.frames, t, eps, which, theta, distances, is_new, filled, previous,
                                  self.settings, population_rng(self.seed, t), lower, spared)
         self.notes.extend(step.notes)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -197,6 +198,11 @@ class Result:
                 and self.floor_settled)
 
     def reading(self) -> Reading | None:
+        """The likelihood-weighted answer (:attr:`_reading`, made once)."""
+        return self._reading
+
+    @functools.cached_property
+    def _reading(self) -> Reading | None:
         """The likelihood-weighted answer (:mod:`abcns.likelihood`): the evidence variant of a
         run that knows its noise (a floor), read over all its populations with the floor's
         noise variance; None otherwise (the answer is then the decision population's)."""

@@ -15,7 +15,7 @@ docstring states both.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,7 +77,7 @@ class Paper:
 
     def survive(self, models: Sequence[Model], est: ev.Estimate, counts: np.ndarray,
                 capacity: np.ndarray, alive_now: np.ndarray, previous_evidence: ev.Evidence | None,
-                death: np.ndarray, spared: np.ndarray | None = None) -> np.ndarray:
+                death: np.ndarray, spared: Callable[[], np.ndarray | None] | None = None) -> np.ndarray:
         """Survivor quotas per model; ``death`` updated in place."""
         quotas = survivor_quotas(self.settings.n_survivors, counts, capacity)
         death[alive_now & (quotas == 0)] = ev.NO_PARTICLES
@@ -111,9 +111,10 @@ class Evidence:
 
     def survive(self, models: Sequence[Model], est: ev.Estimate, counts: np.ndarray,
                 capacity: np.ndarray, alive_now: np.ndarray, previous_evidence: ev.Evidence | None,
-                death: np.ndarray, spared: np.ndarray | None = None) -> np.ndarray:
-        """Survivor quotas per model; ``death`` updated in place; ``spared``: models the
-        likelihood reading keeps from death by probability (:func:`abcns.likelihood.spared`)."""
+                death: np.ndarray, spared: Callable[[], np.ndarray | None] | None = None) -> np.ndarray:
+        """Survivor quotas per model; ``death`` updated in place; ``spared``: the models the
+        likelihood reading keeps from death by probability (:func:`abcns.likelihood.spared`),
+        asked only when a model would die by it."""
         s = self.settings
         death[alive_now & (capacity == 0)] = ev.NO_PARTICLES
         # by probability only when the previous population's prediction was below the threshold
@@ -125,8 +126,9 @@ class Evidence:
             improbable &= p_was + 3 * se_was < s.death_probability
         else:
             improbable[:] = False
-        if spared is not None:
-            improbable &= ~spared
+        kept = spared() if spared is not None and improbable.any() else None
+        if kept is not None:
+            improbable &= ~kept
         death[improbable] = ev.IMPROBABLE
         alive_next = death == ev.ALIVE
         shares = np.where(alive_next, est.p_next, 0.0)
