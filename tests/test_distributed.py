@@ -120,40 +120,30 @@ def test_two_workers_give_the_one_worker_result(reference, clusters, tmp_path):
 
 
 def test_eight_workers_give_the_one_worker_result_also_when_stopped_and_resumed(reference, clusters, tmp_path):
-    """On 8 worker processes: an undisturbed run; then a run cancelled halfway (the budget's
-    cancel check, asked between batches in the run's own order, says yes at half the checks
-    of the undisturbed run: the store keeps the populations done, status "cancelled") and run
-    again on the same store: it resumes and ends as the one-worker run. Only the checks
-    between batches are counted: since R.3 the executor also asks while it waits for a task,
-    and counting those made the half depend on the machine's speed (on a busy machine the
-    cancelled run finished first)."""
+    """On 8 worker processes: an undisturbed run; then a run cancelled as it opens its fourth
+    population (the budget's cancel says yes at the third check the run makes between two
+    populations, in the run's own order: the store keeps the three populations done, status
+    "cancelled") and run again on the same store: it resumes and ends as the one-worker run.
+    The cancel counts only the checks between populations: the run also asks its budget
+    between batches and while the executor waits for a task, as often as the machine is slow
+    and wherever a cheap population is evaluated, and half of such a count once fell inside
+    population 1 on a busy CI machine."""
     spec, ref_store, _ = reference
-    checks = [0]
+    opened = [0]
 
-    def between_batches() -> bool:
-        """Whether the budget is asked between batches (Budget.check, the run's own order),
-        not while the executor waits for a task (Budget.reason every WATCH_S: as often as
-        the wait is long, so a count of those depends on the machine's speed)."""
-        return sys._getframe(3).f_code.co_name == "check"  # cancel <- this <- Budget.reason <- Budget.check
-
-    def count() -> bool:
-        checks[0] += between_batches()
-        return False
+    def at_population_4() -> bool:
+        # this <- Budget.reason <- Budget.check <- the ABC-NS loop, between two populations
+        opened[0] += (sys._getframe(2).f_code.co_name, sys._getframe(3).f_code.co_name) == ("check", "populations")
+        return opened[0] >= 3
 
     with clusters(8) as client:
-        run_on(client, spec, tmp_path / "eight.zarr", cancel=count)
+        run_on(client, spec, tmp_path / "eight.zarr")
         assert_same_store(ref_store, tmp_path / "eight.zarr")
-
-        out, half, asked = tmp_path / "resumed8.zarr", checks[0] // 2, [0]
-
-        def halfway() -> bool:
-            asked[0] += between_batches()
-            return asked[0] >= half
-
-        run_on(client, spec, out, cancel=halfway)
+        out = tmp_path / "resumed8.zarr"
+        run_on(client, spec, out, cancel=at_population_4)
         stopped = Store.open(out)
         assert stopped.attrs["status"] == "cancelled"
-        assert 1 <= stopped.n_populations < 6, "the job was not stopped mid-run"
+        assert stopped.n_populations == 3, "the job was not stopped as it opened population 4"
         run_on(client, spec, out)
         assert_same_store(ref_store, out)
 
