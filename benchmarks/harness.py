@@ -93,14 +93,14 @@ class Service:
     """`abcns serve` as a user starts it; its output (the address, the access log) goes to
     ``log`` beside the store directory."""
 
-    def __init__(self, store_dir: Path, scheduler: str, max_running: int = 1, port: int | None = None,
+    def __init__(self, store_dir: Path, scheduler: str, max_running: int | None = 1, port: int | None = None,
                  env: dict | None = None):
         self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.store_dir = Path(store_dir)
         self.log = self.store_dir.parent / f"serve-{self.port}.log"
         self.args = [BIN / "abcns", "serve", "--port", str(self.port), "--scheduler", scheduler, "--store-dir",
-                     str(store_dir), "--token", TOKEN, "--max-running", str(max_running)]
+                     str(store_dir), "--token", TOKEN, *([] if max_running is None else ["--max-running", str(max_running)])]
         self.env = env or {}
         self.proc: subprocess.Popen | None = None
         self.start()

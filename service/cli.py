@@ -516,7 +516,7 @@ def serve(
     workers: Annotated[int | None, typer.Option(help="LocalCluster worker processes")] = None,
     store_dir: Annotated[Path | None, typer.Option(help="one folder per job [default: abcns-jobs]")] = None,
     token: Annotated[str | None, typer.Option(envvar="ABCNS_TOKEN", help="require Authorization: Bearer TOKEN")] = None,
-    max_running: Annotated[int | None, typer.Option(help="jobs running at once [default: 1]")] = None,
+    max_running: Annotated[int | None, typer.Option(help="jobs running at once [default: one per worker]")] = None,
     max_request_mb: Annotated[float | None, typer.Option(help="request size limit [default: 32]")] = None,
     max_queued: Annotated[int | None, typer.Option(help="jobs waiting; beyond: 429 [default: 64]")] = None,
     max_particles: Annotated[int | None, typer.Option(help="admission limit [default: 20000]")] = None,

@@ -404,12 +404,14 @@ public = APIRouter()
 async def health(request: Request, manager: Annotated[JobManager, Depends(get_manager)]) -> Health:
     """Never waits for anything: the job counts and the workers as last seen (every 2 s),
     and the admission limits."""
-    return Health(status="ok", workers=request.app.state.workers, jobs=manager.counts(), limits=limits_of(request))
+    return Health(status="ok", workers=request.app.state.workers, jobs=manager.counts(), limits=limits_of(request),
+                  running_on=manager.running_on())
 
 
 def limits_of(request: Request) -> dict:
     settings = request.app.state.settings
-    return {**settings.limits.public(), "max_queued": settings.max_queued, "max_running": settings.max_running,
+    running = {} if settings.max_running is None else {"max_running": settings.max_running}  # unset: one per worker
+    return {**settings.limits.public(), "max_queued": settings.max_queued, **running,
             "max_request_bytes": settings.max_request_bytes, "max_array_samples": settings.max_array_samples,
             "max_json_values": settings.max_json_values}
 

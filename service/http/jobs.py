@@ -34,8 +34,10 @@ from __future__ import annotations
 
 import asyncio
 import datetime
+import fcntl
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -53,7 +55,8 @@ from distributed import Client
 
 from abcns import SpecError, StopReason
 from service.http.limits import Limits, admit
-from service.run.runner import Progress, run_job, summary
+from service.run.jobs import JOB_RESOURCE, JobRun, ensure_job_slots, job_workers, run_one
+from service.run.runner import Progress, local_population_s, lock_path, run_job, summary
 from service.run.store import Store, StoreError
 from service.spec import JobSpec, build, cut_to_read
 
@@ -200,7 +203,9 @@ class JobRecord:
     error: str | None = None
     crashes: int = 0  # times the service died while this job ran
     progress: dict | None = None
+    placement: dict | None = None  # where its loop runs (service.run.jobs.place), while it runs
     cancel: threading.Event = field(default_factory=threading.Event)
+    announcing: threading.Lock = field(default_factory=threading.Lock)  # one population event at a time
     events: EventLog | None = None  # opened when the manager takes the job (``log``)
 
     @property
@@ -224,7 +229,8 @@ class JobRecord:
     def public(self) -> dict[str, Any]:
         created = datetime.datetime.fromtimestamp(self.created_at, datetime.UTC).isoformat(timespec="milliseconds")
         return {"id": self.id, "name": self.name, "models": self.models, "status": self.status,
-                "created_at": created.replace("+00:00", "Z"), "error": self.error, "progress": self.progress}
+                "created_at": created.replace("+00:00", "Z"), "error": self.error, "progress": self.progress,
+                "placement": self.placement if self.status == "running" else None}
 
     @classmethod
     def read(cls, folder: Path, loop: asyncio.AbstractEventLoop | None) -> JobRecord:
@@ -277,7 +283,8 @@ class QueueFull(Exception):
 class JobManager:
     """The queue and the running jobs of one service process."""
 
-    def __init__(self, store_dir: Path, client: Client, max_running: int, loop: asyncio.AbstractEventLoop | None,
+    def __init__(self, store_dir: Path, client: Client, max_running: int | None,
+                 loop: asyncio.AbstractEventLoop | None,
                  max_resumes: int = 1, limits: Limits | None = None, max_queued: int | None = None,
                  scheduler_address: str | None = None):
         self.store_dir = Path(store_dir)
@@ -293,6 +300,7 @@ class JobManager:
         self.jobs: dict[str, JobRecord] = {}
         self.queue: deque[str] = deque()
         self.running: set[str] = set()
+        self.held: dict[str, str] = {}  # job id -> the worker whose job slot its loop was given
         self.admitting = 0  # submissions that hold a place in the queue while they are built and written
         self.lock = threading.Lock()
         self.result_lock = threading.Lock()  # one summary computed at a time (each reads a whole store)
@@ -386,6 +394,12 @@ class JobManager:
         jobs = sorted(list(self.jobs.values()), key=lambda j: j.created_at)
         return [j for j in jobs if status is None or j.status == status]
 
+    def running_on(self) -> dict[str, str]:
+        """Each running job's worker (where its loop was placed; a job rescheduled after its
+        worker died reports the new one once it starts there)."""
+        return {job_id: (self.jobs[job_id].placement or {}).get("worker") or worker
+                for job_id, worker in list(self.held.items()) if job_id in self.jobs}
+
     def counts(self) -> dict[str, int]:
         out: dict[str, int] = {}
         for j in list(self.jobs.values()):
@@ -444,19 +458,46 @@ class JobManager:
 
     # ------------------------------------------------------------------ running
     def _dispatch(self) -> None:
+        """Start queued jobs, in order, while there is room: a job slot on a worker that no
+        running job holds (one job loop per worker process, :mod:`service.run.jobs`), and
+        fewer running jobs than ``max_running`` when it is set. Without a client (tests of
+        the manager alone) a job runs in this process, ``max_running`` (or one) at a time."""
         while True:
             # outside the lock: replacing a client that gave up may take seconds, and submit()
-            # must not wait for it
+            # must not wait for it; so does asking the scheduler for its workers
             connected = self.stopping or self._connected()
+            free = self._free_slots() if connected and self.queue and not self.stopping else []
             with self.lock:
                 if self.stopping:
                     return
-                if not connected or not self.queue or len(self.running) >= self.max_running:
+                cap = self.max_running or (math.inf if self.client is not None else 1)
+                if (self.client is not None and not free) or not self.queue or len(self.running) >= cap:
                     self.wake.wait(timeout=1.0)  # a new job, a free slot, or the scheduler back: look again
                     continue
                 job = self.jobs[self.queue.popleft()]
                 self.running.add(job.id)
-            threading.Thread(target=self._run, args=(job,), name=f"abcns-job-{job.id[:8]}", daemon=True).start()
+                worker = free[0] if self.client is not None else None
+                if worker is not None:
+                    self.held[job.id] = worker
+            threading.Thread(target=self._run, args=(job, worker), name=f"abcns-job-{job.id[:8]}",
+                             daemon=True).start()
+
+    def _free_slots(self) -> Sequence[str]:
+        """The workers with a job slot that no running job holds (none without a client, or
+        when the scheduler does not answer)."""
+        if self.client is None:
+            return []
+        try:
+            slots = job_workers(self.client)
+            if not slots and self.client.nthreads():  # a scheduler (restarted) without the job slots' plugin
+                ensure_job_slots(self.client)
+                slots = job_workers(self.client)
+        except Exception as err:  # the scheduler went away meanwhile: look again later
+            log.warning("cannot list the workers: %r", err)
+            return []
+        with self.lock:
+            held = set(self.held.values())
+        return [addr for addr in slots if addr not in held]
 
     @staticmethod
     def _progress(pop, models: Sequence[str], n_simulations_total: int, elapsed_s: float, rate: float | None,
@@ -476,9 +517,30 @@ class JobManager:
             "workers": workers, "efficiency": efficiency,
         }
 
+    @staticmethod
+    def _progress_of(msg: dict, models: Sequence[str]) -> dict:
+        """A population event from a job loop's message (:func:`service.run.jobs.run_one`)."""
+        return {
+            "population": int(msg["t"]), "epsilon": msg["epsilon"], "epsilon_next": msg.get("epsilon_next"),
+            "acceptance_rate": msg["acceptance"], "simulations": int(msg["simulations"]),
+            "model_probabilities": dict(zip(models, msg["probabilities"], strict=True)),
+            "elapsed_s": float(msg["elapsed_s"]), "simulations_per_s": msg.get("simulations_per_s"),
+            "noise_floor": msg.get("floor"), "decision_tolerance": msg.get("decision"),
+            "workers": msg.get("workers"), "efficiency": msg.get("efficiency"),
+        }
+
+    def _announce(self, job: JobRecord, progress: dict) -> None:
+        """Append a population event unless that population was announced already (a job
+        loop's message that comes after the store was read back, or twice)."""
+        with job.announcing:
+            if job.progress is not None and progress["population"] <= job.progress["population"]:
+                return
+            job.progress = progress
+            job.log.append("population", progress)
+
     def _backfill(self, job: JobRecord) -> None:
         """Population events for populations in the store but not in the log (the service
-        died between a store append and its event)."""
+        died between a store append and its event; a job loop's last messages did not come)."""
         try:
             store = Store.open(job.store_path)
         except StoreError:
@@ -489,8 +551,7 @@ class JobManager:
         totals = store.totals()
         for t in range(seen + 1, store.n_populations + 1):
             pop = store.population(t)
-            job.progress = self._progress(pop, job.models, totals[t - 1], pop.elapsed_s, None)
-            job.log.append("population", job.progress)
+            self._announce(job, self._progress(pop, job.models, totals[t - 1], pop.elapsed_s, None))
 
     def _connected(self) -> bool:
         """Is the client connected to a scheduler? A client that gave up reconnecting is
@@ -521,43 +582,35 @@ class JobManager:
             time.sleep(0.2)  # the client reconnects by itself when the scheduler is back soon
         return started_on is not None and self._scheduler_id() != started_on
 
-    def _run(self, job: JobRecord) -> None:
+    def _run(self, job: JobRecord, worker: str | None = None) -> None:
+        """Run (or resume) the job: its loop on ``worker`` (:meth:`_on_worker`), or in this
+        process without a client (:meth:`_here`); then end it by what the run said."""
         if job.cancel.is_set():  # cancelled as the dispatcher took it: it never starts
             try:
                 self._end(job, "cancelled", None)
             finally:
-                with self.lock:
-                    self.running.discard(job.id)
-                    self.wake.notify_all()
+                self._free(job)
             return
         resumed = job.store_path.exists()
         started_on = self._scheduler_id()
         job.status = "running"
         job.save_or_log()
         job.log.append("started", {"resumed": resumed})
-
-        def on_population(p: Progress) -> None:
-            job.progress = self._progress(p.population, job.models, p.n_simulations_total, p.elapsed_s,
-                                          p.simulations_per_s, p.workers, p.efficiency)
-            job.log.append("population", job.progress)
-
         try:
             if resumed:
                 self._backfill(job)
             spec = JobSpec.model_validate(job.spec())
-            result = run_job(spec, job.folder, job.store_path, self.client, on_population=on_population,
-                             cancel=lambda: job.cancel.is_set() or self.stopping, owned_store=True)
-            stopped = result.stop_reason is StopReason.CANCELLED  # the run's cancel hook said stop
-            if stopped and job.cancel.is_set():
+            status, error = self._here(job, spec) if worker is None else self._on_worker(job, spec, worker)
+            if status == "cancelled" and job.cancel.is_set():
                 self._end(job, "cancelled", None)
-            elif stopped and self.stopping:
+            elif status == "cancelled" and self.stopping:
                 job.status = "queued"  # the service is stopping: the job resumes when it starts again
                 job.save_or_log()
-            elif stopped:  # nobody cancelled it: a job never ends "cancelled" unless it was
+            elif status == "cancelled":  # nobody cancelled it: a job never ends "cancelled" unless it was
                 self._end(job, "failed", "the run ended with the stop reason 'cancelled', but nobody cancelled the "
                                          "job (its store records no stop reason of its own); submit it again")
             else:
-                self._end(job, "finished", None)
+                self._end(job, status, error)
         except (SpecError, StoreError) as err:
             self._end(job, "failed", str(err))
         except Exception as err:
@@ -572,9 +625,95 @@ class JobManager:
             else:
                 self._end(job, "failed", f"{type(err).__name__}: {err}")
         finally:
-            with self.lock:
-                self.running.discard(job.id)
-                self.wake.notify_all()
+            self._free(job)
+
+    def _free(self, job: JobRecord) -> None:
+        job.placement = None
+        with self.lock:
+            self.running.discard(job.id)
+            self.held.pop(job.id, None)
+            self.wake.notify_all()
+
+    def _here(self, job: JobRecord, spec: JobSpec) -> tuple[str, str | None]:
+        """The job's loop in this process (a manager without a client: serial)."""
+
+        def on_population(p: Progress) -> None:
+            self._announce(job, self._progress(p.population, job.models, p.n_simulations_total, p.elapsed_s,
+                                               p.simulations_per_s, p.workers, p.efficiency))
+
+        result = run_job(spec, job.folder, job.store_path, self.client, on_population=on_population,
+                         cancel=lambda: job.cancel.is_set() or self.stopping, owned_store=True)
+        return ("cancelled" if result.stop_reason is StopReason.CANCELLED else "finished"), None
+
+    def _on_worker(self, job: JobRecord, spec: JobSpec, worker: str) -> tuple[str, str | None]:
+        """The job's loop as one Dask task (:func:`service.run.jobs.run_one`) on ``worker``'s
+        job slot: never in the service's interpreter (its GIL is the HTTP loop's). Pinned
+        loosely: if that worker dies, the scheduler runs the task on another, which resumes
+        the store. Its messages come through the scheduler's event log (a topic per job):
+        where it runs, then one per population. A cancel, or the service stopping, releases
+        the task (the run stops at its next batch, :func:`run_one`'s cancel) and waits for
+        its store's lock: the populations it made are stored when this returns."""
+        client = self.client
+        topic = f"abcns-job-{job.id}"
+        data = JobRun.of(spec, job.folder, job.store_path, job.name).data  # sent inline: a worker reads no file of ours
+
+        placed = [False]
+
+        def place(placement: dict | None) -> None:
+            with job.announcing:
+                job.placement, placed[0] = placement, True
+                job.log.append("placed", {"placement": placement})
+
+        def on_message(event: tuple) -> None:  # on the client's event loop
+            msg = event[1]
+            try:
+                if msg.get("kind") == "start":
+                    place(msg.get("placement"))
+                elif msg.get("kind") == "population":
+                    self._announce(job, self._progress_of(msg, job.models))
+            except Exception as err:  # a message of another version, a full disk: logged, the store has it
+                log.warning("job %s: a message of its loop was not recorded: %r", job.id, err)
+
+        client.subscribe_topic(topic, on_message)
+        future = client.submit(run_one, spec.model_dump(mode="json"), data, str(job.store_path),
+                               local_s=local_population_s(), threads=sum(client.nthreads().values()), topic=topic,
+                               owned_store=True, key=f"abcns-job-{job.id}-{uuid.uuid4().hex[:8]}", workers=[worker],
+                               allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)
+        try:
+            while True:
+                try:
+                    out = future.result(timeout=0.5)
+                    break
+                except TimeoutError:
+                    pass
+                if job.cancel.is_set() or self.stopping:
+                    future.release()
+                    self._wait_for_store(job)
+                    return "cancelled", None
+        finally:
+            client.unsubscribe_topic(topic)
+        if not placed[0] and out.get("placement"):  # its messages did not come before its end (the same stream)
+            place(out["placement"])
+        self._backfill(job)  # populations whose messages did not come (the store is the record)
+        status, error = out["status"], out.get("error")
+        if status in ("finished", "cancelled"):
+            return status, None
+        return "failed", (error or status).split("\nTraceback")[0]
+
+    def _wait_for_store(self, job: JobRecord, timeout_s: float = 30.0) -> None:
+        """Wait (``timeout_s`` at most) until no run holds the job's store lock."""
+        lock = lock_path(job.store_path)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                with lock.open("a") as f:
+                    fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    fcntl.flock(f, fcntl.LOCK_UN)
+                    return
+            except BlockingIOError:
+                time.sleep(0.05)
+            except OSError:  # purged, or the disk
+                return
 
     def _end(self, job: JobRecord, status: str, error: str | None) -> None:
         """The job's summary (computed once, kept in result.json), its terminal event, then

@@ -38,6 +38,9 @@ class JobInfo(BaseModel):
     created_at: str  # ISO 8601, UTC: 2026-11-24T10:31:02.512Z
     error: str | None = None
     progress: ProgressOut | None = None
+    # where a running job's loop runs (service.run.jobs.place): worker, mode ("whole": its
+    # simulations in that process; "spread": its batches over the cluster), what it cost
+    placement: dict[str, Any] | None = None
 
 
 class JobCreated(BaseModel):
@@ -70,6 +73,7 @@ class Health(BaseModel):
     workers: int
     jobs: dict[str, int]
     limits: LimitsOut  # the admission limits (GET /limits)
+    running_on: dict[str, str] = {}  # a running job's id -> the worker its loop was given
 
 
 Summary = dict[str, Any]

@@ -12,13 +12,15 @@ from service.http.limits import Limits
 
 
 class Settings(BaseSettings):
-    model_config = SettingsConfigDict(env_prefix="ABCNS_", extra="forbid")
+    model_config = SettingsConfigDict(env_prefix="ABCNS_", extra="forbid", env_ignore_empty=True)
 
     store_dir: Path = Path("abcns-jobs")  # one folder per job: job.json, events.jsonl, store.zarr
     scheduler: str | None = None  # a Dask scheduler address; None: an embedded LocalCluster
     workers: int | None = Field(default=None, ge=1)  # LocalCluster worker processes (default: one per core)
     token: str | None = None  # with a token, every API request needs "Authorization: Bearer TOKEN"
-    max_running: int = Field(default=1, ge=1)  # jobs running at once; the rest wait in the queue
+    # jobs running at once, each its loop on a worker of its own; None (or ABCNS_MAX_RUNNING
+    # empty): as many as the cluster has workers; the rest wait in the queue
+    max_running: int | None = Field(default=None, ge=1)
     max_request_bytes: int = Field(default=32 * 1024 * 1024, ge=1024)
     max_resumes: int = Field(default=1, ge=0)  # resumes of a job the service died under, before it is failed
     max_array_samples: int = Field(default=2**25, ge=1)  # samples of one uploaded array (32 Mi: 256 MiB as float64)

@@ -260,11 +260,12 @@ def _released(worker, key) -> bool:
 
 def run_one(spec_json: dict, data: dict[str, np.ndarray], store: str, *, seed: int | None = None,
             allow_import: bool = False, local_s: float, threads: int, topic: str | None = None,
-            index: int = 0) -> dict:
+            index: int = 0, owned_store: bool = False) -> dict:
     """The Dask task of one job: decide its placement (:func:`place`), run (or resume) it
     with :func:`run_job` whole here or spread from here, and return its outcome as a dict
     (:class:`Outcome`'s fields). Holds the worker's :data:`JOB_RESOURCE` (the caller asks
-    for it). Never raises for the job's own failure: the other jobs go on."""
+    for it). Never raises for the job's own failure: the other jobs go on. ``owned_store``:
+    the store is the service's (:func:`run_job`'s lock and clean-up)."""
     worker = get_worker()
     key = worker.get_current_task()
 
@@ -287,14 +288,17 @@ def run_one(spec_json: dict, data: dict[str, np.ndarray], store: str, *, seed: i
 
         def progress(p: Progress) -> None:
             pop = p.population
-            emit("population", t=pop.t, epsilon=float(pop.epsilon), acceptance=float(pop.acceptance_rate),
-                 simulations=int(p.n_simulations_total), elapsed_s=float(p.elapsed_s),
+            emit("population", t=pop.t, epsilon=float(pop.epsilon), epsilon_next=float(pop.epsilon_next),
+                 acceptance=float(pop.acceptance_rate), simulations=int(p.n_simulations_total),
+                 elapsed_s=float(p.elapsed_s), simulations_per_s=float(p.simulations_per_s),
                  probabilities=[float(x) for x in pop.model_probabilities.tolist()],
+                 floor=None if pop.floor is None else float(pop.floor.floor),
                  decision=None if pop.floor is None else float(pop.floor.decision),
                  workers=p.workers, efficiency=p.efficiency)
 
         run = partial(run_job, spec, None, path, data=data, on_population=progress, allow_import=allow_import,
-                      cancel=lambda: _released(worker, key), local_s=local_s, placement=placement)
+                      cancel=lambda: _released(worker, key), local_s=local_s, placement=placement,
+                      owned_store=owned_store)
         if placement["mode"] == "whole":
             run(None)
         else:

@@ -12,6 +12,7 @@ result equals an uninterrupted run's, and the serial executor's equals the Dask 
 
 from __future__ import annotations
 
+import fcntl
 import gc
 import hashlib
 import json
@@ -244,6 +245,27 @@ def _existing_store(path: Path, key: str, owned: bool) -> Store | None:
     return store
 
 
+def lock_path(store_path: Path) -> Path:
+    """The file a run on a store of the service's holds locked (:func:`store_lock`)."""
+    path = Path(store_path)
+    return path.with_name(path.name + ".lock")
+
+
+@contextmanager
+def store_lock(store_path: Path) -> Iterator[None]:
+    """Hold ``<store>.lock`` (an exclusive ``flock``, waited for) while a job's loop runs on
+    a store of the service's: a run that a restarted service or a rescheduled task starts on
+    the store while an earlier one still ends its last batch (its caller gone, it stops at
+    its next check) waits for it, so a store never has two writers. The kernel drops the lock
+    of a process that dies."""
+    with lock_path(store_path).open("a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
 def run_job(
     spec: JobSpec, base_dir: Path | None, store_path: Path, client: Client | None, *, seed: int | None = None,
     on_population: Callable[[Progress], None] | None = None, cancel: Callable[[], bool] | None = None,
@@ -255,8 +277,24 @@ def run_job(
     ``package.module:factory`` simulators (the CLI, the examples; never HTTP). ``owned_store``:
     the store path belongs to the caller (the service's job folder), so a store whose
     creation a killed process left unfinished is made again; elsewhere (``--out``) it is an
-    error, never deleted. ``data``, ``local_s``, ``placement``: a job run on a worker
-    (:mod:`service.run.jobs`: the caller's records, 25 ms rule and placement; :func:`with_records`)."""
+    error, never deleted; an owned store is run under :func:`store_lock`. ``data``,
+    ``local_s``, ``placement``: a job run on a worker (:mod:`service.run.jobs`: the caller's
+    records, 25 ms rule and placement; :func:`with_records`)."""
+    if not owned_store:
+        return _run_job(spec, base_dir, store_path, client, seed, on_population, cancel, allow_import, False, data,
+                        local_s, placement)
+    with store_lock(store_path):
+        return _run_job(spec, base_dir, store_path, client, seed, on_population, cancel, allow_import, True, data,
+                        local_s, placement)
+
+
+def _run_job(
+    spec: JobSpec, base_dir: Path | None, store_path: Path, client: Client | None, seed: int | None,
+    on_population: Callable[[Progress], None] | None, cancel: Callable[[], bool] | None,
+    allow_import: bool, owned_store: bool, data: Mapping[str, np.ndarray] | None,
+    local_s: float | None, placement: dict | None,
+) -> Result:
+    """:func:`run_job`'s body."""
     if seed is not None:
         spec = spec.model_copy(update={"seed": seed})
     job: Job = build(with_records(spec, data), base_dir, allow_import)  # every check before anything runs
