@@ -24,7 +24,7 @@ import httpx
 import numpy as np
 import pytest
 import yaml
-from distributed import Client
+from distributed import Client, LocalCluster
 from http_helpers import follow
 
 from benchmarks.harness import AUTH, ROOT, TOKEN, Service, StockCluster, duffing_spec, wait_until
@@ -336,7 +336,9 @@ def test_a_failed_job_keeps_its_error_when_its_record_could_not_be_written(clust
     monkeypatch.setenv("ABCNS_STORE_INTERVAL_S", "0")
     duffing = ROOT / "examples" / "duffing_41"
     arrays = {"input": np.load(duffing / "force.npy"), "observed": np.load(duffing / "displacement.npy")}
-    with Client(cluster.address) as client:
+    # workers in this process (the job loops run on workers): the patched store is theirs
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as lc, \
+            Client(lc) as client:
         manager = JobManager(tmp_path / "jobs", client, max_running=1, loop=None)
         try:
             job = manager.submit(parse(duffing_spec(max_populations=2, particles=200)), arrays)

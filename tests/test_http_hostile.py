@@ -684,7 +684,7 @@ def test_a_failing_store_disk_fails_that_job_only_and_keeps_what_was_written(clu
     are those its events announced, and the other job, running beside it, finishes."""
     import errno
 
-    from distributed import Client
+    from distributed import Client, LocalCluster
 
     from service.http.jobs import JobManager
     from service.spec import parse
@@ -700,7 +700,9 @@ def test_a_failing_store_disk_fails_that_job_only_and_keeps_what_was_written(clu
     monkeypatch.setenv("ABCNS_STORE_INTERVAL_S", "0")  # one append per population
     folder = ROOT / "examples" / "duffing_41"
     arrays = {"input": np.load(folder / "force.npy"), "observed": np.load(folder / "displacement.npy")}
-    with Client(cluster.address) as client:
+    # workers in this process (the job loops run on workers): the patched store is theirs
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as lc, \
+            Client(lc) as client:
         manager = JobManager(tmp_path / "jobs", client, max_running=2, loop=None)
         try:
             jobs = {}
