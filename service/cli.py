@@ -517,6 +517,7 @@ def serve(
     store_dir: Annotated[Path | None, typer.Option(help="one folder per job [default: abcns-jobs]")] = None,
     token: Annotated[str | None, typer.Option(envvar="ABCNS_TOKEN", help="require Authorization: Bearer TOKEN")] = None,
     max_running: Annotated[int | None, typer.Option(help="jobs running at once [default: one per worker]")] = None,
+    turn_s: Annotated[float | None, typer.Option(help="a job's turn while others wait, seconds [default: 30]")] = None,
     max_request_mb: Annotated[float | None, typer.Option(help="request size limit [default: 32]")] = None,
     max_queued: Annotated[int | None, typer.Option(help="jobs waiting; beyond: 429 [default: 64]")] = None,
     max_particles: Annotated[int | None, typer.Option(help="admission limit [default: 20000]")] = None,
@@ -538,7 +539,8 @@ def serve(
     from service.http.settings import Settings
 
     given: dict[str, Any] = {"store_dir": store_dir, "scheduler": scheduler, "workers": workers, "token": token,
-                             "max_running": max_running, "max_queued": max_queued, "max_particles": max_particles,
+                             "max_running": max_running, "turn_s": turn_s, "max_queued": max_queued,
+                             "max_particles": max_particles,
                              "max_batch_size": max_batch_size, "max_substeps": max_substeps, "max_samples": max_samples,
                              "max_models": max_models, "max_memory_mb": max_memory_mb, "max_job_seconds": max_job_seconds,
                              "max_job_simulations": max_job_simulations,

@@ -118,6 +118,10 @@ def test_live_page_follows_a_running_job(browser, service, tmp_path):
         colours = read_all(page, "#legend .model", "s => getComputedStyle(s).color")
         assert colours == [rgb(model_colour(i)) for i in range(len(spec["models"]))]
         wait_until(lambda: page.inner_text("#workers") == "2", 10, "the workers on the page")
+        # where the job's loop runs: the worker of its placement (GET /jobs/{id}), as words
+        worker = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()["placement"]["worker"]
+        assert re.fullmatch(rf"(whole on|spread from) {re.escape(worker)}", page.inner_text("#placement")), \
+            page.inner_text("#placement")
         # ended: the page shows the last population, its numbers are the API's
         assert httpx.delete(f"{service.url}/jobs/{job_id}", headers=AUTH, timeout=60).status_code == 202
         wait_until(lambda: page.inner_text("#status") == "cancelled", 300, "the job to end on the page", 0.2)

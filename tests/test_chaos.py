@@ -75,10 +75,13 @@ class KillableCluster:
                 time.sleep(0.5)
 
     def kill_a_worker_process(self) -> None:
-        """SIGKILL one worker process (its nanny, the `dask worker` process, starts a new one)."""
+        """SIGKILL one worker process (its nanny, the `dask worker` process, starts a new one).
+        A worker that leaves while it is asked for its pid (one still starting after an
+        earlier kill) answers nothing: the others do."""
         with self.client() as client:
-            pid = sorted(client.run(os.getpid).values())[0]
-        os.kill(pid, signal.SIGKILL)
+            client.wait_for_workers(2, timeout=60)
+            pids = client.run(os.getpid, on_error="return").values()
+        os.kill(sorted(pid for pid in pids if isinstance(pid, int))[0], signal.SIGKILL)
 
     def kill_and_restart_the_scheduler(self) -> None:
         os.killpg(self.scheduler.pid, signal.SIGKILL)

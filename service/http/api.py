@@ -479,7 +479,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         client, cluster = await asyncio.to_thread(_connect, settings)
         manager = await asyncio.to_thread(JobManager, settings.store_dir, client, settings.max_running,
                                           asyncio.get_running_loop(), settings.max_resumes, settings.limits,
-                                          settings.max_queued, settings.scheduler)
+                                          settings.max_queued, settings.scheduler, settings.turn_s)
         app.state.client, app.state.manager = client, manager
         app.state.workers = await asyncio.to_thread(count_workers, client)
 

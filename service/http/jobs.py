@@ -206,6 +206,8 @@ class JobRecord:
     placement: dict | None = None  # where its loop runs (service.run.jobs.place), while it runs
     cancel: threading.Event = field(default_factory=threading.Event)
     announcing: threading.Lock = field(default_factory=threading.Lock)  # one population event at a time
+    turn: threading.Event = field(default_factory=threading.Event)  # asked to give its worker to a waiting job
+    running_since: float = 0.0  # monotonic: when its loop last started (its turn's start)
     events: EventLog | None = None  # opened when the manager takes the job (``log``)
 
     @property
@@ -286,7 +288,7 @@ class JobManager:
     def __init__(self, store_dir: Path, client: Client, max_running: int | None,
                  loop: asyncio.AbstractEventLoop | None,
                  max_resumes: int = 1, limits: Limits | None = None, max_queued: int | None = None,
-                 scheduler_address: str | None = None):
+                 scheduler_address: str | None = None, turn_s: float | None = None):
         self.store_dir = Path(store_dir)
         self.store_dir.mkdir(parents=True, exist_ok=True)
         self.client = client
@@ -294,6 +296,7 @@ class JobManager:
         self.client_lock = threading.Lock()
         self.max_running = max_running
         self.max_resumes = max_resumes
+        self.turn_s = turn_s  # None: no turns (a job keeps its worker to its end)
         self.limits = limits or Limits()
         self.max_queued = max_queued
         self.loop = loop
@@ -472,6 +475,8 @@ class JobManager:
                     return
                 cap = self.max_running or (math.inf if self.client is not None else 1)
                 if (self.client is not None and not free) or not self.queue or len(self.running) >= cap:
+                    if self.queue and connected:
+                        self._end_a_turn()
                     self.wake.wait(timeout=1.0)  # a new job, a free slot, or the scheduler back: look again
                     continue
                 job = self.jobs[self.queue.popleft()]
@@ -481,6 +486,21 @@ class JobManager:
                     self.held[job.id] = worker
             threading.Thread(target=self._run, args=(job, worker), name=f"abcns-job-{job.id[:8]}",
                              daemon=True).start()
+
+    def _end_a_turn(self) -> None:
+        """Jobs wait and no slot is free: ask the job that has run longest since it last
+        started, if that is ``turn_s`` or more, to give its worker back after its current
+        population (:meth:`_on_worker`); it goes to the back of the queue and resumes from
+        its store, bit-identical. One such request at a time. Called under the lock."""
+        if self.turn_s is None or self.client is None:
+            return
+        running = [self.jobs[i] for i in self.running if i in self.held]
+        if any(job.turn.is_set() for job in running):
+            return
+        now = time.monotonic()
+        due = [job for job in running if job.running_since and now - job.running_since >= self.turn_s]
+        if due:
+            min(due, key=lambda job: job.running_since).turn.set()
 
     def _free_slots(self) -> Sequence[str]:
         """The workers with a job slot that no running job holds (none without a client, or
@@ -601,6 +621,14 @@ class JobManager:
                 self._backfill(job)
             spec = JobSpec.model_validate(job.spec())
             status, error = self._here(job, spec) if worker is None else self._on_worker(job, spec, worker)
+            if status == "yielded" and not (job.cancel.is_set() or self.stopping):
+                job.status = "queued"  # its turn ended: behind the jobs that waited, resumed from its store
+                job.save_or_log()
+                job.log.append("requeued", {"reason": f"its turn ended ({self.turn_s:g} s): a waiting job takes its worker"})
+                with self.lock:
+                    self.queue.append(job.id)
+            elif status == "yielded":
+                status = "cancelled"
             if status == "cancelled" and job.cancel.is_set():
                 self._end(job, "cancelled", None)
             elif status == "cancelled" and self.stopping:
@@ -609,7 +637,7 @@ class JobManager:
             elif status == "cancelled":  # nobody cancelled it: a job never ends "cancelled" unless it was
                 self._end(job, "failed", "the run ended with the stop reason 'cancelled', but nobody cancelled the "
                                          "job (its store records no stop reason of its own); submit it again")
-            else:
+            elif status != "yielded":
                 self._end(job, status, error)
         except (SpecError, StoreError) as err:
             self._end(job, "failed", str(err))
@@ -629,6 +657,7 @@ class JobManager:
 
     def _free(self, job: JobRecord) -> None:
         job.placement = None
+        job.turn.clear()
         with self.lock:
             self.running.discard(job.id)
             self.held.pop(job.id, None)
@@ -664,6 +693,8 @@ class JobManager:
                 job.placement, placed[0] = placement, True
                 job.log.append("placed", {"placement": placement})
 
+        released = threading.Event()
+
         def on_message(event: tuple) -> None:  # on the client's event loop
             msg = event[1]
             try:
@@ -671,6 +702,8 @@ class JobManager:
                     place(msg.get("placement"))
                 elif msg.get("kind") == "population":
                     self._announce(job, self._progress_of(msg, job.models))
+                    if job.turn.is_set():  # its turn ends here: the next population has hardly begun
+                        released.set()
             except Exception as err:  # a message of another version, a full disk: logged, the store has it
                 log.warning("job %s: a message of its loop was not recorded: %r", job.id, err)
 
@@ -679,17 +712,18 @@ class JobManager:
                                local_s=local_population_s(), threads=sum(client.nthreads().values()), topic=topic,
                                owned_store=True, key=f"abcns-job-{job.id}-{uuid.uuid4().hex[:8]}", workers=[worker],
                                allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)
+        job.running_since = time.monotonic()
         try:
             while True:
                 try:
-                    out = future.result(timeout=0.5)
+                    out = future.result(timeout=0.2)
                     break
                 except TimeoutError:
                     pass
-                if job.cancel.is_set() or self.stopping:
-                    future.release()
+                if job.cancel.is_set() or self.stopping or released.is_set():
+                    future.release()  # the run stops at its next batch; what it made is stored
                     self._wait_for_store(job)
-                    return "cancelled", None
+                    return ("cancelled" if job.cancel.is_set() or self.stopping else "yielded"), None
         finally:
             client.unsubscribe_topic(topic)
         if not placed[0] and out.get("placement"):  # its messages did not come before its end (the same stream)

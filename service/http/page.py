@@ -267,13 +267,17 @@ function handle(ev) {
   let data = {}; try { data = JSON.parse(ev.data || "{}"); } catch (e) {}
   if (ev.event === "population") { pops.push(data); render(); histograms(); setStatus("running"); }
   else if (ev.event === "started") setStatus("running");
+  else if (ev.event === "placed") {  // where the job's loop runs: whole on a worker, or spread from it
+    const pl = data.placement || {};
+    text("placement", pl.worker ? `${pl.mode === "spread" ? "spread from" : "whole on"} ${pl.worker}` : "-");
+  }
   else if (ev.event === "queued") {
     if (data.models) modelNames = data.models;
     if (data.distance) unit = data.distance === "nmse" ? " %" : "";
     setStatus("queued"); render();
   }
   else if (ev.event === "requeued") setStatus("queued");  // the scheduler went away; resumed when it is back
-  else if (["finished", "failed", "cancelled"].includes(ev.event)) { ended = true; setStatus(ev.event); histograms(); showWarnings(); }
+  else if (["finished", "failed", "cancelled"].includes(ev.event)) { ended = true; text("placement", "-"); setStatus(ev.event); histograms(); showWarnings(); }
 }
 
 async function stream() {
@@ -317,7 +321,7 @@ VIEW = ("<!doctype html><html><head><title>abcns job</title>" + _HEAD + r"""</he
 <div class="kv card"><span>status <b id="status">-</b></span><span>population <b id="population">-</b></span>
 <span>tolerance <b id="epsilon">-</b><b id="eps-unit"></b></span><span>acceptance <b id="acceptance">-</b></span>
 <span>simulations <b id="simulations">-</b></span><span>elapsed <b id="elapsed">-</b> s</span>
-<span>leading model <b id="leader">-</b></span><span>answer read at <b id="answer-at">-</b></span><span>workers <b id="workers">-</b></span><span>efficiency <b id="efficiency">-</b></span></div>
+<span>leading model <b id="leader">-</b></span><span>answer read at <b id="answer-at">-</b></span><span>runs <b id="placement">-</b></span><span>workers <b id="workers">-</b></span><span>efficiency <b id="efficiency">-</b></span></div>
 <ul id="warnings"></ul>
 <div class="grid gap">
  <div class="card"><h2>tolerance per population (log scale)</h2><svg id="eps"></svg></div>

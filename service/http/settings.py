@@ -21,6 +21,9 @@ class Settings(BaseSettings):
     # jobs running at once, each its loop on a worker of its own; None (or ABCNS_MAX_RUNNING
     # empty): as many as the cluster has workers; the rest wait in the queue
     max_running: int | None = Field(default=None, ge=1)
+    # a running job's turn: when jobs wait and every worker runs one, the job that has run
+    # this long since it last started gives its worker back after its population (requeued)
+    turn_s: float = Field(default=30.0, gt=0)
     max_request_bytes: int = Field(default=32 * 1024 * 1024, ge=1024)
     max_resumes: int = Field(default=1, ge=0)  # resumes of a job the service died under, before it is failed
     max_array_samples: int = Field(default=2**25, ge=1)  # samples of one uploaded array (32 Mi: 256 MiB as float64)

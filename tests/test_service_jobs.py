@@ -1,0 +1,130 @@
+"""Issue U in the service: `abcns serve` runs each job's population loop as a Dask task on a
+worker of its own (never in the service's interpreter), as many jobs at once as the cluster
+has workers by default, and says where each runs; a job whose loop's worker is SIGKILLed
+resumes from its store on another and ends bit-identical. Real processes: a stock `dask
+scheduler` with two `dask worker`s, `abcns serve` under uvicorn."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+from pathlib import Path
+
+import httpx
+import pytest
+from distributed import Client
+from http_helpers import follow, same_populations
+
+from benchmarks.harness import AUTH, Service, StockCluster, duffing_spec, probe_client, wait_until
+from service.report.analysis import run_to_store
+from service.spec import parse
+
+pytestmark = [pytest.mark.http, pytest.mark.distributed]
+
+
+def submit(service: Service, seed: int, populations: int = 8, particles: int = 500) -> str:
+    spec = {**duffing_spec(max_populations=populations, particles=particles), "seed": seed, "name": f"u-{seed}"}
+    r = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60)
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
+def identical_to_a_run_alone(service: Service, job_id: str, tmp: Path) -> None:
+    """The job's store equals its stored spec run alone in one process (what `abcns run`
+    gives: service.report.analysis.run_to_store, tied to it by the determinism tests)."""
+    folder = service.job_dir(job_id)
+    run_to_store(parse(json.loads((folder / "spec.json").read_text())), folder, tmp / f"alone-{job_id}.zarr")
+    same_populations(folder / "store.zarr", tmp / f"alone-{job_id}.zarr")
+
+
+@pytest.fixture
+def two_workers(tmp_path):
+    cluster = StockCluster(tmp_path / "dask", n_workers=2)
+    yield cluster
+    cluster.close()
+
+
+def test_two_jobs_run_at_once_each_on_a_worker_of_its_own_and_equal_runs_alone(two_workers, tmp_path):
+    """With no --max-running, two jobs submitted together both run (the old default ran one
+    at a time in the service's interpreter): /health lists both, on two different workers of
+    the cluster, and GET /jobs/{id} gives each its placement; each ends bit-identical to its
+    spec run alone. The jobs are long enough (30 populations spread over the cluster, ~3 s
+    each here) that the first is still running when the second is placed."""
+    service = Service(tmp_path / "jobs", two_workers.address, max_running=None)
+    try:
+        ids = [submit(service, seed, populations=30) for seed in (1, 2)]
+        seen: dict[str, str] = {}
+        with probe_client(timeout=10) as http:
+            def both_running() -> bool:  # in one answer: at the same moment
+                now = http.get(f"{service.url}/health").json()["running_on"]
+                seen.update(now)
+                return set(ids) <= set(now)
+
+            wait_until(both_running, 120, "both jobs to run at once")
+            with Client(two_workers.address, timeout=30) as client:
+                workers = set(client.nthreads())
+            assert seen[ids[0]] != seen[ids[1]] and {seen[i] for i in ids} <= workers, (seen, workers)
+            for job_id in ids:
+                info = http.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()
+                if info["status"] == "running":  # (it may have ended since)
+                    assert info["placement"]["worker"] == seen[job_id], info
+        for job_id in ids:
+            events = follow(service.url, job_id)
+            assert events[-1]["event"] == "finished", events[-3:]
+            placed = [e["data"]["placement"] for e in events if e["event"] == "placed"]
+            assert placed and placed[0]["worker"] == seen[job_id] and placed[0]["mode"] in ("whole", "spread")
+            identical_to_a_run_alone(service, job_id, tmp_path)
+    finally:
+        service.close()
+
+
+def test_a_job_whose_loop_worker_is_killed_resumes_elsewhere_identical(two_workers, tmp_path):
+    """SIGKILL of the worker process that runs a job's loop, after its second population:
+    Dask runs the job's task again on the other worker, which resumes the store; the job
+    ends bit-identical to its spec run alone, every population announced once, in order,
+    and a second `placed` event names the new worker."""
+    service = Service(tmp_path / "jobs", two_workers.address, max_running=None)
+    try:
+        job_id = submit(service, seed=3, populations=40, particles=1000)  # ~6 s here: killed early in it
+        first = follow(service.url, job_id, until=lambda ev: sum(e["event"] == "population" for e in ev) >= 2)
+        worker = next(e["data"]["placement"]["worker"] for e in first if e["event"] == "placed")
+        with Client(two_workers.address, timeout=30) as client:
+            pid = client.run(os.getpid, workers=[worker])[worker]
+        os.kill(pid, signal.SIGKILL)
+        events = first + follow(service.url, job_id, after=first[-1]["id"])
+        assert [e["id"] for e in events] == list(range(1, len(events) + 1))
+        assert events[-1]["event"] == "finished", events[-3:]
+        assert [e["data"]["population"] for e in events if e["event"] == "population"] == list(range(1, 41))
+        placed = [e["data"]["placement"]["worker"] for e in events if e["event"] == "placed"]
+        assert len(placed) >= 2 and placed[-1] != worker, placed
+        identical_to_a_run_alone(service, job_id, tmp_path)
+    finally:
+        service.close()
+
+
+def test_a_short_job_does_not_wait_for_a_long_one_and_the_long_one_resumes_identical(tmp_path):
+    """Turns: on one worker, a long job (30 populations) runs; a short one (3) is submitted
+    after the long one's second population. The long job's turn (ABCNS_TURN_S=1 here) ends
+    after a population: it is requeued (a `requeued` event), the short job runs and finishes
+    before the long one, and the long one resumes from its store and ends bit-identical to
+    its spec run alone (before: the short job waited for the long one's end)."""
+    cluster = StockCluster(tmp_path / "dask", n_workers=1)
+    service = Service(tmp_path / "jobs", cluster.address, max_running=None, env={"ABCNS_TURN_S": "1"})
+    try:
+        long_id = submit(service, seed=4, populations=30)
+        follow(service.url, long_id, until=lambda ev: sum(e["event"] == "population" for e in ev) >= 2)
+        short_id = submit(service, seed=5, populations=3)
+        short, long_ = follow(service.url, short_id), follow(service.url, long_id)
+        assert short[-1]["event"] == "finished" and long_[-1]["event"] == "finished", (short[-2:], long_[-2:])
+        ended = {i: json.loads((service.job_dir(i) / "events.jsonl").read_text().splitlines()[-1])["time"]
+                 for i in (short_id, long_id)}
+        assert ended[short_id] < ended[long_id], "the short job waited for the long one"
+        assert any(e["event"] == "requeued" and "turn" in e["data"]["reason"] for e in long_), \
+            [e["event"] for e in long_]
+        assert [e["data"]["population"] for e in long_ if e["event"] == "population"] == list(range(1, 31))
+        identical_to_a_run_alone(service, long_id, tmp_path)
+        identical_to_a_run_alone(service, short_id, tmp_path)
+    finally:
+        service.close()
+        cluster.close()
