@@ -54,6 +54,7 @@ MAX_YAML_BYTES = 1 << 20  # a YAML spec refers to its data in the upload; 1 MiB 
 MAX_CONTAINERS = 100_000  # lists and objects in one body (a spec has a few dozen)
 TEXT_MAX = 200  # characters of an offending value shown in a 422
 INT_DIGITS = 4300  # Python's limit on converting a decimal string to int (sys.get_int_max_str_digits)
+INT_BITS = 14_000  # an int of at most this many bits has at most 4,215 decimal digits: it prints
 
 
 class Refused(Exception):
@@ -79,6 +80,8 @@ def as_text(value: Any) -> str:
     """A value as a short text: NaN and Infinity included, long values cut."""
     if isinstance(value, str):
         text = value
+    elif isinstance(value, int) and value.bit_length() > INT_BITS:  # str() of it fails
+        text = f"(an integer of about {int(value.bit_length() * math.log10(2)) + 1:,} digits)"
     elif isinstance(value, float) and not math.isfinite(value):
         text = "NaN" if math.isnan(value) else ("Infinity" if value > 0 else "-Infinity")
     elif isinstance(value, (list, dict)) and (len(value) > 20 or any(
@@ -154,13 +157,33 @@ def parse_json(body: bytes, field: str) -> Any:
         raise problem(413, field, f"nests deeper than {MAX_DEPTH} levels", "too_deep") from None
 
 
+def _yaml_int(loader: Any, node: Any) -> int:
+    """YAML's integer (decimal, 0b, 0o, 0x, sexagesimal), or :class:`Digits` when it has more
+    digits than Python converts or prints (a 0x integer converts at any length, and then
+    fails in the message that shows it): its field is named by :func:`check_input`."""
+    text = str(node.value).replace("_", "").lstrip("+-")
+    if len(text) > INT_DIGITS:
+        return Digits(len(text))
+    value = yaml.constructor.SafeConstructor.construct_yaml_int(loader, node)
+    if value.bit_length() > INT_BITS:
+        return Digits(int(value.bit_length() * math.log10(2)) + 1)
+    return value
+
+
+class _YamlLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]  # C or Python, chosen at import
+    """The safe loader (C when built), its integers by :func:`_yaml_int`."""
+
+
+_YamlLoader.add_constructor("tag:yaml.org,2002:int", _yaml_int)
+
+
 def parse_yaml(text: bytes, field: str) -> Any:
     """A YAML spec (what `abcns run` reads) -> value; 422 naming ``field`` when it is not YAML."""
     if len(text) > MAX_YAML_BYTES:
         raise problem(413, field, f"a YAML spec is at most {MAX_YAML_BYTES:,} bytes, got {len(text):,} (give the data "
                                   "in the .npz: input: npz:KEY)", "too_large")
     try:
-        return yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))  # noqa: S506 - a safe loader (C or Python)
+        return yaml.load(text, Loader=_YamlLoader)  # noqa: S506 - a safe loader (C or Python)
     except yaml.YAMLError as err:
         raise problem(422, field, f"neither JSON nor YAML: {str(err)[:TEXT_MAX]}", "yaml") from None
     except (RecursionError, ValueError, TypeError) as err:  # nesting, digits, an unhashable key
