@@ -49,7 +49,7 @@ from starlette.requests import ClientDisconnect
 
 from abcns import SpecError
 from service.http import page
-from service.http.intake import Intake, Refused, as_text, problem, validation_errors
+from service.http.intake import Intake, Refused, as_text, name_key, problem, validation_errors
 from service.http.jobs import JobManager, JobRecord, QueueFull
 from service.http.schemas import PAGE_MAX, Health, JobCreated, JobInfo, LimitsOut, PopulationOut, Status, Summary
 from service.http.settings import Settings
@@ -264,9 +264,15 @@ async def submit(request: Request, response: Response, manager: Annotated[JobMan
 
 async def queue_job(manager: JobManager, request: Request, response: Response, spec: JobSpec,
                     arrays: dict[str, np.ndarray]) -> JobCreated:
-    """Validated against the service's limits and queued; 422 naming the field, 429 when the
-    queue is full, 503 when the job cannot be stored (a full disk); Location names the job."""
+    """Validated against the service's limits and queued; 422 naming the field (``name`` when it
+    looks like another job's name but is not it), 429 when the queue is full, 503 when the
+    job cannot be stored (a full disk); Location names the job."""
     retry = {"Retry-After": str(request.app.state.settings.retry_after_s)}
+    alike = next((j for j in manager.list() if j.name != spec.name and name_key(j.name) == name_key(spec.name)), None)
+    if alike is not None:
+        raise problem(422, "name", f"differs from the name of job {alike.id} ({as_text(alike.name)}) only by case, width "
+                                   "or surrounding space: give it that name or one that does not look alike",
+                      "name", spec.name)
     try:
         job = await asyncio.to_thread(manager.submit, spec, arrays)
     except SpecError as err:
@@ -371,9 +377,12 @@ def cancel_or_purge(
 ):
     """Cancel (``202``): a queued job never starts, a running one stops between batches; what
     was done stays in the store; 409 for a job that has already ended. With
-    ``?purge=true``: delete an ended job and everything of it (``204``); 409 while it runs."""
+    ``?purge=true``: delete an ended job and everything of it (``204``); 409 while it runs,
+    404 once it is gone (the second of two purges at once included)."""
     if purge:
         if not manager.purge(job.id):
+            if manager.get(job.id) is None:  # purged meanwhile, by a request beside this one
+                raise HTTPException(404, f"no job {job.id}")
             raise HTTPException(409, f"job {job.id} has not ended ({job.status}): cancel it first")
         return Response(status_code=204)
     if job.status in ("finished", "failed", "cancelled"):

@@ -16,13 +16,13 @@ field (``detail[i].field``):
    (numbers, strings, lists, objects) and ``MAX_CONTAINERS`` lists and objects, bounded
    from the raw bytes (413 naming ``body`` or ``spec``); a YAML spec (an upload's ``spec``
    part) is at most ``MAX_YAML_BYTES`` (its data go in the ``.npz``);
-2. JSON (400) or YAML (422): a number of more digits than Python converts is found by
-   name (422 naming its field), not as a server error;
+2. JSON (400) or YAML (422): a number of more digits than Python converts or prints (a
+   YAML 0x integer included) is found by name (422 naming its field), not as a server error;
 3. one iterative walk (:func:`check_input`), which stops past ``MAX_DEPTH`` levels or
    ``max_values`` values (413; a YAML alias is counted each time it is used): every string
    Unicode text, every number finite, every key text, only JSON's kinds of values (YAML's
-   dates, sets and binaries are refused), and the names short text without control
-   characters;
+   dates, sets and binaries are refused), and the names short text without hidden
+   characters or surrounding space, no two models' names alike but for case (:func:`check_names`);
 4. the schema (422, pydantic's errors with ``field``, the offending value as text).
 
 The inline data come back as float arrays, not as lists (the spec names them
@@ -233,8 +233,8 @@ def check_input(raw: Any, max_values: int, field: str = "body") -> None:
     """One iterative walk over ``raw``: at most MAX_DEPTH levels and ``max_values`` values
     (413; a YAML alias counts each time it is used); every string Unicode text (a lone
     surrogate is valid JSON but no text), every number finite and of a convertible length,
-    every key text, only JSON's kinds of values; and the names short text without control
-    characters. 422 naming the field."""
+    every key text, only JSON's kinds of values; and the names as :func:`check_names` says.
+    422 naming the field."""
     stack: list[tuple[tuple, Any]] = [((), raw)]
     seen = 0
     while stack:
@@ -261,14 +261,45 @@ def check_input(raw: Any, max_values: int, field: str = "body") -> None:
     names = [("name", raw.get("name"))]
     if isinstance(raw.get("models"), list):
         names += [(f"models[{i}].name", m.get("name")) for i, m in enumerate(raw["models"]) if isinstance(m, dict)]
+    check_names([(where, name) for where, name in names if isinstance(name, str)])  # else the schema says
+
+
+#: characters a name may not hold: control (Cc), format (Cf: bidi overrides, zero-width
+#: spaces and joiners, the byte-order mark), line and paragraph separators, private-use and
+#: unassigned code points: each is invisible or shown as something else, so one name could
+#: look like another
+HIDDEN = {"Cc": "control", "Cf": "invisible format", "Zl": "line separator", "Zp": "paragraph separator",
+          "Co": "private-use", "Cn": "unassigned"}
+
+
+def name_key(name: str) -> str:
+    """What a name looks like: compatibility-normalised (NFKC: full-width letters, ligatures),
+    case-folded, without surrounding space. Two names with one key are one name to a reader."""
+    return unicodedata.normalize("NFKC", name).casefold().strip()
+
+
+def check_names(names: list[tuple[str, str]]) -> None:
+    """The job's and models' names (``(field, name)``): short, no hidden character
+    (:data:`HIDDEN`), no surrounding space, and no two models' names that differ only by
+    case or width (exact duplicates: ``abcns.run.check_models``). 422 naming the field."""
+    seen: dict[str, tuple[str, str]] = {}
     for where, name in names:
-        if not isinstance(name, str):
-            continue  # the schema says what is wrong
         if len(name) > NAME_MAX_CHARS:
             raise problem(422, where, f"at most {NAME_MAX_CHARS} characters, got {len(name)}", "name", name)
-        bad = next((c for c in name if unicodedata.category(c) == "Cc"), None)
+        bad = next((c for c in name if unicodedata.category(c) in HIDDEN), None)
         if bad is not None:
-            raise problem(422, where, f"must not hold control characters (found U+{ord(bad):04X})", "name", name)
+            kind = HIDDEN[unicodedata.category(bad)]
+            what = unicodedata.name(bad, "") or kind
+            raise problem(422, where, f"must not hold {kind} characters (found U+{ord(bad):04X} {what}), which could "
+                                      f"make one name look like another", "name", name)
+        if name != name.strip():
+            raise problem(422, where, "must not begin or end with a space", "name", name)
+        if not where.startswith("models"):
+            continue
+        other = seen.setdefault(name_key(name), (where, name))
+        if other[1] != name:
+            raise problem(422, where, f"differs from {other[0]} ({other[1]!r}) only by case or width: give the models "
+                                      "names that do not look alike", "name", name)
 
 
 # ---------------------------------------------------------------------------- 4. the schema
