@@ -257,3 +257,41 @@ def test_names_that_look_like_another_are_refused(service):
     assert again.status_code == 201, again.text
     for r in (first, again):
         httpx.delete(f"{service.url}/jobs/{r.json()['id']}", headers=AUTH, timeout=60)
+
+
+def test_the_parsing_child_ends_with_a_service_killed_by_sigkill(cluster, tmp_path):
+    """Z.8: `abcns serve` killed with SIGKILL (its process alone, not its group): the child
+    process that parses submissions (~150 MB) and multiprocessing's resource tracker end
+    with it, instead of waiting on their pipes for ever."""
+    import os
+    import signal
+
+    import psutil
+
+    from benchmarks.harness import wait_until
+
+    service = Service(tmp_path / "jobs", cluster.address)
+    children: list[psutil.Process] = []
+    try:
+        proc = psutil.Process(service.proc.pid)  # type: ignore[union-attr]
+        r = post(service, {"name": "x"})  # a submission: the child has answered once
+        assert r.status_code == 422
+        children = proc.children(recursive=True)
+        assert len(children) >= 2, children  # the parsing child and the resource tracker
+
+        def alive(p: psutil.Process) -> bool:
+            try:
+                return p.is_running() and p.status() != psutil.STATUS_ZOMBIE
+            except psutil.NoSuchProcess:
+                return False
+
+        os.kill(proc.pid, signal.SIGKILL)
+        service.proc.wait()  # type: ignore[union-attr]
+        wait_until(lambda: not any(alive(c) for c in children), 60, f"{[c.name() for c in children]} to end")
+    finally:
+        for c in children:  # (the code before this fix left them)
+            try:
+                c.kill()
+            except psutil.NoSuchProcess:
+                pass
+        service.close()
