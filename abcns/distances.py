@@ -91,7 +91,14 @@ class NMSE:
             return Noise(self.stop - self.start)
         if not (isinstance(noise_std, (int, float)) and math.isfinite(noise_std) and noise_std > 0):
             raise SpecError("data.noise_std", f"must be a finite positive number, got {noise_std!r}")
-        return Noise(self.stop - self.start, self.scale * float(noise_std) ** 2)
+        try:
+            variance = self.scale * float(noise_std) ** 2
+        except OverflowError:  # the square past float64's range
+            variance = math.inf
+        if not math.isfinite(variance):
+            raise SpecError("data.noise_std", f"{noise_std:.6g} is too large for this record: its variance in % NMSE "
+                                              "is not a finite number")
+        return Noise(self.stop - self.start, variance)
 
     def config(self) -> dict:
         return {"name": "nmse", "window": [self.start, self.stop]}

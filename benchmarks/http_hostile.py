@@ -25,6 +25,7 @@ reset between phases) of the service process and of the child process that parse
 submissions, phase by phase.
 
     python -m benchmarks.http_hostile
+    python -m benchmarks.http_hostile --issue-z   # issue Z's attacks 2, 3, 4, 7, 8 (main_z)
 """
 
 from __future__ import annotations
@@ -33,6 +34,9 @@ import asyncio
 import collections
 import io
 import json
+import select
+import socket
+import struct
 import tempfile
 import threading
 import time
@@ -202,5 +206,224 @@ def main() -> None:
     print(f"errors in the service's log: {errors or 'none'}")
 
 
+# ---------------------------------------------------------------------------- issue Z
+def trailing_npz(head: dict[str, np.ndarray], name: str, trailing: int, compression: int) -> bytes:
+    """An .npz of the arrays ``head`` (each member with an honest npy header), the member
+    ``name`` followed by ``trailing`` undeclared zero bytes, every member compressed with
+    ``compression`` (a zip method), streamed: the zeros are never held whole."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=compression) as zf:
+        for key, array in head.items():
+            with zf.open(f"{key}.npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, array)
+                zeros, left = bytes(16 << 20), trailing if key == name else 0
+                while left:
+                    f.write(zeros[: min(left, len(zeros))])
+                    left -= min(left, len(zeros))
+    return buffer.getvalue()
+
+
+class Watch:
+    """/health polled every 0.05 s from a thread; ``slowest()`` since the last ``reset()``."""
+
+    def __init__(self, url: str):
+        self.url, self.times, self.done = url, [0.0], threading.Event()
+        self.thread = threading.Thread(target=self._poll, daemon=True)
+        self.thread.start()
+
+    def _poll(self) -> None:
+        with httpx.Client(timeout=120, limits=httpx.Limits(max_keepalive_connections=0)) as client:
+            while not self.done.is_set():
+                start = time.perf_counter()
+                try:
+                    client.get(f"{self.url}/health")
+                except httpx.HTTPError:
+                    pass
+                self.times.append(time.perf_counter() - start)
+                time.sleep(0.05)
+
+    def reset(self) -> None:
+        self.times = [0.0]
+
+    def slowest(self) -> float:
+        return max(self.times)
+
+    def close(self) -> None:
+        self.done.set()
+        self.thread.join(timeout=130)
+
+
+def _archives(statuses: collections.Counter, service: Service, watch: Watch) -> list[str]:
+    """Z.2: 1,000 samples with an honest header and 1 GiB of undeclared zeros after them,
+    bzip2, LZMA and deflate: each upload's answer, time, the service's peak memory growth and
+    /health's slowest answer meanwhile."""
+    folder = ROOT / "examples" / "duffing_41"
+    head = {"force": np.load(folder / "force.npy"), "x": np.load(folder / "displacement.npy")}
+    spec = duffing_spec(max_populations=1, particles=200)
+    spec["data"].update(input="npz:force", observed="npz:x")
+    lines = []
+    for label, method in (("bzip2", zipfile.ZIP_BZIP2), ("lzma", zipfile.ZIP_LZMA), ("deflate", zipfile.ZIP_DEFLATED)):
+        data = trailing_npz(head, "x", 1 << 30, method)
+        pid = service.proc.pid  # type: ignore[union-attr]
+        reset_peak(pid)
+        before = service.rss_mb()
+        watch.reset()
+        start = time.perf_counter()
+        r = httpx.post(f"{service.url}/jobs/upload", headers=AUTH, timeout=600,
+                       files={"spec": ("spec.json", json.dumps(spec).encode()), "data": ("x.npz", data)})
+        took = time.perf_counter() - start
+        statuses[r.status_code] += 1
+        field = r.json()["detail"][0]["field"] if r.status_code == 422 else ""
+        lines.append(f"{label:8s} {len(data) / 1024:9.0f} KB upload: {r.status_code} {field} in {took:.2f} s, RSS "
+                     f"{before:.0f} -> peak {peak_mb(pid):.0f} MB, /health slowest {watch.slowest():.3f} s")
+        if r.status_code == 201:
+            httpx.delete(f"{service.url}/jobs/{r.json()['id']}", headers=AUTH, timeout=60)
+    return lines
+
+
+def _bad_inputs() -> list[tuple[str, bytes, str]]:
+    """Z.3, Z.4, Z.8: (label, JSON body or YAML spec, "json" | "yaml") of each input that
+    answered 500 or was accepted to no purpose."""
+    def spec_with(change) -> dict:
+        spec = duffing_spec(max_populations=1, particles=200)
+        change(spec)
+        return spec
+
+    json_cases = {
+        "noise_std 1e200": lambda s: s["data"].update(noise_std=1e200),
+        "fs 1e-300": lambda s: s["data"].update(fs=1e-300), "fs 1e-12": lambda s: s["data"].update(fs=1e-12),
+        "fs 1e12": lambda s: s["data"].update(fs=1e12),
+        "epsilon_initial 1e-300": lambda s: s["sampler"].update(epsilon_initial=1e-300),
+        "constant record": lambda s: s["data"].update(observed=[0.3] * 1000),
+        "record x 1e99": lambda s: s["data"].update(observed=[v * 1e99 for v in s["data"]["observed"]]),
+        "input x 2^62": lambda s: s["data"].update(input=[v * 2.0**62 for v in s["data"]["input"]]),
+        "2-sample record": lambda s: s["data"].update(input=s["data"]["input"][:2], observed=s["data"]["observed"][:2],
+                                                      fit=None, test=None),
+        "models Cubic / cubic": lambda s: s["models"][1].update(name=s["models"][0]["name"].upper()),
+        "name with U+202E": lambda s: s.update(name="job\u202egnp.exe"),
+        "name with U+200B": lambda s: s.update(name="paper\u200b-4.1-duffing"),
+        "name with a trailing space": lambda s: s.update(name="paper-4.1-duffing "),
+        "name alike an existing one": lambda s: s.update(name="Paper-4.1-Duffing"),
+    }
+    out = [(label, json.dumps(spec_with(change)).encode(), "json") for label, change in json_cases.items()]
+    text = json.dumps(spec_with(lambda s: s["data"].update(input="npz:force", observed="npz:x")))
+    for label, number in (("YAML 0x integer", "0x" + "f" * 5000), ("YAML 5,000-digit integer", "7" * 5000)):
+        out.append((label, text.replace('"seed": 41', f'"seed": {number}').encode(), "yaml"))
+    return out
+
+
+def _inputs(statuses: collections.Counter, service: Service) -> list[str]:
+    folder = ROOT / "examples" / "duffing_41"
+    npz = io.BytesIO()
+    np.savez(npz, force=np.load(folder / "force.npy"), x=np.load(folder / "displacement.npy"))
+    header = b"{'descr': '<f8', 'fortran_order': False, 'shape': (1000,".ljust(117) + b"\n"  # cut short
+    cut = io.BytesIO()
+    with zipfile.ZipFile(cut, "w") as zf:
+        for key in ("force", "x"):
+            zf.writestr(f"{key}.npy", b"\x93NUMPY\x01\x00" + struct.pack("<H", len(header)) + header)
+    # the baseline job, so that a name alike it exists
+    statuses[httpx.post(f"{service.url}/jobs", json=duffing_spec(max_populations=1, particles=200), headers=AUTH,
+                        timeout=120).status_code] += 1
+    lines = []
+    for label, body, kind in [*_bad_inputs(), ("npy header cut short", b"", "cut")]:
+        if kind == "json":
+            r = httpx.post(f"{service.url}/jobs", content=body, timeout=120,
+                           headers={**AUTH, "Content-Type": "application/json"})
+        else:
+            spec = body if kind == "yaml" else json.dumps(
+                {**duffing_spec(max_populations=1), "data": {**duffing_spec()["data"], "input": "npz:force",
+                                                             "observed": "npz:x"}}).encode()
+            data = npz.getvalue() if kind == "yaml" else cut.getvalue()
+            r = httpx.post(f"{service.url}/jobs/upload", headers=AUTH, timeout=120,
+                           files={"spec": ("spec.yaml", spec), "data": ("x.npz", data)})
+        statuses[r.status_code] += 1
+        field = r.json()["detail"][0]["field"] if r.status_code == 422 else ""
+        lines.append(f"{label:28s} {r.status_code} {field}")
+        if r.status_code == 201:
+            httpx.delete(f"{service.url}/jobs/{r.json()['id']}", headers=AUTH, timeout=60)
+    return lines
+
+
+def _slow_bodies(statuses: collections.Counter, service: Service) -> str:
+    """Z.7: four connections sending a body a byte a second, then a submission: its wait."""
+    def drip(done: threading.Event) -> None:
+        with socket.create_connection(("127.0.0.1", service.port), timeout=120) as s:
+            s.sendall(b"POST /jobs HTTP/1.1\r\nHost: x\r\nAuthorization: " + AUTH["Authorization"].encode()
+                      + b"\r\nContent-Type: application/json\r\nContent-Length: 100000\r\n\r\n{")
+            try:
+                while not done.is_set() and not select.select([s], [], [], 1.0)[0]:
+                    s.sendall(b" ")
+            except OSError:
+                pass
+
+    done = threading.Event()
+    drips = [threading.Thread(target=drip, args=(done,), daemon=True) for _ in range(4)]
+    for t in drips:
+        t.start()
+    time.sleep(1.0)  # the four hold the slots
+    start = time.perf_counter()
+    r = httpx.post(f"{service.url}/jobs", json=duffing_spec(max_populations=1, particles=200), headers=AUTH, timeout=600)
+    took = time.perf_counter() - start
+    statuses[r.status_code] += 1
+    done.set()
+    for t in drips:
+        t.join(timeout=60)
+    if r.status_code == 201:
+        httpx.delete(f"{service.url}/jobs/{r.json()['id']}", headers=AUTH, timeout=60)
+    return f"a submission behind four 1-byte/s bodies: {r.status_code} after {took:.1f} s"
+
+
+def _purges(statuses: collections.Counter, service: Service, rounds: int = 10) -> str:
+    """Z.8: two purges at once of an ended job, ``rounds`` times: the answers."""
+    pairs: collections.Counter = collections.Counter()
+    for _ in range(rounds):
+        job_id = httpx.post(f"{service.url}/jobs", json=duffing_spec(max_populations=1, particles=200), headers=AUTH,
+                            timeout=120).json()["id"]
+        while httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()["status"] not in (
+                "finished", "failed", "cancelled"):
+            time.sleep(0.2)
+
+        async def both(job: str) -> list[int]:
+            async with httpx.AsyncClient(base_url=service.url, headers=AUTH, timeout=60) as http:
+                answers = await asyncio.gather(*(http.delete(f"/jobs/{job}", params={"purge": "true"}) for _ in range(2)))
+            return sorted(a.status_code for a in answers)
+
+        codes = asyncio.run(both(job_id))
+        statuses.update(codes)
+        pairs[tuple(codes)] += 1
+    return "two purges at once: " + ", ".join(f"{n} x {list(c)}" for c, n in sorted(pairs.items()))
+
+
+def main_z() -> None:
+    """Issue Z's attacks (2, 3, 4, 7, 8) on `abcns serve` with its default settings."""
+    tmp = Path(tempfile.mkdtemp())
+    cluster = StockCluster(tmp / "dask")
+    service = Service(tmp / "jobs", cluster.address)
+    statuses: collections.Counter = collections.Counter()
+    watch = Watch(service.url)
+    start = time.monotonic()
+    try:
+        print("Z.2 archives: 1,000 samples, then 1 GiB of undeclared zeros", flush=True)
+        print("\n".join(_archives(statuses, service, watch)), flush=True)
+        print("Z.3, Z.4, Z.8 inputs", flush=True)
+        print("\n".join(_inputs(statuses, service)), flush=True)
+        print("Z.7 slow bodies", flush=True)
+        print(_slow_bodies(statuses, service), flush=True)
+        print("Z.8 purges", flush=True)
+        print(_purges(statuses, service), flush=True)
+    finally:
+        watch.close()
+        errors = "\n".join(line for line in service.log.read_text().splitlines() if "ERROR" in line or "Traceback" in line)
+        service.close()
+        cluster.close()
+    print(f"{sum(statuses.values())} answers in {time.monotonic() - start:.0f} s: "
+          + ", ".join(f"{n} x {s}" for s, n in sorted(statuses.items())))
+    print(f"errors in the service's log: {errors[:2000] or 'none'}")
+
+
+
+
 if __name__ == "__main__":
-    main()
+    import sys
+
+    main_z() if "--issue-z" in sys.argv[1:] else main()

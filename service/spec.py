@@ -470,6 +470,125 @@ def check_physical(spec: JobSpec, simulators: list[Simulator], distance: object)
                                          f"(scale {scale:.3g}); rescale the record (its units)")
 
 
+# ---------------------------------------------------------------------------- what a job must mean
+# The HTTP service runs a job only if it can mean something (check_meaningful, called by
+# service.http.limits.admit; docs/deploy.md, "What a job must mean"): each rule refuses a spec
+# that the hostile client of issue Z got accepted and that then held the running slot for
+# 14-47 s of simulations to end `nothing_accepted`.
+#: samples of the window the distance reads (the fit window for the NMSE, else the record):
+#: fewer cannot tell models apart (the noise floor has n - p degrees of freedom)
+MIN_SAMPLES = 20
+#: the largest magnitude of a meaningful input or observed sample: beyond it the units are
+#: wrong (no measured force, displacement or acceleration is 1e15 in SI units), and the
+#: simulators' polynomial terms and the squared errors leave float64's precision
+RECORD_MAX = 1e15
+#: the smallest peak magnitude of a meaningful observed record (a femtometre in metres)
+RECORD_MIN = 1e-15
+#: the observed record's standard deviation on its window, relative to its peak magnitude,
+#: below which it is constant to the precision a simulation matches it (float64 rounding of
+#: a constant record's mean leaves ~1e-16)
+MIN_RELATIVE_STD = 1e-8
+#: the lowest first tolerance of the NMSE (%): a relative RMS error of 1e-7, below which the
+#: distance measures the rounding of an integrated trajectory, not the model
+NMSE_EPSILON_FLOOR = 1e-12
+#: with the noise stated, the lowest first tolerance as a share of the truth's own expected
+#: NMSE (100 noise_std^2 / var): no simulation gets below a tenth of it (chi^2_n / n < 0.1 has
+#: probability under 2e-4 for n >= 10)
+NOISE_FLOOR_SHARE = 0.1
+
+
+def _read_window(spec: JobSpec, observed: np.ndarray) -> tuple[tuple[int, int], str]:
+    """The samples the distance reads and the field that sets them."""
+    if spec.distance.name == "nmse" and spec.data.fit is not None:
+        return (spec.data.fit[0], spec.data.fit[1]), "data.fit"
+    return (0, int(observed.size)), "data.observed"
+
+
+def _check_meaningful_records(spec: JobSpec, job: Job) -> None:
+    """The record's length, scale and variation on the window the distance reads, the
+    input's scale, and a stated noise no larger than the record."""
+    (start, stop), where = _read_window(spec, job.observed)
+    if stop - start < MIN_SAMPLES:
+        raise SpecError(where, f"the distance reads {stop - start} samples; a job needs at least {MIN_SAMPLES} to tell "
+                               "models apart")
+    window = job.observed[start:stop]
+    peak, std = float(np.max(np.abs(window))), float(np.std(window))
+    if not RECORD_MIN <= peak <= RECORD_MAX:
+        raise SpecError("data.observed", f"its largest sample is {peak:.3g} in magnitude; a measured record is between "
+                                         f"{RECORD_MIN:.0e} and {RECORD_MAX:.0e}: give it in units where it is")
+    if not std > MIN_RELATIVE_STD * peak:
+        raise SpecError("data.observed", f"is constant on the samples the distance reads (standard deviation {std:.3g} "
+                                         f"against a level of {peak:.3g}): there is nothing to fit")
+    if job.force is not None and job.force.size:
+        force_peak = float(np.max(np.abs(job.force)))
+        if not 0 < force_peak <= RECORD_MAX:
+            raise SpecError("data.input", f"its largest sample is {force_peak:.3g} in magnitude; an input is nonzero (a "
+                                          f"system at rest with no input never moves) and at most {RECORD_MAX:.0e}: give "
+                                          "it in units where it is")
+    noise_std = spec.data.noise_std
+    if noise_std is not None and noise_std > peak:
+        raise SpecError("data.noise_std", f"{noise_std:.6g} exceeds the observed record's largest sample ({peak:.3g}) on "
+                                          "the samples the distance reads: noise that large would show in them")
+
+
+def _check_meaningful_rate(spec: JobSpec, job: Job) -> None:
+    """The sampling rate against each model's natural frequencies (the simulators with
+    ``omega_min`` and ``omega_max``): Nyquist for the slowest the priors allow, and one
+    period of the fastest within the window the distance reads."""
+    if spec.data.input is None:
+        return
+    dt, field = spec.data.sample_interval, "data.fs" if spec.data.fs is not None else "data.dt"
+    (start, stop), _ = _read_window(spec, job.observed)
+    for i, (model, sim) in enumerate(zip(spec.models, job.simulators, strict=True)):
+        kind: Any = type(sim)  # a simulator class, with or without the frequencies
+        if not (callable(getattr(kind, "omega_min", None)) and callable(getattr(kind, "omega_max", None))):
+            continue
+        bounds = {k: (float(v), float(v)) for k, v in getattr(kind, "defaults", {}).items()}
+        bounds.update({k: (float(v), float(v)) for k, v in model.fixed.items()})
+        bounds.update({k: (float(lo), float(hi)) for k, (lo, hi) in model.priors.items()})
+        try:
+            slowest, fastest = kind.omega_min(bounds), kind.omega_max(bounds)
+        except (KeyError, ValueError, ArithmeticError):
+            continue  # the simulator's own checks say what is wrong
+        if slowest * dt > math.pi:
+            raise SpecError(field, f"a sample interval of {dt:.3g} s is too long for models[{i}]: the natural frequency "
+                                   f"of every model its priors allow is at least {slowest / (2 * math.pi):.3g} Hz, above "
+                                   f"the Nyquist frequency {0.5 / dt:.3g} Hz, so every simulation is aliased")
+        if fastest * dt * (stop - start) < 2 * math.pi:
+            raise SpecError(field, f"the {stop - start} samples the distance reads last {dt * (stop - start):.3g} s, less "
+                                   f"than one period of the fastest natural frequency models[{i}]'s priors allow "
+                                   f"({fastest / (2 * math.pi):.3g} Hz): no model they allow moves in that time")
+
+
+def _check_meaningful_tolerance(spec: JobSpec, job: Job) -> None:
+    """The NMSE's first tolerance above what a simulation can reach."""
+    epsilon = getattr(job.settings, "epsilon_initial", None)
+    if epsilon is None or spec.distance.name != "nmse":
+        return
+    floor, why = NMSE_EPSILON_FLOOR, "below it the NMSE measures float64 rounding, not the model"
+    if job.noise is not None and job.noise.variance is not None:
+        truth = job.noise.n_samples * job.noise.variance  # the truth's expected NMSE with the noise stated
+        if NOISE_FLOOR_SHARE * truth > floor:
+            floor, why = NOISE_FLOOR_SHARE * truth, (f"a tenth of the NMSE the true model is expected at with "
+                                                     f"data.noise_std ({truth:.3g} %): no simulation reaches below")
+    if epsilon < floor:
+        raise SpecError("sampler.epsilon_initial", f"{epsilon:.3g} is below {floor:.3g} % ({why}); the first population "
+                                                   "would never fill")
+
+
+def check_meaningful(spec: JobSpec, job: Job) -> None:
+    """What a job must satisfy to be worth running, beyond being valid (``build``): a record
+    of at least MIN_SAMPLES samples where the distance reads it, of a measured scale
+    (RECORD_MIN..RECORD_MAX) and not constant (MIN_RELATIVE_STD), a nonzero input within
+    RECORD_MAX, a stated noise no larger than the record, a sampling rate that resolves the
+    slowest natural frequency the priors allow (Nyquist) and a window that spans a period
+    of the fastest, and an NMSE first tolerance above NMSE_EPSILON_FLOOR (and a tenth of the
+    truth's expected NMSE when the noise is stated). SpecError naming the field."""
+    _check_meaningful_records(spec, job)
+    _check_meaningful_rate(spec, job)
+    _check_meaningful_tolerance(spec, job)
+
+
 def stop_rules(stop: BaseModel) -> StopRules:
     """The spec's stop rules. A ``min_epsilon_decrease`` the spec names is the user's own rule:
     it may end the run above its decision tolerance (``decrease_above_floor``, unless the spec

@@ -12,7 +12,9 @@ A simulator factory (a class or any callable) returns a
 (n, n_samples) and status (n,) with ``abcns.OK / DIVERGED / FAILED``) and ``config() ->
 dict``; optionally :class:`worker.simulators.NMSECapable` (``distance_nmse(params, observed,
 start, stop, epsilon)``, a fused fast path). The factory may have a static
-``omega_max(bounds)`` (lets the substeps be chosen from the priors) and ``needs_input``:
+``omega_max(bounds)`` (lets the substeps be chosen from the priors), a static
+``omega_min(bounds)`` (the least that highest frequency gets over the bounds: the HTTP
+service checks the sampling rate against both, ``service.spec.check_meaningful``) and ``needs_input``:
 False: called as ``factory(n_samples=...)`` (the observed record's length); True: the input
 is required, and the factory is called with those of the keywords ``force``, ``dt``,
 ``n_samples``, ``substeps``, ``output``, ``state_bound`` and ``input_interpolation`` its

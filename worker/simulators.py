@@ -198,6 +198,20 @@ def _linear_omega(m_min: float, c_max: float, k_max: float) -> float:
     return c_max / (2 * m_min) + float(np.sqrt(c_max**2 / (4 * m_min**2) + k_max / m_min))
 
 
+def _least_magnitude(lo: float, hi: float) -> float:
+    """The smallest |x| over [lo, hi] (0 when it holds 0)."""
+    return 0.0 if lo <= 0 <= hi else min(abs(lo), abs(hi))
+
+
+def _linear_omega_min(m_max: float, c_min: float, k_min: float) -> float:
+    """A lower bound, over the bounds, of the largest eigenvalue modulus of ``m x'' + c x' + k x``
+    (``c_min``, ``k_min``: least magnitudes): the roots' product is k/m and their sum -c/m,
+    so the larger one is at least sqrt(|k| / m) and at least |c| / (2 m)."""
+    if not m_max > 0:
+        return 0.0
+    return max(float(np.sqrt(k_min / m_max)), c_min / (2 * m_max))
+
+
 class Oscillator:
     """A forced oscillator: the input record, the output, the divergence guard, the backend
     dispatch and the in-kernel NMSE (:class:`NMSECapable`).
@@ -407,6 +421,12 @@ class Duffing(_RK4Oscillator):
         mag = {p: max(abs(lo), abs(hi)) for p, (lo, hi) in bounds.items()}
         return _linear_omega(min(abs(v) for v in bounds["m"]), mag["c"], mag["k"])
 
+    @staticmethod
+    def omega_min(bounds: dict[str, tuple[float, float]]) -> float:
+        """The lowest the highest natural frequency of the linear part gets over the bounds."""
+        least = {p: _least_magnitude(*bounds[p]) for p in ("c", "k")}
+        return _linear_omega_min(max(abs(v) for v in bounds["m"]), least["c"], least["k"])
+
     def _work(self, params):
         K = _kernels()
         params = np.atleast_2d(np.asarray(params, dtype=float))
@@ -448,6 +468,13 @@ class BoucWen(_RK4Oscillator):
         """As for Duffing with stiffness |k| + A (at small amplitude z ~ A y)."""
         mag = {p: max(abs(lo), abs(hi)) for p, (lo, hi) in bounds.items()}
         return _linear_omega(min(abs(v) for v in bounds["m"]), mag["c"], mag["k"] + mag["A"])
+
+    @staticmethod
+    def omega_min(bounds: dict[str, tuple[float, float]]) -> float:
+        """As for Duffing with stiffness k + A."""
+        (k_lo, k_hi), (a_lo, a_hi) = bounds["k"], bounds["A"]
+        return _linear_omega_min(max(abs(v) for v in bounds["m"]), _least_magnitude(*bounds["c"]),
+                                 _least_magnitude(k_lo + a_lo, k_hi + a_hi))
 
     def unpack(self, params):
         n = params[:, 6]

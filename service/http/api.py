@@ -29,6 +29,7 @@ import logging
 import math
 import os
 import re
+import tokenize
 import zipfile
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -48,7 +49,7 @@ from starlette.requests import ClientDisconnect
 
 from abcns import SpecError
 from service.http import page
-from service.http.intake import Intake, Refused, as_text, problem, validation_errors
+from service.http.intake import Intake, Refused, as_text, name_key, problem, validation_errors
 from service.http.jobs import JobManager, JobRecord, QueueFull
 from service.http.schemas import PAGE_MAX, Health, JobCreated, JobInfo, LimitsOut, PopulationOut, Status, Summary
 from service.http.settings import Settings
@@ -161,15 +162,43 @@ def npz_arrays(file: IO[bytes], spec: JobSpec, max_samples: int) -> dict[str, np
                 for key, name in wanted.items()}
 
 
+#: zip's compression methods an upload's member may use: stored (0) and deflated (8). A
+#: deflated member is decompressed a bounded piece at a time; Python's bzip2 (12) and LZMA
+#: (14) readers decompress each compressed block whole, so a 17 KB bzip2 member can become a
+#: gigabyte in one read
+COMPRESSIONS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflated"}
+
+
+def _read_header(f: IO[bytes]) -> tuple[tuple, bool, np.dtype, int]:
+    """(shape, fortran order, dtype, bytes of the magic and header) of an .npy stream; a
+    ValueError for anything that is not a header numpy would write (numpy's own parse
+    raises tokenize's TokenError for a header cut short, and takes negative dimensions)."""
+    try:
+        version = np.lib.format.read_magic(f)
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = read_header(f)
+    except (tokenize.TokenError, SyntaxError, TypeError, KeyError, IndexError, MemoryError, RecursionError) as err:
+        raise ValueError(f"its header does not parse ({type(err).__name__}: {str(err)[:80]})") from None
+    if not all(isinstance(d, int) and d >= 0 for d in shape):
+        raise ValueError(f"its shape {shape} has a negative dimension")
+    return shape, fortran, dtype, f.tell()
+
+
 def _npy_header(archive: zipfile.ZipFile, members: dict, name: str, field: str,
                 max_samples: int) -> tuple[tuple, bool, np.dtype]:
+    """The array's shape, order and dtype, from its member's header; 422 naming ``field``
+    for a member stored otherwise than :data:`COMPRESSIONS`, a header that does not parse,
+    a dtype or size the service does not take, or a member whose size (from the zip's
+    directory) is not its header plus the data the header declares."""
     if name not in members:
         raise problem(422, field, f"the upload has no array {name!r}; it has {sorted(members)[:20]}", "npz")
+    info = archive.getinfo(members[name])
+    if info.compress_type not in COMPRESSIONS:
+        raise problem(422, field, f"the array {name!r} is compressed with zip method {info.compress_type}; only stored (0) "
+                                  "or deflated (8) members are read (numpy.savez, numpy.savez_compressed)", "npz")
     try:
-        with archive.open(members[name]) as f:
-            version = np.lib.format.read_magic(f)
-            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-            shape, fortran, dtype = read_header(f)
+        with archive.open(info) as f:
+            shape, fortran, dtype, start = _read_header(f)
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, RuntimeError) as err:
         raise problem(422, field, f"the array {name!r} is not a readable .npy: {err}", "npz") from None
     size = math.prod(shape)
@@ -179,20 +208,24 @@ def _npy_header(archive: zipfile.ZipFile, members: dict, name: str, field: str,
     if size > max_samples:
         raise problem(422, field, f"the array {name!r} has shape {shape} ({size} samples); the limit is {max_samples} "
                                   "samples", "npz")
+    if info.file_size != start + size * dtype.itemsize:
+        raise problem(422, field, f"the array {name!r} is {info.file_size:,} bytes uncompressed, but its header declares "
+                                  f"{start:,} + {size * dtype.itemsize:,} ({shape} of {dtype}): a member holds one array "
+                                  "and nothing after it", "npz")
     return shape, fortran, dtype
 
 
 def _npy_data(archive: zipfile.ZipFile, member: str, field: str, shape: tuple, fortran: bool, dtype: np.dtype,
               n: int | None) -> np.ndarray:
-    """The array's first ``n`` samples (all with None) as float64, decompressed a chunk at a time."""
+    """The array's first ``n`` samples (all with None) as float64, decompressed a chunk at a
+    time (its member's size was checked against its header: the reader stops there)."""
     size = math.prod(shape)
     count = size if n is None else min(n, size)
     out = np.empty(count)
     step = max(1, (4 << 20) // dtype.itemsize)
     try:
         with archive.open(member) as f:
-            version = np.lib.format.read_magic(f)
-            (np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0)(f)
+            _read_header(f)
             for start in range(0, count, step):
                 k = min(step, count - start)
                 chunk = f.read(k * dtype.itemsize)
@@ -231,9 +264,15 @@ async def submit(request: Request, response: Response, manager: Annotated[JobMan
 
 async def queue_job(manager: JobManager, request: Request, response: Response, spec: JobSpec,
                     arrays: dict[str, np.ndarray]) -> JobCreated:
-    """Validated against the service's limits and queued; 422 naming the field, 429 when the
-    queue is full, 503 when the job cannot be stored (a full disk); Location names the job."""
+    """Validated against the service's limits and queued; 422 naming the field (``name`` when it
+    looks like another job's name but is not it), 429 when the queue is full, 503 when the
+    job cannot be stored (a full disk); Location names the job."""
     retry = {"Retry-After": str(request.app.state.settings.retry_after_s)}
+    alike = next((j for j in manager.list() if j.name != spec.name and name_key(j.name) == name_key(spec.name)), None)
+    if alike is not None:
+        raise problem(422, "name", f"differs from the name of job {alike.id} ({as_text(alike.name)}) only by case, width "
+                                   "or surrounding space: give it that name or one that does not look alike",
+                      "name", spec.name)
     try:
         job = await asyncio.to_thread(manager.submit, spec, arrays)
     except SpecError as err:
@@ -338,9 +377,12 @@ def cancel_or_purge(
 ):
     """Cancel (``202``): a queued job never starts, a running one stops between batches; what
     was done stays in the store; 409 for a job that has already ended. With
-    ``?purge=true``: delete an ended job and everything of it (``204``); 409 while it runs."""
+    ``?purge=true``: delete an ended job and everything of it (``204``); 409 while it runs,
+    404 once it is gone (the second of two purges at once included)."""
     if purge:
         if not manager.purge(job.id):
+            if manager.get(job.id) is None:  # purged meanwhile, by a request beside this one
+                raise HTTPException(404, f"no job {job.id}")
             raise HTTPException(409, f"job {job.id} has not ended ({job.status}): cancel it first")
         return Response(status_code=204)
     if job.status in ("finished", "failed", "cancelled"):

@@ -16,13 +16,13 @@ field (``detail[i].field``):
    (numbers, strings, lists, objects) and ``MAX_CONTAINERS`` lists and objects, bounded
    from the raw bytes (413 naming ``body`` or ``spec``); a YAML spec (an upload's ``spec``
    part) is at most ``MAX_YAML_BYTES`` (its data go in the ``.npz``);
-2. JSON (400) or YAML (422): a number of more digits than Python converts is found by
-   name (422 naming its field), not as a server error;
+2. JSON (400) or YAML (422): a number of more digits than Python converts or prints (a
+   YAML 0x integer included) is found by name (422 naming its field), not as a server error;
 3. one iterative walk (:func:`check_input`), which stops past ``MAX_DEPTH`` levels or
    ``max_values`` values (413; a YAML alias is counted each time it is used): every string
    Unicode text, every number finite, every key text, only JSON's kinds of values (YAML's
-   dates, sets and binaries are refused), and the names short text without control
-   characters;
+   dates, sets and binaries are refused), and the names short text without hidden
+   characters or surrounding space, no two models' names alike but for case (:func:`check_names`);
 4. the schema (422, pydantic's errors with ``field``, the offending value as text).
 
 The inline data come back as float arrays, not as lists (the spec names them
@@ -32,10 +32,14 @@ The inline data come back as float arrays, not as lists (the spec names them
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import json
 import math
 import multiprocessing
+import os
 import re
+import signal
+import sys
 import unicodedata
 from concurrent.futures import BrokenExecutor, ProcessPoolExecutor
 from contextlib import asynccontextmanager
@@ -54,6 +58,7 @@ MAX_YAML_BYTES = 1 << 20  # a YAML spec refers to its data in the upload; 1 MiB 
 MAX_CONTAINERS = 100_000  # lists and objects in one body (a spec has a few dozen)
 TEXT_MAX = 200  # characters of an offending value shown in a 422
 INT_DIGITS = 4300  # Python's limit on converting a decimal string to int (sys.get_int_max_str_digits)
+INT_BITS = 14_000  # an int of at most this many bits has at most 4,215 decimal digits: it prints
 
 
 class Refused(Exception):
@@ -79,6 +84,8 @@ def as_text(value: Any) -> str:
     """A value as a short text: NaN and Infinity included, long values cut."""
     if isinstance(value, str):
         text = value
+    elif isinstance(value, int) and value.bit_length() > INT_BITS:  # str() of it fails
+        text = f"(an integer of about {int(value.bit_length() * math.log10(2)) + 1:,} digits)"
     elif isinstance(value, float) and not math.isfinite(value):
         text = "NaN" if math.isnan(value) else ("Infinity" if value > 0 else "-Infinity")
     elif isinstance(value, (list, dict)) and (len(value) > 20 or any(
@@ -154,13 +161,33 @@ def parse_json(body: bytes, field: str) -> Any:
         raise problem(413, field, f"nests deeper than {MAX_DEPTH} levels", "too_deep") from None
 
 
+def _yaml_int(loader: Any, node: Any) -> int:
+    """YAML's integer (decimal, 0b, 0o, 0x, sexagesimal), or :class:`Digits` when it has more
+    digits than Python converts or prints (a 0x integer converts at any length, and then
+    fails in the message that shows it): its field is named by :func:`check_input`."""
+    text = str(node.value).replace("_", "").lstrip("+-")
+    if len(text) > INT_DIGITS:
+        return Digits(len(text))
+    value = yaml.constructor.SafeConstructor.construct_yaml_int(loader, node)
+    if value.bit_length() > INT_BITS:
+        return Digits(int(value.bit_length() * math.log10(2)) + 1)
+    return value
+
+
+class _YamlLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]  # C or Python, chosen at import
+    """The safe loader (C when built), its integers by :func:`_yaml_int`."""
+
+
+_YamlLoader.add_constructor("tag:yaml.org,2002:int", _yaml_int)
+
+
 def parse_yaml(text: bytes, field: str) -> Any:
     """A YAML spec (what `abcns run` reads) -> value; 422 naming ``field`` when it is not YAML."""
     if len(text) > MAX_YAML_BYTES:
         raise problem(413, field, f"a YAML spec is at most {MAX_YAML_BYTES:,} bytes, got {len(text):,} (give the data "
                                   "in the .npz: input: npz:KEY)", "too_large")
     try:
-        return yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))  # noqa: S506 - a safe loader (C or Python)
+        return yaml.load(text, Loader=_YamlLoader)  # noqa: S506 - a safe loader (C or Python)
     except yaml.YAMLError as err:
         raise problem(422, field, f"neither JSON nor YAML: {str(err)[:TEXT_MAX]}", "yaml") from None
     except (RecursionError, ValueError, TypeError) as err:  # nesting, digits, an unhashable key
@@ -210,8 +237,8 @@ def check_input(raw: Any, max_values: int, field: str = "body") -> None:
     """One iterative walk over ``raw``: at most MAX_DEPTH levels and ``max_values`` values
     (413; a YAML alias counts each time it is used); every string Unicode text (a lone
     surrogate is valid JSON but no text), every number finite and of a convertible length,
-    every key text, only JSON's kinds of values; and the names short text without control
-    characters. 422 naming the field."""
+    every key text, only JSON's kinds of values; and the names as :func:`check_names` says.
+    422 naming the field."""
     stack: list[tuple[tuple, Any]] = [((), raw)]
     seen = 0
     while stack:
@@ -238,14 +265,45 @@ def check_input(raw: Any, max_values: int, field: str = "body") -> None:
     names = [("name", raw.get("name"))]
     if isinstance(raw.get("models"), list):
         names += [(f"models[{i}].name", m.get("name")) for i, m in enumerate(raw["models"]) if isinstance(m, dict)]
+    check_names([(where, name) for where, name in names if isinstance(name, str)])  # else the schema says
+
+
+#: characters a name may not hold: control (Cc), format (Cf: bidi overrides, zero-width
+#: spaces and joiners, the byte-order mark), line and paragraph separators, private-use and
+#: unassigned code points: each is invisible or shown as something else, so one name could
+#: look like another
+HIDDEN = {"Cc": "control", "Cf": "invisible format", "Zl": "line separator", "Zp": "paragraph separator",
+          "Co": "private-use", "Cn": "unassigned"}
+
+
+def name_key(name: str) -> str:
+    """What a name looks like: compatibility-normalised (NFKC: full-width letters, ligatures),
+    case-folded, without surrounding space. Two names with one key are one name to a reader."""
+    return unicodedata.normalize("NFKC", name).casefold().strip()
+
+
+def check_names(names: list[tuple[str, str]]) -> None:
+    """The job's and models' names (``(field, name)``): short, no hidden character
+    (:data:`HIDDEN`), no surrounding space, and no two models' names that differ only by
+    case or width (exact duplicates: ``abcns.run.check_models``). 422 naming the field."""
+    seen: dict[str, tuple[str, str]] = {}
     for where, name in names:
-        if not isinstance(name, str):
-            continue  # the schema says what is wrong
         if len(name) > NAME_MAX_CHARS:
             raise problem(422, where, f"at most {NAME_MAX_CHARS} characters, got {len(name)}", "name", name)
-        bad = next((c for c in name if unicodedata.category(c) == "Cc"), None)
+        bad = next((c for c in name if unicodedata.category(c) in HIDDEN), None)
         if bad is not None:
-            raise problem(422, where, f"must not hold control characters (found U+{ord(bad):04X})", "name", name)
+            kind = HIDDEN[unicodedata.category(bad)]
+            what = unicodedata.name(bad, "") or kind
+            raise problem(422, where, f"must not hold {kind} characters (found U+{ord(bad):04X} {what}), which could "
+                                      f"make one name look like another", "name", name)
+        if name != name.strip():
+            raise problem(422, where, "must not begin or end with a space", "name", name)
+        if not where.startswith("models"):
+            continue
+        other = seen.setdefault(name_key(name), (where, name))
+        if other[1] != name:
+            raise problem(422, where, f"differs from {other[0]} ({other[1]!r}) only by case or width: give the models "
+                                      "names that do not look alike", "name", name)
 
 
 # ---------------------------------------------------------------------------- 4. the schema
@@ -285,8 +343,21 @@ def spec_of(text: bytes, field: str, kind: str, max_values: int,
     return spec, arrays
 
 
-def _warm() -> None:
-    """The child's start: everything :func:`spec_of` imports is imported by now."""
+PR_SET_PDEATHSIG = 1  # Linux prctl(2): a signal for this process when its parent dies
+
+
+def _warm(parent: int | None = None) -> None:
+    """The child's start: everything :func:`spec_of` imports is imported by now; on Linux it
+    asks for SIGKILL when the service's process dies, however it dies (after a kill -9 it
+    waited on its queue for ever, holding its ~150 MB, and the resource tracker with it)."""
+    if parent is None or not sys.platform.startswith("linux"):
+        return
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the service died before the request took hold
+        os._exit(0)
 
 
 # ---------------------------------------------------------------------------- the pool
@@ -306,7 +377,7 @@ class Intake:
     def pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
             self._pool = ProcessPoolExecutor(self.processes, mp_context=multiprocessing.get_context("spawn"),
-                                             initializer=_warm)
+                                             initializer=_warm, initargs=(os.getpid(),))
         return self._pool
 
     def start(self) -> None:

@@ -2,7 +2,9 @@
 
 ``admit(spec, job, limits)`` is called when a job is submitted, after the spec is valid
 (``service.spec.build``): it refuses a job over a limit with a SpecError naming the field
-and the limit (HTTP 422), and returns the spec with the service's default budget filled in
+and the limit (HTTP 422), or one that cannot mean anything (``service.spec.check_meaningful``:
+a record too short, constant or of no measured scale, a sampling rate against the models'
+natural frequencies, a first tolerance below reach), and returns the spec with the service's default budget filled in
 (``stop.max_seconds``, ``stop.max_simulations``) where the spec gives none. The operator
 sets the limits with ``abcns serve`` options or ``ABCNS_*`` variables (``service.http.settings``);
 ``GET /limits`` and ``GET /health`` report them. The CLI on a user's own machine applies
@@ -14,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from abcns import SpecError
-from service.spec import Job, JobSpec
+from service.spec import Job, JobSpec, check_meaningful
 
 POPULATIONS_ASSUMED = 200  # populations held when the spec sets no max_populations (for the estimate)
 
@@ -81,11 +83,15 @@ def admit(spec: JobSpec, job: Job, limits: Limits) -> JobSpec:
         over(field, round(mb), limits.max_memory_mb, " MB",
              f" of estimated memory (particles x parameters x populations: "
              f"{'fewer particles or populations' if spec.stop.max_populations else 'set stop.max_populations'})")
+    pilot = getattr(s, "pilot_size", None)
+    if pilot is not None and pilot > limits.max_job_simulations:
+        over("sampler.pilot_size", pilot, limits.max_job_simulations, " simulations")
     stop = spec.stop
     if stop.max_seconds is not None and stop.max_seconds > limits.max_job_seconds:
         over("stop.max_seconds", stop.max_seconds, limits.max_job_seconds, " s")
     if stop.max_simulations is not None and stop.max_simulations > limits.max_job_simulations:
         over("stop.max_simulations", stop.max_simulations, limits.max_job_simulations, " simulations")
+    check_meaningful(spec, job)  # a job that cannot mean anything would hold the running slot for nothing
     budget = stop.model_copy(update={
         "max_seconds": stop.max_seconds if stop.max_seconds is not None else limits.max_job_seconds,
         "max_simulations": stop.max_simulations if stop.max_simulations is not None else limits.max_job_simulations,

@@ -31,6 +31,8 @@ class Settings(BaseSettings):
     max_json_values: int = Field(default=4_000_000, ge=1000)  # JSON values in one body (a spec, inline data included)
     header_timeout_s: float = Field(default=5.0, gt=0)  # a request's headers must arrive within this
     body_timeout_s: float = Field(default=30.0, gt=0)  # and its body within this of its headers (else 408)
+    min_body_rate: float = Field(default=8192.0, ge=0)  # bytes/s a body must average after body_grace_s (else 408); 0: none
+    body_grace_s: float = Field(default=2.0, ge=0)
     shutdown_timeout_s: float = Field(default=10.0, gt=0)  # on SIGTERM: running jobs get this to stop between batches
     # admission limits (service/http/limits.py): a job over one is refused with 422 naming the field
     max_particles: int = Field(default=Limits.max_particles, ge=2)
