@@ -1,0 +1,266 @@
+"""Numba batch kernels for the displacement-driven restoring-force models
+(:mod:`worker.restoring`): Bouc-Wen and Bouc-Wen-Baber-Noori.
+
+The layout, the accounting (trajectory or in-kernel NMSE with early rejection), the
+divergence guard and the compaction are those of :mod:`worker.kernels` (its ``_account``,
+``_compact`` and ``_finish`` are reused). The input record is the displacement ``x``; the
+output is the force ``F_i = c v_i + k x_i + alpha z_i``, ``v_i`` the velocity at sample ``i``
+(central differences, computed once by the caller). Row 0 of the work array holds the last
+output force, so that the guard's bound applies to the force.
+
+Between samples the displacement moves on a straight line (first-order hold), so the
+hysteretic state is integrated in the displacement itself: over step ``i``, ``substeps``
+classical RK4 steps of ``dz/dx = g(z, e; sign(dx))`` (and ``de/dx = alpha z`` for the
+Baber-Noori energy) with ``dx = (x[i+1] - x[i]) / substeps``. The models are rate
+independent, so the sample interval enters only through the viscous term; a step with no
+displacement leaves the state unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from worker.kernels import _JIT, _account, _compact, _finish, _zpow
+
+# rows: 0 F (the last output), 1 z, 2 acc, 3 c, 4 k, 5 alpha, 6 A, 7 beta, 8 gamma, 9 n, 10 |z| bound (inf: none)
+BW_ROWS = 11
+# rows: 0 F, 1 z, 2 e, 3 acc, 4 c, 5 k, 6 alpha, 7 A, 8 beta, 9 gamma, 10 n, 11 delta_nu, 12 delta_eta,
+# 13 p, 14 zeta_s, 15 psi, 16 delta_psi, 17 lambda, 18 q
+BWBN_ROWS = 19
+
+
+@njit(inline="always", **_JIT)
+def _pow(az, n, n_exp):
+    """``az**n``: for an integer exponent ``n_exp`` in 1..4 (constant in the caller's loop) by
+    multiplications, else (``n_exp`` 0) by ``pow`` (~20x slower)."""
+    if n_exp == 0:
+        return math.pow(az, n)
+    return _zpow(az, n_exp) * az
+
+
+@njit(inline="always", **_JIT)
+def _root(a, n, n_exp):
+    """``a**(1/n)`` (as :func:`_pow`: integer ``n_exp`` by square roots where it can)."""
+    if n_exp == 1:
+        return a
+    if n_exp == 2:
+        return math.sqrt(a)
+    if n_exp == 4:
+        return math.sqrt(math.sqrt(a))
+    return math.pow(a, 1.0 / n)
+
+
+@njit(inline="always", **_JIT)
+def _bw_slope(z, s, A, beta, gamma, n, n_exp):
+    """dz/dx of Bouc-Wen: ``A - |z|^n (beta sign(s z) + gamma)``, s the sign of dx."""
+    return A - _pow(abs(z), n, n_exp) * (beta * math.copysign(1.0, s * z) + gamma)
+
+
+@njit(**_JIT)
+def _bw_steps(w, n_act, dx, s, substeps, n_exp):
+    """Advance z over one sample step: ``substeps`` RK4 steps in x of size ``dx``."""
+    z = w[1]
+    A = w[6]
+    be = w[7]
+    ga = w[8]
+    ne = w[9]
+    hh = 0.5 * dx
+    h6 = dx / 6.0
+    for _ in range(substeps):
+        for j in range(n_act):
+            z0 = z[j]
+            q1 = _bw_slope(z0, s, A[j], be[j], ga[j], ne[j], n_exp)
+            q2 = _bw_slope(z0 + hh * q1, s, A[j], be[j], ga[j], ne[j], n_exp)
+            q3 = _bw_slope(z0 + hh * q2, s, A[j], be[j], ga[j], ne[j], n_exp)
+            q4 = _bw_slope(z0 + dx * q3, s, A[j], be[j], ga[j], ne[j], n_exp)
+            z[j] = z0 + h6 * ((q1 + q4) + 2.0 * (q2 + q3))
+
+
+@njit(**_JIT)
+def _output(w, n_act, x, v, c_row, out):
+    """``F = c v + k x + alpha z`` into ``out`` and row 0 (z in row 1; c, k, alpha in rows
+    ``c_row``, ``c_row + 1``, ``c_row + 2``)."""
+    F = w[0]
+    z = w[1]
+    c = w[c_row]
+    k = w[c_row + 1]
+    al = w[c_row + 2]
+    for j in range(n_act):
+        f = c[j] * v + k[j] * x + al[j] * z[j]
+        F[j] = f
+        out[j] = f
+
+
+@njit(**_JIT)
+def bw_restoring_run(w, n_exp, disp, vel, substeps, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist, status):
+    """Run a Bouc-Wen restoring-force batch in place. ``w`` is ``(BW_ROWS, n)``; ``n_exp``:
+    the exponent of every particle when it is an integer in 1..4, else 0 (read from row 9)."""
+    n = w.shape[1]
+    idx = cols.copy()
+    y = np.empty(n)
+    flag = np.zeros(n, dtype=np.int8)
+    n_act = n
+    ns = disp.shape[0]
+    z = w[1]
+    zmax = w[10]
+    for i in range(ns):
+        for j in range(n_act):  # past the bound the equation implies: the integration is wrong
+            if abs(z[j]) > zmax[j]:
+                z[j] = np.nan  # the finiteness test below flags it DIVERGED
+        _output(w, n_act, disp[i], vel[i], 3, y)
+        if _account(w, 2, 2, n_act, i, y, bound, obs, start, stop, scale, eps, want_traj, traj, idx, flag,
+                    dist, status):
+            n_act = _compact(w, idx, flag, n_act)
+            if n_act == 0:
+                return
+        if i + 1 < ns:
+            d = disp[i + 1] - disp[i]
+            if d != 0.0:
+                _steps_bw(w, n_act, d / substeps, d, substeps, n_exp)
+    _finish(w, 2, n_act, scale, idx, dist, status)
+
+
+@njit(inline="always", **_JIT)
+def _bwbn_slopes(z, e, s, pj, n_exp):
+    """(dz/dx, de/dx) of Bouc-Wen-Baber-Noori (Foliente 1995, as Ortiz et al. 2015 use it,
+    with nu0 = eta0 = 1 and no degradation of A): ``h(z, e) (A - nu |z|^n (beta sign(s z) +
+    gamma)) / eta`` and ``alpha z``; see :class:`worker.restoring.BWBNRestoring`. ``pj``:
+    (alpha, A, beta, gamma, n, delta_nu, delta_eta, p, zeta_s, psi, delta_psi, lambda, q)."""
+    al, A, beta, gamma, n, dnu, deta, p, zs, psi, dpsi, lam, q = pj
+    nu = 1.0 + dnu * e
+    eta = 1.0 + deta * e
+    zu = _root(A / (nu * (beta + gamma)), n, n_exp)
+    z1 = zs * (1.0 - math.exp(-p * e))
+    z2 = (psi + dpsi * e) * (lam + z1)
+    u = (math.copysign(1.0, s) * z - q * zu) / z2
+    h = 1.0 - z1 * math.exp(-u * u)
+    g = A - nu * _pow(abs(z), n, n_exp) * (beta * math.copysign(1.0, s * z) + gamma)
+    return h * g / eta, al * z
+
+
+@njit(**_JIT)
+def _bwbn_steps(w, n_act, dx, s, substeps, n_exp):
+    """Advance (z, e) over one sample step: ``substeps`` RK4 steps in x of size ``dx``."""
+    z = w[1]
+    e = w[2]
+    hh = 0.5 * dx
+    h6 = dx / 6.0
+    for _ in range(substeps):
+        for j in range(n_act):
+            pj = (w[6, j], w[7, j], w[8, j], w[9, j], w[10, j], w[11, j], w[12, j], w[13, j], w[14, j], w[15, j],
+                  w[16, j], w[17, j], w[18, j])
+            z0 = z[j]
+            e0 = e[j]
+            q1, r1 = _bwbn_slopes(z0, e0, s, pj, n_exp)
+            q2, r2 = _bwbn_slopes(z0 + hh * q1, e0 + hh * r1, s, pj, n_exp)
+            q3, r3 = _bwbn_slopes(z0 + hh * q2, e0 + hh * r2, s, pj, n_exp)
+            q4, r4 = _bwbn_slopes(z0 + dx * q3, e0 + dx * r3, s, pj, n_exp)
+            z[j] = z0 + h6 * ((q1 + q4) + 2.0 * (q2 + q3))
+            e[j] = e0 + h6 * ((r1 + r4) + 2.0 * (r2 + r3))
+
+
+@njit(**_JIT)
+def bwbn_restoring_run(w, n_exp, disp, vel, substeps, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist,
+                       status):
+    """Run a Bouc-Wen-Baber-Noori restoring-force batch in place. ``w`` is ``(BWBN_ROWS, n)``;
+    ``n_exp`` as in :func:`bw_restoring_run` (row 10)."""
+    n = w.shape[1]
+    idx = cols.copy()
+    y = np.empty(n)
+    flag = np.zeros(n, dtype=np.int8)
+    n_act = n
+    ns = disp.shape[0]
+    for i in range(ns):
+        _output(w, n_act, disp[i], vel[i], 4, y)
+        if _account(w, 3, 3, n_act, i, y, bound, obs, start, stop, scale, eps, want_traj, traj, idx, flag,
+                    dist, status):
+            n_act = _compact(w, idx, flag, n_act)
+            if n_act == 0:
+                return
+        if i + 1 < ns:
+            d = disp[i + 1] - disp[i]
+            if d != 0.0:
+                _steps_bwbn(w, n_act, d / substeps, d, substeps, n_exp)
+    _finish(w, 3, n_act, scale, idx, dist, status)
+
+
+# one specialisation per exponent code (0: real n; 1..4), so that it is a constant in the loops
+@njit(**_JIT)
+def _bw_0(w, n_act, dx, s, substeps):
+    _bw_steps(w, n_act, dx, s, substeps, 0)
+
+
+@njit(**_JIT)
+def _bw_1(w, n_act, dx, s, substeps):
+    _bw_steps(w, n_act, dx, s, substeps, 1)
+
+
+@njit(**_JIT)
+def _bw_2(w, n_act, dx, s, substeps):
+    _bw_steps(w, n_act, dx, s, substeps, 2)
+
+
+@njit(**_JIT)
+def _bw_3(w, n_act, dx, s, substeps):
+    _bw_steps(w, n_act, dx, s, substeps, 3)
+
+
+@njit(**_JIT)
+def _bw_4(w, n_act, dx, s, substeps):
+    _bw_steps(w, n_act, dx, s, substeps, 4)
+
+
+@njit(**_JIT)
+def _steps_bw(w, n_act, dx, s, substeps, n_exp):
+    if n_exp == 1:
+        _bw_1(w, n_act, dx, s, substeps)
+    elif n_exp == 2:
+        _bw_2(w, n_act, dx, s, substeps)
+    elif n_exp == 3:
+        _bw_3(w, n_act, dx, s, substeps)
+    elif n_exp == 4:
+        _bw_4(w, n_act, dx, s, substeps)
+    else:
+        _bw_0(w, n_act, dx, s, substeps)
+
+
+@njit(**_JIT)
+def _bwbn_0(w, n_act, dx, s, substeps):
+    _bwbn_steps(w, n_act, dx, s, substeps, 0)
+
+
+@njit(**_JIT)
+def _bwbn_1(w, n_act, dx, s, substeps):
+    _bwbn_steps(w, n_act, dx, s, substeps, 1)
+
+
+@njit(**_JIT)
+def _bwbn_2(w, n_act, dx, s, substeps):
+    _bwbn_steps(w, n_act, dx, s, substeps, 2)
+
+
+@njit(**_JIT)
+def _bwbn_3(w, n_act, dx, s, substeps):
+    _bwbn_steps(w, n_act, dx, s, substeps, 3)
+
+
+@njit(**_JIT)
+def _bwbn_4(w, n_act, dx, s, substeps):
+    _bwbn_steps(w, n_act, dx, s, substeps, 4)
+
+
+@njit(**_JIT)
+def _steps_bwbn(w, n_act, dx, s, substeps, n_exp):
+    if n_exp == 1:
+        _bwbn_1(w, n_act, dx, s, substeps)
+    elif n_exp == 2:
+        _bwbn_2(w, n_act, dx, s, substeps)
+    elif n_exp == 3:
+        _bwbn_3(w, n_act, dx, s, substeps)
+    elif n_exp == 4:
+        _bwbn_4(w, n_act, dx, s, substeps)
+    else:
+        _bwbn_0(w, n_act, dx, s, substeps)
