@@ -38,7 +38,7 @@ import numpy as np
 
 from abcns.executor import DIVERGED, OK
 from abcns.priors import SpecError
-from worker.simulators import Z_SLACK, Oscillator, Range, SimOutput, _substeps
+from worker.simulators import Oscillator, Range, SimOutput, _substeps
 
 NONNEGATIVE = Range(0.0, math.inf)
 POSITIVE_OPEN = Range(0.0, math.inf, low_open=True)
@@ -164,7 +164,8 @@ class BoucWenRestoring(_Restoring):
     name = "bouc_wen_restoring"
     parameter_names = ("c", "k", "alpha", "A", "beta", "gamma", "n")
     defaults = {"c": 0.0}
-    ranges = {"c": NONNEGATIVE, "alpha": NONNEGATIVE, "A": NONNEGATIVE, "beta": NONNEGATIVE, "n": EXPONENT}
+    ranges = {"c": NONNEGATIVE, "alpha": NONNEGATIVE, "A": NONNEGATIVE, "beta": NONNEGATIVE,
+              "n": EXPONENT}
 
     def z_bound(self, p: tuple) -> np.ndarray:
         """As :meth:`worker.simulators.BoucWen.z_bound` (its alpha is this beta, its beta this gamma)."""
@@ -202,10 +203,11 @@ class BWBNRestoring(_Restoring):
     parameter_names = ("c", "k", "alpha", "A", "beta", "gamma", "n", "delta_nu", "delta_eta", "p", "zeta_s", "psi",
                        "delta_psi", "lambda", "q")
     defaults = {"c": 0.0, "delta_psi": 0.0}
-    ranges = {"c": NONNEGATIVE, "alpha": NONNEGATIVE, "A": NONNEGATIVE, "beta": NONNEGATIVE, "n": EXPONENT,
-              "delta_nu": NONNEGATIVE, "delta_eta": NONNEGATIVE, "p": NONNEGATIVE,
-              "zeta_s": Range(0.0, 1.0, high_open=True), "psi": POSITIVE_OPEN, "delta_psi": NONNEGATIVE,
-              "lambda": POSITIVE_OPEN, "q": Range(0.0, 1.0, high_open=True)}
+    ranges = {
+        "c": NONNEGATIVE, "alpha": NONNEGATIVE, "A": NONNEGATIVE, "beta": NONNEGATIVE, "n": EXPONENT,
+        "delta_nu": NONNEGATIVE, "delta_eta": NONNEGATIVE, "p": NONNEGATIVE,
+        "zeta_s": Range(0.0, 1.0, high_open=True), "psi": POSITIVE_OPEN, "delta_psi": NONNEGATIVE,
+        "lambda": POSITIVE_OPEN, "q": Range(0.0, 1.0, high_open=True)}
     n_state = 3
 
     def slopes(self, p, state, s):
