@@ -189,3 +189,23 @@ def test_model_selection_picks_the_true_model(truth):
     pinched, degrading loops)."""
     result = problem.run(truth, ["bw", "bwbn"], N_SAMPLES, PARTICLES, SEED)
     assert result.summary()["model_probabilities"][truth] >= 0.9
+
+
+def test_the_cyclic_example_reads_both_layouts_and_builds(tmp_path):
+    """examples/cyclic_tests (its data are not in the repository): the script reads a user's
+    folder in either layout (our CSV, the source's two text files) and its models.yaml builds
+    over the scaled records."""
+    from examples.cyclic_tests import run as cyclic
+
+    x, f, _noise = problem.data("bwbn", 120, np.random.default_rng(SEED))
+    np.savetxt(tmp_path / "daniel.csv", np.column_stack([np.arange(x.size), x, f]), delimiter=",",
+               header="step,displacement,load_kn", comments="")
+    np.savetxt(tmp_path / "displ_gill.txt", x)
+    np.savetxt(tmp_path / "load_kN_gill.txt", f)
+    for name in ("daniel", "gill"):
+        xs, fs = cyclic.read_specimen(tmp_path, name)
+        np.testing.assert_allclose(xs, x, rtol=1e-12)
+        job = build(parse(cyclic.spec_for(xs / np.max(np.abs(xs)), fs / np.max(np.abs(fs)), 1, 100)))
+        assert [m.name for m in job.models] == ["bw", "bwbn"]
+    with pytest.raises(SystemExit, match=r"README\.md says where"):
+        cyclic.read_specimen(tmp_path, "chiu")
