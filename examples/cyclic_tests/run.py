@@ -2,7 +2,7 @@
 from the user's own copy of the data (not in this repository: see README.md).
 
     python -m examples.cyclic_tests.run --data DIR [--specimen daniel gill ...] [--seed 1]
-                                        [--particles N] [--out out/cyclic_tests]
+                                        [--particles N] [--out out/cyclic_tests] [--model bw]
 
 ``DIR`` holds, per specimen, either ``<name>.csv`` (columns step, displacement, load_kn) or
 the source repository's ``displ_<name>.txt`` and ``load_kN_<name>.txt`` (one number a line).
@@ -42,8 +42,12 @@ def read_specimen(folder: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
     raise SystemExit(f"{folder} has neither {csv.name} nor {displ.name} and {load.name} (README.md says where to get them)")
 
 
-def spec_for(x: np.ndarray, force: np.ndarray, seed: int, particles: int | None) -> dict:
+def spec_for(x: np.ndarray, force: np.ndarray, seed: int, particles: int | None, only: list[str] | None = None) -> dict:
+    """models.yaml over the (scaled) records; ``only``: keep these models (e.g. one alone, to
+    see its own best fit)."""
     raw = yaml.safe_load((HERE / "models.yaml").read_text())
+    if only:
+        raw["models"] = [m for m in raw["models"] if m["name"] in only]
     raw["data"].update(input=x.tolist(), observed=force.tolist())
     raw["seed"] = seed
     if particles is not None:
@@ -61,10 +65,11 @@ def posterior_mean_nmse(job, summary: dict, name: str) -> float:
     return float(100 * np.mean((out.values[0] - job.observed) ** 2) / np.var(job.observed))
 
 
-def run_specimen(folder: Path, name: str, seed: int, particles: int | None, out: Path) -> dict:
+def run_specimen(folder: Path, name: str, seed: int, particles: int | None, out: Path,
+                 only: list[str] | None = None) -> dict:
     x, load = read_specimen(folder, name)
     x_scale, f_scale = float(np.max(np.abs(x))), float(np.max(np.abs(load)))
-    job = build(parse(spec_for(x / x_scale, load / f_scale, seed, particles)))
+    job = build(parse(spec_for(x / x_scale, load / f_scale, seed, particles, only)))
     t0 = time.perf_counter()
     result = abcns.run(job.models, job.evaluate, job.settings, job.stop, job.seed, noise=job.noise)
     summary = result.summary()
@@ -72,7 +77,8 @@ def run_specimen(folder: Path, name: str, seed: int, particles: int | None, out:
     summary["wall_s"] = time.perf_counter() - t0
     summary["nmse_posterior_mean"] = {m: posterior_mean_nmse(job, summary, m) for m in summary["posterior"]}
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{name}-seed{seed}.json").write_text(json.dumps(summary, indent=1, default=str))
+    tag = "" if not only else "-" + "-".join(only)
+    (out / f"{name}{tag}-seed{seed}.json").write_text(json.dumps(summary, indent=1, default=str))
     return summary
 
 
@@ -83,9 +89,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--particles", type=int, default=None)
     parser.add_argument("--out", type=Path, default=Path("out/cyclic_tests"))
+    parser.add_argument("--model", action="append", choices=("bw", "bwbn"), help="run only this model (repeatable)")
     args = parser.parse_args(argv)
     for name in args.specimen:
-        s = run_specimen(args.data, name, args.seed, args.particles, args.out)
+        s = run_specimen(args.data, name, args.seed, args.particles, args.out, args.model)
         print(f"{name}: {s['stop_reason']} after {s['n_populations']} populations, {s['n_simulations']:,} simulations, "
               f"{s['wall_s']:.0f} s; p = {s['model_probabilities']}; NMSE at the posterior mean (%): "
               f"{ {k: round(v, 3) for k, v in s['nmse_posterior_mean'].items()} }")
