@@ -9,7 +9,7 @@ the source repository's ``displ_<name>.txt`` and ``load_kN_<name>.txt`` (one num
 Both records are scaled to a peak of 1 (the scales are printed and stored), the models of
 ``models.yaml`` are run in this process (ABC-NS, the evidence variant), and per specimen
 ``OUT/<name>-seed<N>.json`` gets the summary (model probabilities, posteriors), the scales and
-the NMSE of each model's posterior mean.
+the NMSE of each model's posterior mean, and ``<name>-seed<N>.png`` the measured and predicted loops.
 """
 
 from __future__ import annotations
@@ -55,14 +55,32 @@ def spec_for(x: np.ndarray, force: np.ndarray, seed: int, particles: int | None,
     return raw
 
 
-def posterior_mean_nmse(job, summary: dict, name: str) -> float:
-    """The NMSE (%) of the force simulated at the posterior mean (the summary's) of model ``name``."""
+def posterior_mean_force(job, summary: dict, name: str) -> np.ndarray:
+    """The force simulated at the posterior mean (the summary's) of model ``name``."""
     i = [m.name for m in job.models].index(name)
     model, sim = job.models[i], job.simulators[i]
     post = summary["posterior"][name]
     values = {**get(job.spec.models[i].simulator).defaults, **model.fixed, **{k: v["mean"] for k, v in post.items()}}
-    out = sim.simulate(np.array([[values[p] for p in sim.parameter_names]]))
-    return float(100 * np.mean((out.values[0] - job.observed) ** 2) / np.var(job.observed))
+    return sim.simulate(np.array([[values[p] for p in sim.parameter_names]])).values[0]
+
+
+def nmse(simulated: np.ndarray, observed: np.ndarray) -> float:
+    """Paper Eq. 7, in %."""
+    return float(100 * np.mean((simulated - observed) ** 2) / np.var(observed))
+
+
+def loop_figure(x: np.ndarray, observed: np.ndarray, predicted: dict[str, np.ndarray], title: str, path: Path) -> None:
+    """Measured and predicted (posterior mean) loops, scaled units (matplotlib's object API)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 5))
+    ax = fig.add_subplot()
+    ax.plot(x, observed, "k-", lw=0.8, label="measured")
+    for name, y in predicted.items():
+        ax.plot(x, y, lw=0.8, label=f"{name}, posterior mean (NMSE {nmse(y, observed):.2f} %)")
+    ax.set(xlabel="displacement / max|displacement|", ylabel="load / max|load|", title=title)
+    ax.legend(loc="upper left")
+    fig.savefig(path, dpi=90)
 
 
 def run_specimen(folder: Path, name: str, seed: int, particles: int | None, out: Path,
@@ -75,9 +93,11 @@ def run_specimen(folder: Path, name: str, seed: int, particles: int | None, out:
     summary = result.summary()
     summary["scales"] = {"displacement": x_scale, "load": f_scale}
     summary["wall_s"] = time.perf_counter() - t0
-    summary["nmse_posterior_mean"] = {m: posterior_mean_nmse(job, summary, m) for m in summary["posterior"]}
+    predicted = {m: posterior_mean_force(job, summary, m) for m in summary["posterior"]}
+    summary["nmse_posterior_mean"] = {m: nmse(y, job.observed) for m, y in predicted.items()}
     out.mkdir(parents=True, exist_ok=True)
     tag = "" if not only else "-" + "-".join(only)
+    loop_figure(job.force, job.observed, predicted, f"{name}, seed {seed}", out / f"{name}{tag}-seed{seed}.png")
     (out / f"{name}{tag}-seed{seed}.json").write_text(json.dumps(summary, indent=1, default=str))
     return summary
 
