@@ -24,6 +24,8 @@ GFLOP/s per core (AVX2, two FMA ports at ~3.5 GHz).
   counted; the output F = c v + k x + alpha z: 4 flops per sample.
 - Bouc-Wen-Baber-Noori restoring force (z and the energy e): 4 slopes x ~24 + 6 stage FMAs x 2
   + 10 = ~118 flops, plus 4 x (2 ``pow``, 2 ``exp``, 1 division), not counted.
+- Spencer's MR damper (y and z, in time): 4 stages x ~14 + 4 stage FMAs x 2 + 10 = ~74 flops
+  per RK4 step (n = 2), the output ~10 flops per sample.
 The per-sample bookkeeping (checks, squared error: ~4 flops) is added for the RK4 models. The
 restoring-force models run the same record length and substeps as Bouc-Wen, so their rates
 compare per sample with it (their ``goal`` is Bouc-Wen's).
@@ -45,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from worker.restoring import BoucWenRestoring, BWBNRestoring
+from worker.restoring import BoucWenRestoring, BWBNRestoring, SpencerMR
 from worker.simulators import BoucWen, Duffing, Linear
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -92,6 +94,17 @@ def restoring_setups(rng: np.random.Generator, n: int):
     bn = np.column_stack([bw, extra])
     yield ("bwbn_restoring", "1500 samples, 8 substeps, n real in 1..3", BWBNRestoring, kw, bn,
            flops_bwbn_restoring(1500, 8), 37_000)
+    # Spencer's MR damper around his 0 V values: 2 cycles of a 10 Hz, 10 mm sine at 8 kHz
+    x = 0.01 * np.sin(2 * np.pi * 10.0 * np.arange(1500) / 8000.0)
+    sp = np.array([1.4e4, 2100.0, 28300.0, 4690.0, 500.0, 0.0, 3.63e6, 3.63e6, 301.0, 2.0]) * rng.uniform(0.7, 1.4, (n, 10))
+    sp[:, 5] = 0.0
+    sp[:, 9] = 2.0
+    yield ("spencer_mr", "1500 samples at 8 kHz, 8 substeps, n = 2", SpencerMR, dict(force=x, dt=1 / 8000, substeps=8), sp,
+           flops_spencer(1500, 8), 37_000)
+
+
+def flops_spencer(n_samples: int, substeps: int) -> float:
+    return (n_samples - 1) * substeps * (4 * 14 + 8 + 10) + n_samples * 10
 
 
 def flops_linear(n_samples: int) -> float:

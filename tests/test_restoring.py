@@ -23,7 +23,7 @@ from abcns import SpecError
 from abcns.executor import OK
 from benchmarks import restoring as problem
 from service.spec import build, parse
-from worker.restoring import BoucWenRestoring, BWBNRestoring
+from worker.restoring import BoucWenRestoring, BWBNRestoring, SpencerMR
 
 SEED = int(os.environ.get("ABCNS_TEST_SEED", "1"))
 
@@ -59,6 +59,41 @@ def test_the_kernels_match_the_numpy_reference(cls, draw):
     d_ref, _ = cls(x, 0.01, substeps=3, backend="numpy").distance_nmse(params, observed, 0, x.size)
     assert np.all(status == OK)
     np.testing.assert_allclose(d, d_ref, rtol=1e-7)
+
+
+#: Spencer et al. (1997)'s values at 0 V in SI units (N, m, s): alpha 1.4e4 N/m, c0 2100 N s/m,
+#: c1 28300 N s/m, k0 4690 N/m, k1 500 N/m, x0 0, gamma = beta = 3.63e6 1/m^2, A 301, n 2
+SPENCER_0V = (1.4e4, 2100.0, 28300.0, 4690.0, 500.0, 0.0, 3.63e6, 3.63e6, 301.0, 2.0)
+
+
+def spencer_draw(rng: np.random.Generator, size: int, n: np.ndarray) -> np.ndarray:
+    """Around Spencer's 0 V values, each within a factor 1.4 (x0 +-1 mm)."""
+    p = np.array(SPENCER_0V)[None, :] * rng.uniform(0.7, 1.4, (size, 10))
+    p[:, 5] = rng.uniform(-1e-3, 1e-3, size)
+    p[:, 9] = n
+    return p
+
+
+def test_spencer_matches_its_reference_and_guards_a_coarse_step():
+    """Seed 2; a 2.5 Hz, 15 mm sine at 1 kHz (Spencer's test); n = 2 (Spencer's) or 2.5 (the
+    pow path; gamma and beta in units of 1/m^n: with n = 1 these values are ~100 times
+    stiffer). 32 RK4 steps per sample are stable for all 20 particles (z's rate reaches ~1e4
+    /s, so 1 ms steps are not): kernel and
+    reference agree to 1e-9 of the force's scale (FMA rounding, as above); at 1 substep the
+    |z| bound flags the unstable integration DIVERGED in both instead of returning garbage."""
+    rng = np.random.default_rng(2)
+    t = np.arange(1000) / 1000.0
+    x = 0.015 * np.sin(2 * np.pi * 2.5 * t)
+    params = spencer_draw(rng, 20, rng.choice([2.0, 2.5], 20))
+    fast = SpencerMR(x, 1e-3, substeps=32).simulate(params)
+    slow = SpencerMR(x, 1e-3, substeps=32, backend="numpy").simulate(params)
+    assert np.all(fast.status == OK) and np.all(slow.status == OK)
+    np.testing.assert_allclose(fast.values, slow.values, rtol=0, atol=1e-9 * np.max(np.abs(slow.values)))
+    p0 = np.array([SPENCER_0V])
+    for backend in ("numba", "numpy"):
+        assert SpencerMR(x, 1e-3, substeps=1, backend=backend).simulate(p0).status[0] != OK
+    peak = np.max(np.abs(SpencerMR(x, 1e-3, substeps=32).simulate(p0).values))
+    assert 400 < peak < 800  # N: Spencer et al.'s Fig. 4 at 0 V peaks near 600 N (their 1.5 cm, 2.5 Hz test)
 
 
 def test_bwbn_without_degradation_or_pinching_is_bouc_wen():
@@ -130,6 +165,9 @@ def test_a_valid_spec_builds(records):
      "models[0].priors.A", "leaves the valid range of A"),
     (lambda s: s["data"].update(input_interpolation="linear"), "data.input_interpolation", "does not take"),
     (lambda s: s["data"].pop("input"), "data.input", "needs an input"),
+    (lambda s: s["models"].append({"name": "mr", "simulator": "spencer_mr", "fixed": {"n": 2, "c0": 0},
+                                   "priors": {k: [0.5, 1] for k in ("alpha", "c1", "k0", "k1", "gamma", "beta", "A")}}),
+     "models[2].fixed.c0", "must be a number > 0"),
 ])
 def test_bad_input_is_refused_naming_the_field(records, change, field, words):
     raw = spec(*records)

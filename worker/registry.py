@@ -1,7 +1,7 @@
 """The registry of simulators, by name.
 
 Built-ins: ``duffing``, ``bouc_wen``, ``linear`` (exact, for a held or a linear input), ``gandk``
-(driven by a force, or none), and ``bouc_wen_restoring``, ``bwbn_restoring`` (driven by a measured
+(driven by a force, or none), and ``bouc_wen_restoring``, ``bwbn_restoring``, ``spencer_mr`` (driven by a measured
 displacement, predicting the force: :mod:`worker.restoring`).
 Plugins: any installed package can add simulators through the entry-point group
 ``abcns.simulators`` (``name = "package.module:factory"``); they must be installed on the
@@ -29,10 +29,11 @@ import importlib
 from importlib.metadata import EntryPoint, entry_points
 
 from abcns.priors import SpecError
-from worker.restoring import BoucWenRestoring, BWBNRestoring
+from worker.restoring import BoucWenRestoring, BWBNRestoring, SpencerMR
 from worker.simulators import BoucWen, Duffing, GAndK, Linear
 
-BUILTINS: dict[str, type] = {cls.name: cls for cls in (Duffing, BoucWen, Linear, GAndK, BoucWenRestoring, BWBNRestoring)}
+BUILTINS: dict[str, type] = {cls.name: cls for cls in (Duffing, BoucWen, Linear, GAndK, BoucWenRestoring, BWBNRestoring,
+                                                        SpencerMR)}
 GROUP = "abcns.simulators"
 
 

@@ -227,3 +227,88 @@ class BWBNRestoring(_Restoring):
 
     def _call(self, w, extra, kind, *args):
         self._kernels_r().bwbn_restoring_run(w, extra[0], self.force, self.velocity, self.substeps, *args)
+
+
+class SpencerMR(_Restoring):
+    """Spencer, Dyke, Sain & Carlson's modified Bouc-Wen model of an MR damper (J. Eng.
+    Mech. 123(3), 1997, Eqs. 6-8), driven by the displacement ``x``, at one coil voltage (its
+    voltage-dependent alpha, c0, c1 are plain parameters here: a record at constant voltage):
+
+    ``F = c1 y' + k1 (x - x0)``,
+    ``y' = (alpha z + c0 x' + k0 (x - y)) / (c0 + c1)``,
+    ``z' = -gamma |x' - y'| z |z|^(n-1) - beta (x' - y') |z|^n + A (x' - y')``.
+
+    The internal displacement ``y`` has dynamics of its own (the model is not rate
+    independent), so it is integrated in time: ``substeps`` RK4 steps per sample, the
+    displacement linear between samples (its velocity over step i ``(x[i+1] - x[i]) / dt``);
+    the output at a sample uses the central-difference velocity (module docstring).
+
+    Valid ranges (refused before a run, naming the field): c0, c1 > 0; alpha, k0, k1, A,
+    gamma >= 0; n in 0.5..10; beta, x0 any finite number. As for Bouc-Wen, ``|z|`` stays below
+    ``(A / (gamma + beta))^(1/n)`` when ``gamma + beta > 0``: a particle past 1.05 times that
+    (an RK4 step too coarse for its stiffness: refine ``substeps``) is DIVERGED."""
+
+    name = "spencer_mr"
+    parameter_names = ("alpha", "c0", "c1", "k0", "k1", "x0", "gamma", "beta", "A", "n")
+    defaults = {"x0": 0.0}
+    ranges = {"alpha": NONNEGATIVE, "c0": POSITIVE_OPEN, "c1": POSITIVE_OPEN, "k0": NONNEGATIVE, "k1": NONNEGATIVE,
+              "A": NONNEGATIVE, "gamma": NONNEGATIVE, "n": EXPONENT}
+    n_state = 3
+    n_column = 9
+
+    def _method(self) -> dict:
+        return {"substeps": self.substeps, "integration": "RK4 in time, displacement linear between samples",
+                "velocity": "central differences (numpy.gradient) at the samples; the step's slope within it"}
+
+    def _work(self, params):
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        parts = self._groups(params, self._kernels_r().SPENCER_ROWS, 4)
+        for _sel, w, _extra in parts:
+            with np.errstate(all="ignore"):
+                w[14] = 1.0 / (w[5] + w[6])
+            w[15] = self.z_bound(tuple(w[4 + j] for j in range(10)))
+        return parts
+
+    def z_bound(self, p: tuple) -> np.ndarray:
+        """As :meth:`worker.simulators.BoucWen.z_bound` (its alpha is this gamma, its beta this beta)."""
+        from worker.simulators import BoucWen
+
+        return BoucWen.z_bound(p[6], p[7], p[8], p[9])
+
+    def _call(self, w, extra, kind, *args):
+        self._kernels_r().spencer_run(w, extra[0], self.force, self.velocity, self.dt / self.substeps, self.substeps,
+                                      *args)
+
+    def _simulate_numpy(self, params: np.ndarray) -> SimOutput:
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        al, c0, c1, k0, k1, x0, ga, be, A, n = (params[:, j] for j in range(10))
+        x, v, h = self.force, self.velocity, self.dt / self.substeps
+        y, z = np.zeros(params.shape[0]), np.zeros(params.shape[0])
+        out = np.empty((params.shape[0], x.size))
+        bad = np.zeros(params.shape[0], dtype=bool)
+
+        def rates(xt, vt, y, z):
+            yd = (al * z + c0 * vt + k0 * (xt - y)) / (c0 + c1)
+            u = vt - yd
+            return yd, u * (A - np.abs(z) ** n * (be + ga * np.sign(u * z)))
+
+        zmax = self.z_bound((al, c0, c1, k0, k1, x0, ga, be, A, n))
+        with np.errstate(all="ignore"):
+            for i in range(x.size):
+                z = np.where(np.abs(z) > zmax, np.nan, z)
+                yd = (al * z + c0 * v[i] + k0 * (x[i] - y)) / (c0 + c1)
+                f = c1 * yd + k1 * (x[i] - x0)
+                bad |= ~np.isfinite(f) | ~np.isfinite(y) | ~np.isfinite(z) | (np.abs(f) > self.state_bound)
+                y[bad], z[bad] = 0.0, 0.0
+                out[:, i] = np.where(bad, 0.0, f)
+                if i + 1 < x.size:
+                    vs = (x[i + 1] - x[i]) / self.dt
+                    for s in range(self.substeps):
+                        xa = x[i] + vs * (s * h)
+                        a1, b1 = rates(xa, vs, y, z)
+                        a2, b2 = rates(xa + vs * 0.5 * h, vs, y + 0.5 * h * a1, z + 0.5 * h * b1)
+                        a3, b3 = rates(xa + vs * 0.5 * h, vs, y + 0.5 * h * a2, z + 0.5 * h * b2)
+                        a4, b4 = rates(xa + vs * h, vs, y + h * a3, z + h * b3)
+                        y = y + (h / 6.0) * ((a1 + a4) + 2.0 * (a2 + a3))
+                        z = z + (h / 6.0) * ((b1 + b4) + 2.0 * (b2 + b3))
+        return SimOutput(out, np.where(bad, DIVERGED, OK).astype(np.int8))

@@ -297,3 +297,111 @@ def _steps_bwbn(w, n_act, dx, s, substeps, n_exp):
         _bwbn_4(w, n_act, dx, s, substeps)
     else:
         _bwbn_0(w, n_act, dx, s, substeps)
+
+
+# --------------------------------------------------------------------------- Spencer (MR damper)
+
+# rows: 0 F, 1 y, 2 z, 3 acc, 4 alpha, 5 c0, 6 c1, 7 k0, 8 k1, 9 x0, 10 gamma, 11 beta, 12 A, 13 n, 14 1/(c0 + c1),
+# 15 |z| bound (inf: none)
+SPENCER_ROWS = 16
+
+
+@njit(inline="always", **_JIT)
+def _spencer_rates(x, v, y, z, p, n_exp):
+    """(y', z') of Spencer et al.'s modified Bouc-Wen at displacement x and velocity v:
+    ``y' = (alpha z + c0 v + k0 (x - y)) / (c0 + c1)``,
+    ``z' = -gamma |u| z |z|^(n-1) - beta u |z|^n + A u`` with ``u = v - y'``; ``p``:
+    (alpha, c0, k0, gamma, beta, A, n, 1 / (c0 + c1))."""
+    al, c0, k0, ga, be, A, n, inv = p
+    yd = (al * z + c0 * v + k0 * (x - y)) * inv
+    u = v - yd
+    az = abs(z)
+    zd = u * (A - _pow(az, n, n_exp) * (be + ga * math.copysign(1.0, u * z)))
+    return yd, zd
+
+
+@njit(**_JIT)
+def _spencer_steps(w, n_act, x0, v, h, substeps, n_exp):
+    """Advance (y, z) over one sample step in time: ``substeps`` RK4 steps of size ``h``,
+    the displacement ``x0 + v t`` (linear between samples, velocity ``v`` over the step)."""
+    y = w[1]
+    z = w[2]
+    hh = 0.5 * h
+    h6 = h / 6.0
+    for s in range(substeps):
+        xa = x0 + v * (s * h)
+        xm = xa + v * hh
+        xb = xa + v * h
+        for j in range(n_act):
+            p = (w[4, j], w[5, j], w[7, j], w[10, j], w[11, j], w[12, j], w[13, j], w[14, j])
+            y0 = y[j]
+            z0 = z[j]
+            a1, b1 = _spencer_rates(xa, v, y0, z0, p, n_exp)
+            a2, b2 = _spencer_rates(xm, v, y0 + hh * a1, z0 + hh * b1, p, n_exp)
+            a3, b3 = _spencer_rates(xm, v, y0 + hh * a2, z0 + hh * b2, p, n_exp)
+            a4, b4 = _spencer_rates(xb, v, y0 + h * a3, z0 + h * b3, p, n_exp)
+            y[j] = y0 + h6 * ((a1 + a4) + 2.0 * (a2 + a3))
+            z[j] = z0 + h6 * ((b1 + b4) + 2.0 * (b2 + b3))
+
+
+@njit(**_JIT)
+def _spencer_output(w, n_act, x, v, out):
+    """``F = c1 y' + k1 (x - x0)`` with y' at the sample's velocity ``v``."""
+    F = w[0]
+    y = w[1]
+    z = w[2]
+    for j in range(n_act):
+        yd = (w[4, j] * z[j] + w[5, j] * v + w[7, j] * (x - y[j])) * w[14, j]
+        f = w[6, j] * yd + w[8, j] * (x - w[9, j])
+        F[j] = f
+        out[j] = f
+
+
+@njit(**_JIT)
+def spencer_run(w, n_exp, disp, vel, h, substeps, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist,
+                status):
+    """Run a Spencer MR-damper batch in place. ``w`` is ``(SPENCER_ROWS, n)``; ``h`` the RK4
+    step in time (dt / substeps); ``n_exp`` as in :func:`bw_restoring_run` (row 13)."""
+    n = w.shape[1]
+    idx = cols.copy()
+    out = np.empty(n)
+    flag = np.zeros(n, dtype=np.int8)
+    n_act = n
+    ns = disp.shape[0]
+    dt = h * substeps
+    z = w[2]
+    zmax = w[15]
+    for i in range(ns):
+        for j in range(n_act):  # past the bound the equation implies: the integration is wrong
+            if abs(z[j]) > zmax[j]:
+                z[j] = np.nan  # the finiteness test below flags it DIVERGED
+        _spencer_output(w, n_act, disp[i], vel[i], out)
+        if _account(w, 3, 3, n_act, i, out, bound, obs, start, stop, scale, eps, want_traj, traj, idx, flag,
+                    dist, status):
+            n_act = _compact(w, idx, flag, n_act)
+            if n_act == 0:
+                return
+        if i + 1 < ns:
+            v = (disp[i + 1] - disp[i]) / dt
+            if n_exp == 1:
+                _spencer_1(w, n_act, disp[i], v, h, substeps)
+            elif n_exp == 2:
+                _spencer_2(w, n_act, disp[i], v, h, substeps)
+            else:
+                _spencer_0(w, n_act, disp[i], v, h, substeps)
+    _finish(w, 3, n_act, scale, idx, dist, status)
+
+
+@njit(**_JIT)
+def _spencer_0(w, n_act, x0, v, h, substeps):
+    _spencer_steps(w, n_act, x0, v, h, substeps, 0)
+
+
+@njit(**_JIT)
+def _spencer_1(w, n_act, x0, v, h, substeps):
+    _spencer_steps(w, n_act, x0, v, h, substeps, 1)
+
+
+@njit(**_JIT)
+def _spencer_2(w, n_act, x0, v, h, substeps):
+    _spencer_steps(w, n_act, x0, v, h, substeps, 2)
