@@ -18,6 +18,9 @@ displacement, z(0) = 0):
   ``z_u = (A / (nu (beta + gamma)))^(1/n)``, ``zeta_1 = zeta_s (1 - exp(-p e))``,
   ``zeta_2 = (psi + delta_psi e) (lambda + zeta_1)``.
 
+A third, ``spencer_mr`` (:class:`SpencerMR`), is Spencer et al.'s modified Bouc-Wen for MR
+dampers, integrated in time (its internal displacement has dynamics); see its docstring.
+
 Note the names: ``alpha`` here weighs the hysteretic force (Ortiz's (1 - alpha) k), and
 ``beta``/``gamma`` are the ``|x'|`` and ``x'`` coefficients; in the force-driven
 ``bouc_wen`` (paper Eq. 15) those two are called ``alpha`` and ``beta``.
