@@ -19,7 +19,16 @@ GFLOP/s per core (AVX2, two FMA ports at ~3.5 GHz).
   (final combination) = 92 flops.
 - Linear exact ZOH sample: 2 x (mul + 2 FMA) = 10 for the recursion + 3 for the squared
   error = 13 flops; plus ~ 400 once per particle for the transition coefficients.
-The per-sample bookkeeping (checks, squared error: ~4 flops) is added for the RK4 models.
+- Bouc-Wen restoring force (displacement-driven, one state z): RK4 step in x: 4 slopes x 4
+  + 3 stage FMAs x 2 + 5 (final combination) = 27 flops, plus 4 ``pow`` (|z|^n, n real), not
+  counted; the output F = c v + k x + alpha z: 4 flops per sample.
+- Bouc-Wen-Baber-Noori restoring force (z and the energy e): 4 slopes x ~24 + 6 stage FMAs x 2
+  + 10 = ~118 flops, plus 4 x (2 ``pow``, 2 ``exp``, 1 division), not counted.
+- Spencer's MR damper (y and z, in time): 4 stages x ~14 + 4 stage FMAs x 2 + 10 = ~74 flops
+  per RK4 step (n = 2), the output ~10 flops per sample.
+The per-sample bookkeeping (checks, squared error: ~4 flops) is added for the RK4 models. The
+restoring-force models run the same record length and substeps as Bouc-Wen, so their rates
+compare per sample with it (their ``goal`` is Bouc-Wen's).
 """
 
 from __future__ import annotations
@@ -38,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from worker.restoring import BoucWenRestoring, BWBNRestoring, SpencerMR
 from worker.simulators import BoucWen, Duffing, Linear
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,6 +61,50 @@ def flops_duffing(n_samples: int, substeps: int) -> float:
 
 def flops_bouc_wen(n_samples: int, substeps: int) -> float:
     return (n_samples - 1) * substeps * 92 + n_samples * 4
+
+
+def flops_bw_restoring(n_samples: int, substeps: int) -> float:
+    return (n_samples - 1) * substeps * 27 + n_samples * 8
+
+
+def flops_bwbn_restoring(n_samples: int, substeps: int) -> float:
+    return (n_samples - 1) * substeps * 118 + n_samples * 8
+
+
+def restoring_setups(rng: np.random.Generator, n: int):
+    """The displacement-driven models over a growing sine (1500 samples, 5 cycles, amplitude
+    to 3 yield displacements), 8 substeps as Bouc-Wen; n = 2 (fixed) and n real in 1..3."""
+    t = np.arange(1500) / 300.0
+    x = 3.0 * (0.2 + 0.8 * t / t[-1]) * np.sin(2 * np.pi * t)
+    bw = np.column_stack([np.zeros(n), rng.uniform(0.05, 0.2, n), rng.uniform(0.5, 2.0, n), rng.uniform(0.5, 1.5, n),
+                          rng.uniform(0.3, 0.8, n), rng.uniform(-0.2, 0.3, n), np.full(n, 2.0)])
+    kw = dict(force=x, dt=1 / 300, substeps=8)
+    yield ("bouc_wen_restoring", "1500 samples, 8 substeps, n = 2", BoucWenRestoring, kw, bw,
+           flops_bw_restoring(1500, 8), 37_000)
+    bw = bw.copy()
+    bw[:, 6] = rng.uniform(1.0, 3.0, n)
+    yield ("bouc_wen_restoring", "1500 samples, 8 substeps, n real in 1..3", BoucWenRestoring, kw, bw,
+           flops_bw_restoring(1500, 8), 37_000)
+    extra = np.column_stack([rng.uniform(0.0, 0.1, n), rng.uniform(0.0, 0.1, n), rng.uniform(0.5, 2.0, n),
+                             rng.uniform(0.3, 0.9, n), rng.uniform(0.1, 0.5, n), np.zeros(n), rng.uniform(0.1, 1.0, n),
+                             rng.uniform(0.0, 0.3, n)])
+    bn = np.column_stack([bw[:, :6], np.full(n, 2.0), extra])
+    yield ("bwbn_restoring", "1500 samples, 8 substeps, n = 2", BWBNRestoring, kw, bn,
+           flops_bwbn_restoring(1500, 8), 37_000)
+    bn = np.column_stack([bw, extra])
+    yield ("bwbn_restoring", "1500 samples, 8 substeps, n real in 1..3", BWBNRestoring, kw, bn,
+           flops_bwbn_restoring(1500, 8), 37_000)
+    # Spencer's MR damper around his 0 V values: 2 cycles of a 10 Hz, 10 mm sine at 8 kHz
+    x = 0.01 * np.sin(2 * np.pi * 10.0 * np.arange(1500) / 8000.0)
+    sp = np.array([1.4e4, 2100.0, 28300.0, 4690.0, 500.0, 0.0, 3.63e6, 3.63e6, 301.0, 2.0]) * rng.uniform(0.7, 1.4, (n, 10))
+    sp[:, 5] = 0.0
+    sp[:, 9] = 2.0
+    yield ("spencer_mr", "1500 samples at 8 kHz, 8 substeps, n = 2", SpencerMR, dict(force=x, dt=1 / 8000, substeps=8), sp,
+           flops_spencer(1500, 8), 37_000)
+
+
+def flops_spencer(n_samples: int, substeps: int) -> float:
+    return (n_samples - 1) * substeps * (4 * 14 + 8 + 10) + n_samples * 10
 
 
 def flops_linear(n_samples: int) -> float:
@@ -75,6 +129,7 @@ def setups(rng: np.random.Generator):
     f = rng.standard_normal(500)
     lin = np.column_stack([np.ones(n), rng.uniform(0.5, 5.0, n), rng.uniform(1e3, 1e4, n)])
     yield "linear", "500 samples, exact ZOH", Linear, dict(force=f, dt=0.01), lin, flops_linear(500), 1_000_000
+    yield from restoring_setups(rng, n)
 
 
 def _timed(fn, *args) -> float:
@@ -105,6 +160,11 @@ BoucWen(f, 0.01, substeps=2).simulate(np.array([[1.0, 1, 1, 1, 1, 1, 2]]))
 BoucWen(f, 0.01, substeps=2).distance_nmse(np.array([[1.0, 1, 1, 1, 1, 1, 2]]), f, 0, 50)
 Linear(f, 0.01).simulate(np.array([[1.0, 1, 1]]))
 Linear(f, 0.01).distance_nmse(np.array([[1.0, 1, 1]]), f, 0, 50)
+from worker.restoring import BoucWenRestoring, BWBNRestoring
+BoucWenRestoring(f, 0.01).simulate(np.array([[0.0, 1, 1, 1, 1, 0, 2]]))
+BoucWenRestoring(f, 0.01).distance_nmse(np.array([[0.0, 1, 1, 1, 1, 0, 2]]), f, 0, 50)
+BWBNRestoring(f, 0.01).simulate(np.array([[0.0, 1, 1, 1, 1, 0, 2, 0, 0, 1, 0.5, 0.2, 0, 0.5, 0.1]]))
+BWBNRestoring(f, 0.01).distance_nmse(np.array([[0.0, 1, 1, 1, 1, 0, 2, 0, 0, 1, 0.5, 0.2, 0, 0.5, 0.1]]), f, 0, 50)
 t2 = time.perf_counter()
 print(json.dumps({"import": t1 - t0, "first_calls": t2 - t1}))
 """

@@ -85,7 +85,7 @@ from abcns.executor import DIVERGED, OK  # noqa: E402
 
 _FM = {"contract"}
 _BIG = 1.7976931348623157e308  # the largest finite double
-OUTPUT_CODES = {"displacement": 0, "velocity": 1, "acceleration": 2}
+OUTPUT_CODES = {"displacement": 0, "velocity": 1, "acceleration": 2, "force": 3}  # force: worker/restoring.py
 
 
 class _JitOptions(TypedDict):

@@ -1,0 +1,317 @@
+"""Restoring-force models driven by a measured displacement: the spec's input record
+(``data.input``) is the displacement ``x`` imposed on the device or specimen, the observed
+record (``data.observed``) the force it resists with. Causality is the reverse of the
+force-driven oscillators of :mod:`worker.simulators` (no mass, no equation of motion).
+
+Both models are ``F = c x' + k x + alpha z`` with the hysteretic state ``z`` (a
+displacement, z(0) = 0):
+
+- ``bouc_wen_restoring`` (:class:`BoucWenRestoring`):
+  ``z' = x' (A - |z|^n (beta sign(x' z) + gamma))``;
+- ``bwbn_restoring`` (:class:`BWBNRestoring`), Bouc-Wen-Baber-Noori in the form of Foliente
+  (J. Struct. Eng. 121(6), 1995) as Ortiz, Alvarez & Bedoya-Ruiz (Comput. Struct. 146, 2015)
+  use it, with their nu0 = eta0 = 1 and no degradation of A (delta_A = 0):
+  ``z' = h(z, e) x' (A - nu |z|^n (beta sign(x' z) + gamma)) / eta``,
+  ``nu = 1 + delta_nu e``, ``eta = 1 + delta_eta e``, ``e(t) = alpha * integral of z dx``
+  (the work of the hysteretic force), and the pinching function
+  ``h = 1 - zeta_1 exp(-(z sign(x') - q z_u)^2 / zeta_2^2)`` with
+  ``z_u = (A / (nu (beta + gamma)))^(1/n)``, ``zeta_1 = zeta_s (1 - exp(-p e))``,
+  ``zeta_2 = (psi + delta_psi e) (lambda + zeta_1)``.
+
+A third, ``spencer_mr`` (:class:`SpencerMR`), is Spencer et al.'s modified Bouc-Wen for MR
+dampers, integrated in time (its internal displacement has dynamics); see its docstring.
+
+Note the names: ``alpha`` here weighs the hysteretic force (Ortiz's (1 - alpha) k), and
+``beta``/``gamma`` are the ``|x'|`` and ``x'`` coefficients; in the force-driven
+``bouc_wen`` (paper Eq. 15) those two are called ``alpha`` and ``beta``.
+
+Velocity rule: the viscous term uses ``v_i = (x[i+1] - x[i-1]) / (2 dt)`` (central
+differences, one-sided ``(x[1] - x[0]) / dt`` and ``(x[-1] - x[-2]) / dt`` at the ends;
+``numpy.gradient``); the hysteretic state sees the displacement moving on a straight line
+between samples (first-order hold) and is integrated in ``x`` itself (the models are rate
+independent): ``substeps`` classical RK4 steps of ``dz/dx`` per sample step. With ``c = 0``
+(the default) the sample interval plays no role at all, as for quasi-static tests.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from abcns.executor import DIVERGED, OK
+from abcns.priors import SpecError
+from worker.simulators import Oscillator, Range, SimOutput, _substeps
+
+NONNEGATIVE = Range(0.0, math.inf)
+POSITIVE_OPEN = Range(0.0, math.inf, low_open=True)
+#: the exponent n: real, 0.5..10 (|z|^n by pow; past 10 the loops are a step function)
+EXPONENT = Range(0.5, 10.0)
+
+
+def _displacement(x) -> np.ndarray:
+    """The displacement record, checked (non-finite samples refused naming ``data.input``)."""
+    if x is None:
+        raise SpecError("data.input", "this simulator needs the displacement record as its input")
+    x = np.asarray(x, dtype=float)
+    if x.ndim != 1 or x.size < 2:
+        raise SpecError("data.input", f"the displacement must be a 1-d array of at least 2 samples, got shape {x.shape}")
+    bad = np.flatnonzero(~np.isfinite(x))
+    if bad.size:
+        raise SpecError("data.input", f"the displacement has non-finite values (sample {bad[0]} is {x[bad[0]]})")
+    return x
+
+
+class _Restoring(Oscillator):
+    """The shared part: the displacement record, its velocity, the backend dispatch and the
+    in-kernel NMSE of :class:`worker.simulators.Oscillator`."""
+
+    n_state = 2
+
+    def __init__(self, force=None, dt: float = 0.01, substeps: int = 1, state_bound: float = np.inf,
+                 backend: str = "numba"):
+        super().__init__(_displacement(force), dt, output="displacement", state_bound=state_bound, backend=backend)
+        self.output = "force"
+        self.substeps = _substeps(substeps)
+        self.velocity = np.gradient(self.force, self.dt)
+
+    @property
+    def displacement(self) -> np.ndarray:
+        return self.force
+
+    def _method(self) -> dict:
+        return {"substeps": self.substeps, "integration": "RK4 in x, displacement linear between samples",
+                "velocity": "central differences (numpy.gradient)"}
+
+    def config(self) -> dict:
+        cfg = super().config()
+        cfg.pop("input_interpolation")
+        return {**cfg, "input": "displacement"}
+
+    def slopes(self, p: tuple, state: list[np.ndarray], s: float) -> list[np.ndarray]:
+        """(numpy reference) d state / dx for every particle, s the sign of dx."""
+        raise NotImplementedError
+
+    def z_bound(self, p: tuple) -> np.ndarray:
+        return np.full(p[0].shape, np.inf)
+
+    def _simulate_numpy(self, params: np.ndarray) -> SimOutput:
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        n = params.shape[0]
+        p = tuple(params[:, j] for j in range(params.shape[1]))
+        c, k, al = p[0], p[1], p[2]
+        x, v = self.force, self.velocity
+        state = [np.zeros(n) for _ in range(self.n_state - 1)]
+        zmax = self.z_bound(p)
+        out = np.empty((n, x.size))
+        bad = np.zeros(n, dtype=bool)
+        with np.errstate(all="ignore"):
+            for i in range(x.size):
+                state[0] = np.where(np.abs(state[0]) > zmax, np.nan, state[0])
+                f = c * v[i] + k * x[i] + al * state[0]
+                now = ~np.isfinite(f) | (np.abs(f) > self.state_bound)
+                for s_ in state:
+                    now |= ~np.isfinite(s_)
+                bad |= now
+                for s_ in state:
+                    s_[bad] = 0.0
+                out[:, i] = np.where(bad, 0.0, f)
+                if i + 1 < x.size and x[i + 1] != x[i]:
+                    state = self._rk4_numpy(p, state, x[i + 1] - x[i])
+        return SimOutput(out, np.where(bad, DIVERGED, OK).astype(np.int8))
+
+    def _rk4_numpy(self, p: tuple, state: list[np.ndarray], d: float) -> list[np.ndarray]:
+        h, s = d / self.substeps, float(np.sign(d))
+        for _ in range(self.substeps):
+            k1 = self.slopes(p, state, s)
+            k2 = self.slopes(p, [a + 0.5 * h * b for a, b in zip(state, k1, strict=True)], s)
+            k3 = self.slopes(p, [a + 0.5 * h * b for a, b in zip(state, k2, strict=True)], s)
+            k4 = self.slopes(p, [a + h * b for a, b in zip(state, k3, strict=True)], s)
+            state = [a + (h / 6.0) * ((b1 + b4) + 2.0 * (b2 + b3)) for a, b1, b2, b3, b4 in zip(state, k1, k2, k3, k4,
+                                                                                                strict=True)]
+        return state
+
+    #: the column of the exponent n in the parameter vector
+    n_column = 6
+
+    def _groups(self, params: np.ndarray, rows: int, first: int):
+        """The kernel calls: one per exponent code (an integer n in 1..4 is specialised, any
+        other n is code 0), each with the parameters in rows ``first..`` of its work array."""
+        n = params[:, self.n_column]
+        codes = np.where(np.isin(n, (1.0, 2.0, 3.0, 4.0)), n, 0.0).astype(np.int64)
+        groups = np.unique(codes)
+        parts = []
+        for g in groups:
+            sel = None if groups.size == 1 else np.flatnonzero(codes == g)
+            p = params if sel is None else params[sel]
+            w = np.zeros((rows, p.shape[0]))
+            w[first : first + p.shape[1]] = p.T
+            parts.append((sel, w, (int(g),)))
+        return parts
+
+    def _kernels_r(self):
+        from worker import restoring_kernels
+
+        return restoring_kernels
+
+
+class BoucWenRestoring(_Restoring):
+    """Bouc-Wen restoring force driven by the displacement (module docstring):
+    ``F = c x' + k x + alpha z``, ``z' = x' (A - |z|^n (beta sign(x' z) + gamma))``.
+
+    Valid ranges (refused before a run, naming the field): c, alpha, A, beta >= 0; n in
+    0.5..10 (real); k and gamma any finite number (beta + gamma > 0 keeps z bounded, by
+    ``(A / (beta + gamma))^(1/n)``; a particle past that bound, or with a non-finite state,
+    is DIVERGED)."""
+
+    name = "bouc_wen_restoring"
+    parameter_names = ("c", "k", "alpha", "A", "beta", "gamma", "n")
+    defaults = {"c": 0.0}
+    ranges = {"c": NONNEGATIVE, "alpha": NONNEGATIVE, "A": NONNEGATIVE, "beta": NONNEGATIVE,
+              "n": EXPONENT}
+
+    def z_bound(self, p: tuple) -> np.ndarray:
+        """As :meth:`worker.simulators.BoucWen.z_bound` (its alpha is this beta, its beta this gamma)."""
+        from worker.simulators import BoucWen
+
+        return BoucWen.z_bound(p[4], p[5], p[3], p[6])
+
+    def slopes(self, p, state, s):
+        _c, _k, _al, A, beta, gamma, n = p
+        z = state[0]
+        return [A - np.abs(z) ** n * (beta * np.sign(s * z + (z == 0)) + gamma)]
+
+    def _work(self, params):
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        parts = self._groups(params, self._kernels_r().BW_ROWS, 3)
+        for _sel, w, _extra in parts:
+            w[10] = self.z_bound(tuple(w[3 + j] for j in range(7)))
+        return parts
+
+    def _call(self, w, extra, kind, *args):
+        self._kernels_r().bw_restoring_run(w, extra[0], self.force, self.velocity, self.substeps, *args)
+
+
+class BWBNRestoring(_Restoring):
+    """Bouc-Wen-Baber-Noori restoring force driven by the displacement (module docstring):
+    energy-based strength (``delta_nu``) and stiffness (``delta_eta``) degradation and
+    pinching (``zeta_s``, ``p``, ``q``, ``psi``, ``delta_psi``, ``lambda``).
+
+    Valid ranges (refused before a run, naming the field): c, alpha, A, beta, delta_nu,
+    delta_eta, p, delta_psi >= 0; n in 0.5..10; zeta_s in [0, 1) (h stays positive); q in
+    [0, 1); psi > 0 and lambda > 0 (zeta_2 > 0). With zeta_s = 0 and delta_nu = delta_eta = 0
+    it is :class:`BoucWenRestoring`."""
+
+    name = "bwbn_restoring"
+    parameter_names = ("c", "k", "alpha", "A", "beta", "gamma", "n", "delta_nu", "delta_eta", "p", "zeta_s", "psi",
+                       "delta_psi", "lambda", "q")
+    defaults = {"c": 0.0, "delta_psi": 0.0}
+    ranges = {
+        "c": NONNEGATIVE, "alpha": NONNEGATIVE, "A": NONNEGATIVE, "beta": NONNEGATIVE, "n": EXPONENT,
+        "delta_nu": NONNEGATIVE, "delta_eta": NONNEGATIVE, "p": NONNEGATIVE,
+        "zeta_s": Range(0.0, 1.0, high_open=True), "psi": POSITIVE_OPEN, "delta_psi": NONNEGATIVE,
+        "lambda": POSITIVE_OPEN, "q": Range(0.0, 1.0, high_open=True)}
+    n_state = 3
+
+    def slopes(self, p, state, s):
+        _c, _k, al, A, beta, gamma, n, dnu, deta, pp, zs, psi, dpsi, lam, q = p
+        z, e = state
+        nu = 1.0 + dnu * e
+        zu = (A / (nu * (beta + gamma))) ** (1.0 / n)
+        z1 = zs * (1.0 - np.exp(-pp * e))
+        z2 = (psi + dpsi * e) * (lam + z1)
+        h = 1.0 - z1 * np.exp(-(((s * z - q * zu) / z2) ** 2))
+        g = A - nu * np.abs(z) ** n * (beta * np.sign(s * z + (z == 0)) + gamma)
+        return [h * g / (1.0 + deta * e), al * z]
+
+    def _work(self, params):
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        return self._groups(params, self._kernels_r().BWBN_ROWS, 4)
+
+    def _call(self, w, extra, kind, *args):
+        self._kernels_r().bwbn_restoring_run(w, extra[0], self.force, self.velocity, self.substeps, *args)
+
+
+class SpencerMR(_Restoring):
+    """Spencer, Dyke, Sain & Carlson's modified Bouc-Wen model of an MR damper (J. Eng.
+    Mech. 123(3), 1997, Eqs. 6-8), driven by the displacement ``x``, at one coil voltage (its
+    voltage-dependent alpha, c0, c1 are plain parameters here: a record at constant voltage):
+
+    ``F = c1 y' + k1 (x - x0)``,
+    ``y' = (alpha z + c0 x' + k0 (x - y)) / (c0 + c1)``,
+    ``z' = -gamma |x' - y'| z |z|^(n-1) - beta (x' - y') |z|^n + A (x' - y')``.
+
+    The internal displacement ``y`` has dynamics of its own (the model is not rate
+    independent), so it is integrated in time: ``substeps`` RK4 steps per sample, the
+    displacement linear between samples (its velocity over step i ``(x[i+1] - x[i]) / dt``);
+    the output at a sample uses the central-difference velocity (module docstring).
+
+    Valid ranges (refused before a run, naming the field): c0, c1 > 0; alpha, k0, k1, A,
+    gamma >= 0; n in 0.5..10; beta, x0 any finite number. As for Bouc-Wen, ``|z|`` stays below
+    ``(A / (gamma + beta))^(1/n)`` when ``gamma + beta > 0``: a particle past 1.05 times that
+    (an RK4 step too coarse for its stiffness: refine ``substeps``) is DIVERGED."""
+
+    name = "spencer_mr"
+    parameter_names = ("alpha", "c0", "c1", "k0", "k1", "x0", "gamma", "beta", "A", "n")
+    defaults = {"x0": 0.0}
+    ranges = {"alpha": NONNEGATIVE, "c0": POSITIVE_OPEN, "c1": POSITIVE_OPEN, "k0": NONNEGATIVE, "k1": NONNEGATIVE,
+              "A": NONNEGATIVE, "gamma": NONNEGATIVE, "n": EXPONENT}
+    n_state = 3
+    n_column = 9
+
+    def _method(self) -> dict:
+        return {"substeps": self.substeps, "integration": "RK4 in time, displacement linear between samples",
+                "velocity": "central differences (numpy.gradient) at the samples; the step's slope within it"}
+
+    def _work(self, params):
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        parts = self._groups(params, self._kernels_r().SPENCER_ROWS, 4)
+        for _sel, w, _extra in parts:
+            with np.errstate(all="ignore"):
+                w[14] = 1.0 / (w[5] + w[6])
+            w[15] = self.z_bound(tuple(w[4 + j] for j in range(10)))
+        return parts
+
+    def z_bound(self, p: tuple) -> np.ndarray:
+        """As :meth:`worker.simulators.BoucWen.z_bound` (its alpha is this gamma, its beta this beta)."""
+        from worker.simulators import BoucWen
+
+        return BoucWen.z_bound(p[6], p[7], p[8], p[9])
+
+    def _call(self, w, extra, kind, *args):
+        self._kernels_r().spencer_run(w, extra[0], self.force, self.velocity, self.dt / self.substeps, self.substeps,
+                                      *args)
+
+    def _simulate_numpy(self, params: np.ndarray) -> SimOutput:
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        al, c0, c1, k0, k1, x0, ga, be, A, n = (params[:, j] for j in range(10))
+        x, v, h = self.force, self.velocity, self.dt / self.substeps
+        y, z = np.zeros(params.shape[0]), np.zeros(params.shape[0])
+        out = np.empty((params.shape[0], x.size))
+        bad = np.zeros(params.shape[0], dtype=bool)
+
+        def rates(xt, vt, y, z):
+            yd = (al * z + c0 * vt + k0 * (xt - y)) / (c0 + c1)
+            u = vt - yd
+            return yd, u * (A - np.abs(z) ** n * (be + ga * np.sign(u * z)))
+
+        zmax = self.z_bound((al, c0, c1, k0, k1, x0, ga, be, A, n))
+        with np.errstate(all="ignore"):
+            for i in range(x.size):
+                z = np.where(np.abs(z) > zmax, np.nan, z)
+                yd = (al * z + c0 * v[i] + k0 * (x[i] - y)) / (c0 + c1)
+                f = c1 * yd + k1 * (x[i] - x0)
+                bad |= ~np.isfinite(f) | ~np.isfinite(y) | ~np.isfinite(z) | (np.abs(f) > self.state_bound)
+                y[bad], z[bad] = 0.0, 0.0
+                out[:, i] = np.where(bad, 0.0, f)
+                if i + 1 < x.size:
+                    vs = (x[i + 1] - x[i]) / self.dt
+                    for s in range(self.substeps):
+                        xa = x[i] + vs * (s * h)
+                        a1, b1 = rates(xa, vs, y, z)
+                        a2, b2 = rates(xa + vs * 0.5 * h, vs, y + 0.5 * h * a1, z + 0.5 * h * b1)
+                        a3, b3 = rates(xa + vs * 0.5 * h, vs, y + 0.5 * h * a2, z + 0.5 * h * b2)
+                        a4, b4 = rates(xa + vs * h, vs, y + h * a3, z + h * b3)
+                        y = y + (h / 6.0) * ((a1 + a4) + 2.0 * (a2 + a3))
+                        z = z + (h / 6.0) * ((b1 + b4) + 2.0 * (b2 + b3))
+        return SimOutput(out, np.where(bad, DIVERGED, OK).astype(np.int8))
