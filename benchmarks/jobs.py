@@ -90,9 +90,10 @@ def plain_processes(spec: JobSpec, base: Path, folder: Path, seeds: range, n: in
         return time.monotonic() - start
 
 
-def through_service(spec: JobSpec, base: Path, folder: Path, seeds: range, n: int) -> tuple[float, dict[int, Path], Counter]:
-    """Seconds for the jobs submitted at once to `abcns serve` on ``n`` stock workers, their
-    stores by seed, and their placements."""
+def through_service(spec: JobSpec, base: Path, folder: Path, seeds: range,
+                    n: int) -> tuple[float, float, dict[int, Path], Counter]:
+    """Seconds for the jobs submitted at once to `abcns serve` on ``n`` stock workers, the
+    seconds their submissions took, their stores by seed, and their placements."""
     import httpx
 
     from benchmarks.harness import AUTH, Service, StockCluster, wait_until
@@ -107,6 +108,7 @@ def through_service(spec: JobSpec, base: Path, folder: Path, seeds: range, n: in
             start = time.time()
             ids = {seed: http.post(f"{service.url}/jobs", json={**raw, "seed": seed, "name": f"seed-{seed}"}).json()["id"]
                    for seed in seeds}
+            submitted = time.time() - start
 
             def ended() -> bool:
                 return all(j["status"] in ("finished", "failed", "cancelled") for j in http.get(f"{service.url}/jobs").json())
@@ -120,7 +122,7 @@ def through_service(spec: JobSpec, base: Path, folder: Path, seeds: range, n: in
             last = max(last, events[-1]["time"])
             placed = [e["data"]["placement"] for e in events if e["event"] == "placed"]
             places[placed[0]["mode"] if placed else "?"] += 1
-        return last - start, {seed: service.job_dir(job_id) / "store.zarr" for seed, job_id in ids.items()}, places
+        return last - start, submitted, {seed: service.job_dir(job_id) / "store.zarr" for seed, job_id in ids.items()}, places
     finally:
         service.close()
         cluster.close()
@@ -164,7 +166,7 @@ def main() -> None:
             load_5 = load_average()
         if args.service:
             load_6 = load_average()
-            service_s, service_stores, service_places = through_service(spec, base, folder, seeds, args.workers)
+            service_s, submit_s, service_stores, service_places = through_service(spec, base, folder, seeds, args.workers)
             load_7 = load_average()
         failed = [f"seed {s}: {o.status} {o.error}" for s, o in zip(seeds, outcomes, strict=True) if o.status != "finished"]
         if failed:
@@ -191,7 +193,8 @@ def main() -> None:
         if args.service:
             print(f"{f'through abcns serve, {args.workers} workers':38s} {service_s:8.1f} {60 * args.jobs / service_s:9.1f} "
                   f"{load_6:>19s} -> {load_7:<17s}")
-            print(f"through the service: ratio {alone_s / service_s:.2f}; placements: "
+            print(f"through the service: ratio {alone_s / service_s:.2f}; the {args.jobs} submissions took {submit_s:.1f} s "
+                  "of it (each spec's data inline, parsed apart); placements: "
                   + ", ".join(f"{n} {mode}" for mode, n in sorted(service_places.items())))
         ceiling = f" (plain processes: {alone_s / plain_s:.2f})" if args.ceiling else ""
         print(f"ratio (one after another / together): {alone_s / together_s:.2f}{ceiling}; the cluster's start "

@@ -620,7 +620,8 @@ class JobManager:
             if resumed:
                 self._backfill(job)
             spec = JobSpec.model_validate(job.spec())
-            status, error = self._here(job, spec) if worker is None else self._on_worker(job, spec, worker)
+            status, error, made = self._here(job, spec) if worker is None else self._on_worker(job, spec, worker)
+            self._release_slot(job)  # its loop has ended: the next job may start while this one's end is written
             if status == "yielded" and not (job.cancel.is_set() or self.stopping):
                 job.status = "queued"  # its turn ended: behind the jobs that waited, resumed from its store
                 job.save_or_log()
@@ -638,7 +639,7 @@ class JobManager:
                 self._end(job, "failed", "the run ended with the stop reason 'cancelled', but nobody cancelled the "
                                          "job (its store records no stop reason of its own); submit it again")
             elif status != "yielded":
-                self._end(job, status, error)
+                self._end(job, status, error, made)
         except (SpecError, StoreError) as err:
             self._end(job, "failed", str(err))
         except Exception as err:
@@ -655,6 +656,11 @@ class JobManager:
         finally:
             self._free(job)
 
+    def _release_slot(self, job: JobRecord) -> None:
+        with self.lock:
+            if self.held.pop(job.id, None) is not None:
+                self.wake.notify_all()
+
     def _free(self, job: JobRecord) -> None:
         job.placement = None
         job.turn.clear()
@@ -663,7 +669,7 @@ class JobManager:
             self.held.pop(job.id, None)
             self.wake.notify_all()
 
-    def _here(self, job: JobRecord, spec: JobSpec) -> tuple[str, str | None]:
+    def _here(self, job: JobRecord, spec: JobSpec) -> tuple[str, str | None, dict | None]:
         """The job's loop in this process (a manager without a client: serial)."""
 
         def on_population(p: Progress) -> None:
@@ -672,9 +678,9 @@ class JobManager:
 
         result = run_job(spec, job.folder, job.store_path, self.client, on_population=on_population,
                          cancel=lambda: job.cancel.is_set() or self.stopping, owned_store=True)
-        return ("cancelled" if result.stop_reason is StopReason.CANCELLED else "finished"), None
+        return ("cancelled" if result.stop_reason is StopReason.CANCELLED else "finished"), None, None
 
-    def _on_worker(self, job: JobRecord, spec: JobSpec, worker: str) -> tuple[str, str | None]:
+    def _on_worker(self, job: JobRecord, spec: JobSpec, worker: str) -> tuple[str, str | None, dict | None]:
         """The job's loop as one Dask task (:func:`service.run.jobs.run_one`) on ``worker``'s
         job slot: never in the service's interpreter (its GIL is the HTTP loop's). Pinned
         loosely: if that worker dies, the scheduler runs the task on another, which resumes
@@ -723,16 +729,16 @@ class JobManager:
                 if job.cancel.is_set() or self.stopping or released.is_set():
                     future.release()  # the run stops at its next batch; what it made is stored
                     self._wait_for_store(job)
-                    return ("cancelled" if job.cancel.is_set() or self.stopping else "yielded"), None
+                    return ("cancelled" if job.cancel.is_set() or self.stopping else "yielded"), None, None
         finally:
             client.unsubscribe_topic(topic)
         if not placed[0] and out.get("placement"):  # its messages did not come before its end (the same stream)
             place(out["placement"])
         self._backfill(job)  # populations whose messages did not come (the store is the record)
-        status, error = out["status"], out.get("error")
+        status, error, made = out["status"], out.get("error"), out.get("summary")  # the summary: made on the worker
         if status in ("finished", "cancelled"):
-            return status, None
-        return "failed", (error or status).split("\nTraceback")[0]
+            return status, None, made
+        return "failed", (error or status).split("\nTraceback")[0], made
 
     def _wait_for_store(self, job: JobRecord, timeout_s: float = 30.0) -> None:
         """Wait (``timeout_s`` at most) until no run holds the job's store lock."""
@@ -749,8 +755,9 @@ class JobManager:
             except OSError:  # purged, or the disk
                 return
 
-    def _end(self, job: JobRecord, status: str, error: str | None) -> None:
-        """The job's summary (computed once, kept in result.json), its terminal event, then
+    def _end(self, job: JobRecord, status: str, error: str | None, made: dict | None = None) -> None:
+        """The job's summary (``made`` by its loop's worker, else computed here once; kept in
+        result.json), its terminal event, then
         its status: whoever sees the job ended finds the event in its log (a poller that
         reads the status, then the events, misses nothing). A write that fails (a full disk)
         is logged: the status holds in memory, and a restart recovers status and error
@@ -758,13 +765,15 @@ class JobManager:
         data: dict[str, Any] = {"status": status}
         if error:
             data["error"] = error
-        with self.result_lock:
-            try:
-                result = summary(Store.open(job.store_path))
-            except StoreError:
-                result = None
-            if result is not None:
-                self._cache(job, result)
+        result = made
+        if result is None:
+            with self.result_lock:
+                try:
+                    result = summary(Store.open(job.store_path))
+                except StoreError:
+                    result = None
+        if result is not None:
+            self._cache(job, result)
         if result:
             probs = result.get("model_probabilities") or {}
             data.update(stop_reason=result.get("stop_reason"), n_populations=result.get("n_populations"),
