@@ -122,6 +122,9 @@ def test_live_page_follows_a_running_job(browser, service, tmp_path):
         worker = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()["placement"]["worker"]
         assert re.fullmatch(rf"(whole on|spread from) {re.escape(worker)}", page.inner_text("#placement")), \
             page.inner_text("#placement")
+        # and the cluster's share of time on the jobs' simulations (/health), as a percentage
+        wait_until(lambda: re.fullmatch(r"[1-9]\d* %", page.inner_text("#utilization")), 30, "the utilization on the page")
+        assert int(page.inner_text("#utilization").split()[0]) <= 100, page.inner_text("#utilization")
         # ended: the page shows the last population, its numbers are the API's
         assert httpx.delete(f"{service.url}/jobs/{job_id}", headers=AUTH, timeout=60).status_code == 202
         wait_until(lambda: page.inner_text("#status") == "cancelled", 300, "the job to end on the page", 0.2)

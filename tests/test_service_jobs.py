@@ -74,6 +74,9 @@ def test_two_jobs_run_at_once_each_on_a_worker_of_its_own_and_equal_runs_alone(t
             assert events[-1]["event"] == "finished", events[-3:]
             placed = [e["data"]["placement"] for e in events if e["event"] == "placed"]
             assert placed and placed[0]["worker"] == seen[job_id] and placed[0]["mode"] in ("whole", "spread")
+        # the workers' share of time on the jobs' simulations over the last minute
+        assert 0 < httpx.get(f"{service.url}/health", timeout=10).json()["utilization"] <= 1
+        for job_id in ids:
             identical_to_a_run_alone(service, job_id, tmp_path)
     finally:
         service.close()

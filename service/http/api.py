@@ -447,7 +447,7 @@ async def health(request: Request, manager: Annotated[JobManager, Depends(get_ma
     """Never waits for anything: the job counts and the workers as last seen (every 2 s),
     and the admission limits."""
     return Health(status="ok", workers=request.app.state.workers, jobs=manager.counts(), limits=limits_of(request),
-                  running_on=manager.running_on())
+                  running_on=manager.running_on(), utilization=manager.utilization(request.app.state.workers))
 
 
 def limits_of(request: Request) -> dict:

@@ -65,6 +65,7 @@ STATUSES = ("queued", "running", *TERMINAL)
 DATA_FILE = "data.npz"
 RESULT_FILE = "result.json"
 JOB_ID = re.compile(r"[0-9a-f]{32}")
+UTILIZATION_WINDOW_S = 60.0  # /health's utilization: over the last minute
 log = logging.getLogger("abcns.jobs")
 
 
@@ -304,6 +305,8 @@ class JobManager:
         self.queue: deque[str] = deque()
         self.running: set[str] = set()
         self.held: dict[str, str] = {}  # job id -> the worker whose job slot its loop was given
+        self.busy: deque[tuple[float, float]] = deque()  # (monotonic, simulation s) per population: utilization()
+        self.busy_lock = threading.Lock()
         self.admitting = 0  # submissions that hold a place in the queue while they are built and written
         self.lock = threading.Lock()
         self.result_lock = threading.Lock()  # one summary computed at a time (each reads a whole store)
@@ -402,6 +405,24 @@ class JobManager:
         worker died reports the new one once it starts there)."""
         return {job_id: (self.jobs[job_id].placement or {}).get("worker") or worker
                 for job_id, worker in list(self.held.items()) if job_id in self.jobs}
+
+    def utilization(self, workers: int, window_s: float = UTILIZATION_WINDOW_S) -> float | None:
+        """The cluster's share of time on the jobs' simulations over the last ``window_s``:
+        the simulation seconds of the populations that came in that window (each job loop's
+        own measure: its tasks' compute time, or its in-process engine's calls), over
+        ``workers x window_s``; None without workers."""
+        if workers <= 0:
+            return None
+        since = time.monotonic() - window_s
+        busy = sum(b for t, b in list(self.busy) if t >= since)
+        return min(1.0, busy / (workers * window_s))
+
+    def _forget_busy(self) -> None:
+        """Drop the populations older than the window (appended in time order)."""
+        with self.busy_lock:
+            since = time.monotonic() - UTILIZATION_WINDOW_S
+            while self.busy and self.busy[0][0] < since:
+                self.busy.popleft()
 
     def counts(self) -> dict[str, int]:
         out: dict[str, int] = {}
@@ -707,6 +728,9 @@ class JobManager:
                 if msg.get("kind") == "start":
                     place(msg.get("placement"))
                 elif msg.get("kind") == "population":
+                    if msg.get("busy_s") is not None:
+                        self.busy.append((time.monotonic(), float(msg["busy_s"])))
+                        self._forget_busy()
                     self._announce(job, self._progress_of(msg, job.models))
                     if job.turn.is_set():  # its turn ends here: the next population has hardly begun
                         released.set()

@@ -257,7 +257,10 @@ async function showWarnings() {
 }
 
 async function workers() {  // the cluster's workers now (the service counts them every 2 s)
-  try { text("workers", (await getJSON("/health")).workers); } catch (e) { text("workers", "-"); }
+  try {
+    const h = await getJSON("/health"); text("workers", h.workers);
+    text("utilization", h.utilization == null ? "-" : `${Math.round(100 * h.utilization)} %`);
+  } catch (e) { text("workers", "-"); text("utilization", "-"); }
 }
 
 function setStatus(s) { const e = document.getElementById("status"); e.textContent = s; e.className = "status-" + s; }
@@ -321,7 +324,7 @@ VIEW = ("<!doctype html><html><head><title>abcns job</title>" + _HEAD + r"""</he
 <div class="kv card"><span>status <b id="status">-</b></span><span>population <b id="population">-</b></span>
 <span>tolerance <b id="epsilon">-</b><b id="eps-unit"></b></span><span>acceptance <b id="acceptance">-</b></span>
 <span>simulations <b id="simulations">-</b></span><span>elapsed <b id="elapsed">-</b> s</span>
-<span>leading model <b id="leader">-</b></span><span>answer read at <b id="answer-at">-</b></span><span>runs <b id="placement">-</b></span><span>workers <b id="workers">-</b></span><span>efficiency <b id="efficiency">-</b></span></div>
+<span>leading model <b id="leader">-</b></span><span>answer read at <b id="answer-at">-</b></span><span>runs <b id="placement">-</b></span><span>workers <b id="workers">-</b></span><span>cluster busy (last minute) <b id="utilization">-</b></span><span>efficiency <b id="efficiency">-</b></span></div>
 <ul id="warnings"></ul>
 <div class="grid gap">
  <div class="card"><h2>tolerance per population (log scale)</h2><svg id="eps"></svg></div>

@@ -74,6 +74,8 @@ class Health(BaseModel):
     jobs: dict[str, int]
     limits: LimitsOut  # the admission limits (GET /limits)
     running_on: dict[str, str] = {}  # a running job's id -> the worker its loop was given
+    # the workers' share of time on the jobs' simulations over the last minute (null: no workers)
+    utilization: float | None = None
 
 
 Summary = dict[str, Any]

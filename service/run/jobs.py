@@ -294,7 +294,7 @@ def run_one(spec_json: dict, data: dict[str, np.ndarray], store: str, *, seed: i
                  probabilities=[float(x) for x in pop.model_probabilities.tolist()],
                  floor=None if pop.floor is None else float(pop.floor.floor),
                  decision=None if pop.floor is None else float(pop.floor.decision),
-                 workers=p.workers, efficiency=p.efficiency)
+                 workers=p.workers, efficiency=p.efficiency, busy_s=p.busy_s)
 
         run = partial(run_job, spec, None, path, data=data, on_population=progress, allow_import=allow_import,
                       cancel=lambda: _released(worker, key), local_s=local_s, placement=placement,

@@ -54,6 +54,24 @@ class Progress:
     # a population cheap enough to be evaluated there (DaskExecutor's ``local_s``)
     workers: int | None = None
     efficiency: float | None = None
+    # the seconds of simulation the run used since the previous population, wherever they
+    # ran (the workers' compute time of the tasks consumed, or the in-process engine's calls)
+    busy_s: float | None = None
+
+
+class TimedEvaluate:
+    """An evaluator that adds the seconds its calls take to ``busy_s``: the simulation time
+    of the in-process engine (:attr:`Progress.busy_s`)."""
+
+    def __init__(self, evaluate: Callable) -> None:
+        self.evaluate, self.busy_s = evaluate, 0.0
+
+    def __call__(self, batch):
+        start = time.perf_counter()
+        try:
+            return self.evaluate(batch)
+        finally:
+            self.busy_s += time.perf_counter() - start
 
 
 def job_key(spec: JobSpec, seed: int, dhash: str) -> str:
@@ -317,6 +335,7 @@ def _run_job(
                                                                       job, dhash, key), key, on_population, interval_s)
     budget = Budget(job.stop, cancel=cancel, n_simulations=n_simulations, elapsed_before_s=elapsed_s)
     executor: SerialExecutor | DaskExecutor | None = None
+    timed = TimedEvaluate(job.evaluate)
 
     def written(pop: Population) -> None:
         info = None
@@ -327,19 +346,20 @@ def _run_job(
         now = time.monotonic()
         dt = now - start
         workers = efficiency = None
+        busy_now = executor.busy_s if isinstance(executor, DaskExecutor) else timed.busy_s
+        wall, busy = now - last[0], busy_now - last[1]
         if isinstance(executor, DaskExecutor):
             workers = executor.n_workers()
-            wall, busy = now - last[0], executor.busy_s - last[1]
             if wall > 0 and workers and not executor.last_here:  # none for a population evaluated here
                 efficiency = min(1.0, busy / (workers * wall))
-            last[:] = [now, executor.busy_s]
+        last[:] = [now, busy_now]
         progress = Progress(pop, budget.n_simulations, budget.elapsed(),
-                            (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0, workers, efficiency)
+                            (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0, workers, efficiency, busy)
         writer.put(pop, budget.n_simulations, info, progress)
 
     with frozen_heap():  # to the end: a full pass over the heap handed back stalled the last append ~140 ms
         try:
-            executor = (SerialExecutor(job.evaluate) if client is None
+            executor = (SerialExecutor(timed) if client is None
                         else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget,
                                           evaluate=job.evaluate, local_s=local_s, alone=alone))
             gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget,
