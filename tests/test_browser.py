@@ -88,7 +88,7 @@ def rgb(hex_colour: str) -> str:
 def test_live_page_follows_a_running_job(browser, service, tmp_path):
     """A job far longer than the checks (400 populations), cancelled once the running page
     has been checked, so it is running while it is looked at on any machine."""
-    spec = duffing_spec(max_populations=400, particles=500)
+    spec = duffing_spec(max_populations=400, particles=500, noise_floor=False)  # runs until cancelled
     job_id = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60).json()["id"]
     try:
         page = browser.new_page(viewport={"width": 1200, "height": 900})
