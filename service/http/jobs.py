@@ -279,6 +279,38 @@ class JobRecord:
             log.error("job %s: cannot write its job.json (status %s): %s", self.id, self.status, err)
 
 
+class WorkerWatch:
+    """Whether the worker a job's loop runs on has left the cluster for good: Dask reruns a
+    lost worker's task on another worker with a free job slot, but a worker's job slot is
+    declared after it joins (``JobSlot``), and the scheduler does not look again at a task
+    that found no worker when slots appear later: with every worker lost at once, the task
+    would wait forever. So a loop whose worker has been gone ``LOST_S`` without a new
+    placement is released and the job requeued (the dispatcher places it on a free slot)."""
+
+    LOOK_S = 1.0
+    LOST_S = 5.0
+
+    def __init__(self, client: Client, worker: str):
+        self.client, self.next_look, self.worker = client, 0.0, worker
+        self.missing_since: float | None = None
+
+    def gone(self, worker: str) -> bool:
+        now = time.monotonic()
+        if now < self.next_look:
+            return False
+        self.next_look = now + self.LOOK_S
+        try:
+            alive = worker in self.client.nthreads()
+        except Exception:  # the scheduler: the dispatcher's and _lost_scheduler's concern
+            return False
+        if alive or worker != self.worker:  # there, or placed anew (the new worker's clock starts)
+            self.worker, self.missing_since = worker, None if alive else now
+            return False
+        if self.missing_since is None:
+            self.missing_since = now
+        return now - self.missing_since >= self.LOST_S
+
+
 class QueueFull(Exception):
     """Too many jobs wait already (HTTP 429 with Retry-After)."""
 
@@ -643,13 +675,14 @@ class JobManager:
             spec = JobSpec.model_validate(job.spec())
             status, error, made = self._here(job, spec) if worker is None else self._on_worker(job, spec, worker)
             self._release_slot(job)  # its loop has ended: the next job may start while this one's end is written
-            if status == "yielded" and not (job.cancel.is_set() or self.stopping):
-                job.status = "queued"  # its turn ended: behind the jobs that waited, resumed from its store
+            if status in ("yielded", "lost") and not (job.cancel.is_set() or self.stopping):
+                job.status = "queued"  # resumed from its store: behind the jobs that waited, or first
                 job.save_or_log()
-                job.log.append("requeued", {"reason": f"its turn ended ({self.turn_s:g} s): a waiting job takes its worker"})
+                job.log.append("requeued", {"reason": "its worker was lost" if status == "lost" else
+                                            f"its turn ended ({self.turn_s:g} s): a waiting job takes its worker"})
                 with self.lock:
-                    self.queue.append(job.id)
-            elif status == "yielded":
+                    (self.queue.appendleft if status == "lost" else self.queue.append)(job.id)
+            elif status in ("yielded", "lost"):
                 status = "cancelled"
             if status == "cancelled" and job.cancel.is_set():
                 self._end(job, "cancelled", None)
@@ -659,7 +692,7 @@ class JobManager:
             elif status == "cancelled":  # nobody cancelled it: a job never ends "cancelled" unless it was
                 self._end(job, "failed", "the run ended with the stop reason 'cancelled', but nobody cancelled the "
                                          "job (its store records no stop reason of its own); submit it again")
-            elif status != "yielded":
+            elif status not in ("yielded", "lost"):
                 self._end(job, status, error, made)
         except (SpecError, StoreError) as err:
             self._end(job, "failed", str(err))
@@ -743,6 +776,7 @@ class JobManager:
                                owned_store=True, key=f"abcns-job-{job.id}-{uuid.uuid4().hex[:8]}", workers=[worker],
                                allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)
         job.running_since = time.monotonic()
+        lost = WorkerWatch(client, worker)
         try:
             while True:
                 try:
@@ -750,10 +784,12 @@ class JobManager:
                     break
                 except TimeoutError:
                     pass
-                if job.cancel.is_set() or self.stopping or released.is_set():
+                gone = lost.gone((job.placement or {}).get("worker") or worker)
+                if job.cancel.is_set() or self.stopping or released.is_set() or gone:
                     future.release()  # the run stops at its next batch; what it made is stored
                     self._wait_for_store(job)
-                    return ("cancelled" if job.cancel.is_set() or self.stopping else "yielded"), None, None
+                    return ("cancelled" if job.cancel.is_set() or self.stopping
+                            else "lost" if gone else "yielded"), None, None
         finally:
             client.unsubscribe_topic(topic)
         if not placed[0] and out.get("placement"):  # its messages did not come before its end (the same stream)
