@@ -752,6 +752,10 @@ class JobManager:
             with job.announcing:
                 job.placement, placed[0] = placement, True
                 job.log.append("placed", {"placement": placement})
+            where = (placement or {}).get("worker")
+            with self.lock:  # rerun elsewhere after its worker died: that worker's slot is the one it holds
+                if where and job.id in self.held:
+                    self.held[job.id] = where
 
         released = threading.Event()
 
