@@ -23,8 +23,9 @@ from service.spec import parse
 pytestmark = [pytest.mark.http, pytest.mark.distributed]
 
 
-def submit(service: Service, seed: int, populations: int = 8, particles: int = 500) -> str:
-    spec = {**duffing_spec(max_populations=populations, particles=particles), "seed": seed, "name": f"u-{seed}"}
+def submit(service: Service, seed: int, populations: int = 8, particles: int = 500, floor: bool = True) -> str:
+    spec = {**duffing_spec(max_populations=populations, particles=particles, noise_floor=floor), "seed": seed,
+            "name": f"u-{seed}"}
     r = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60)
     assert r.status_code == 201, r.text
     return r.json()["id"]
@@ -107,16 +108,16 @@ def test_a_job_whose_loop_worker_is_killed_resumes_elsewhere_identical(two_worke
 
 
 def test_a_short_job_does_not_wait_for_a_long_one_and_the_long_one_resumes_identical(tmp_path):
-    """Turns: on one worker, a long job (30 populations) runs; a short one (3) is submitted
-    after the long one's second population. The long job's turn (ABCNS_TURN_S=1 here) ends
-    after a population: it is requeued (a `requeued` event), the short job runs and finishes
-    before the long one, and the long one resumes from its store and ends bit-identical to
-    its spec run alone (before: the short job waited for the long one's end)."""
+    """Turns: on one worker, a long job (200 populations, no noise-floor stop: several
+    seconds on any machine) and a short one (3) submitted right after it. The long job's
+    turn (ABCNS_TURN_S=1 here) ends after a population: it is requeued (a `requeued` event),
+    the short job runs and finishes before the long one, and the long one resumes from its
+    store and ends bit-identical to its spec run alone (before: the short job waited for the
+    long one's end)."""
     cluster = StockCluster(tmp_path / "dask", n_workers=1)
     service = Service(tmp_path / "jobs", cluster.address, max_running=None, env={"ABCNS_TURN_S": "1"})
     try:
-        long_id = submit(service, seed=4, populations=30)
-        follow(service.url, long_id, until=lambda ev: sum(e["event"] == "population" for e in ev) >= 2)
+        long_id = submit(service, seed=4, populations=200, floor=False)
         short_id = submit(service, seed=5, populations=3)
         short, long_ = follow(service.url, short_id), follow(service.url, long_id)
         assert short[-1]["event"] == "finished" and long_[-1]["event"] == "finished", (short[-2:], long_[-2:])
@@ -125,7 +126,8 @@ def test_a_short_job_does_not_wait_for_a_long_one_and_the_long_one_resumes_ident
         assert ended[short_id] < ended[long_id], "the short job waited for the long one"
         assert any(e["event"] == "requeued" and "turn" in e["data"]["reason"] for e in long_), \
             [e["event"] for e in long_]
-        assert [e["data"]["population"] for e in long_ if e["event"] == "population"] == list(range(1, 31))
+        announced = [e["data"]["population"] for e in long_ if e["event"] == "population"]
+        assert announced == list(range(1, len(announced) + 1)) and len(announced) >= 10, announced
         identical_to_a_run_alone(service, long_id, tmp_path)
         identical_to_a_run_alone(service, short_id, tmp_path)
     finally:

@@ -780,14 +780,15 @@ class JobManager:
                                owned_store=True, key=f"abcns-job-{job.id}-{uuid.uuid4().hex[:8]}", workers=[worker],
                                allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)
         job.running_since = time.monotonic()
-        lost = WorkerWatch(client, worker)
+        lost, done = WorkerWatch(client, worker), threading.Event()
+        future.add_done_callback(lambda _: done.set())
         try:
             while True:
-                try:
-                    out = future.result(timeout=0.2)
+                # (not future.result(timeout=...): distributed's sync() loses its result when the
+                # timeout and the result meet, and raises UnboundLocalError)
+                if done.wait(0.2):
+                    out = future.result()
                     break
-                except TimeoutError:
-                    pass
                 gone = lost.gone((job.placement or {}).get("worker") or worker)
                 if job.cancel.is_set() or self.stopping or released.is_set() or gone:
                     future.release()  # the run stops at its next batch; what it made is stored
