@@ -447,6 +447,8 @@ def run_many(specs: list[Path], out_dir: Path, scheduler: str | None, workers: i
             seen_workers[i] = 1 if whole else None
             if not quiet:
                 typer.echo(f"[{job.label}] {placement_text(event.get('placement'))}")
+        elif event["kind"] == "requeued" and not quiet:
+            typer.echo(f"[{job.label}] {event.get('reason', 'requeued')}: it waits for a free worker and resumes")
         elif event["kind"] == "population":
             if event.get("workers") is not None:
                 seen_workers[i] = event["workers"]

@@ -154,6 +154,43 @@ def test_a_failing_job_fails_alone_naming_the_job(cluster, tmp_path):
     assert Store.open(tmp_path / "out" / "faulty.zarr").attrs["status"] == "failed"
 
 
+def test_jobs_whose_workers_all_die_at_once_are_placed_again_and_end_as_alone(tmp_path):
+    """Both worker processes SIGKILLed at once as the first population is announced: Dask
+    cannot run the jobs' tasks again by itself (a new worker's job slot is declared after it
+    joins, and a task that found no worker is not looked at again), so run_jobs requeues each
+    job whose worker has been gone 5 s (WorkerWatch) and places it on a new worker's free
+    slot; every job ends finished, equal to its run alone (before: the jobs waited forever)."""
+    import signal
+
+    from service.run.jobs import JobRun, run_jobs
+
+    specs = []
+    for seed in (5, 6):
+        path = write_spec(tmp_path / "specs", seed, name=f"lost-{seed}")
+        raw = yaml.safe_load(path.read_text())
+        raw["stop"]["max_populations"] = 8  # still running when the kill lands
+        path.write_text(yaml.safe_dump(raw))
+        specs.append(path)
+    jobs = [JobRun.of(*load(spec), tmp_path / "out" / f"{spec.stem}.zarr", spec.stem) for spec in specs]
+    events: list[tuple[int, str]] = []
+    with local_cluster(2) as c, Client(c) as client:
+        client.wait_for_workers(2, timeout=120)
+        pids = list(client.run(os.getpid).values())
+
+        def on_event(i: int, event: dict) -> None:
+            events.append((i, event["kind"]))
+            if event["kind"] == "population" and pids:
+                for pid in pids:
+                    os.kill(pid, signal.SIGKILL)
+                pids.clear()
+
+        outcomes = run_jobs(client, jobs, on_event=on_event)
+    assert [o.status for o in outcomes] == ["finished", "finished"], [(o.status, o.error) for o in outcomes]
+    assert any(kind == "requeued" for _, kind in events), events
+    for spec, job in zip(specs, jobs, strict=True):
+        assert_same_store(alone(spec, tmp_path / f"alone-{spec.stem}.zarr"), job.store)
+
+
 def test_out_and_out_dir_are_exclusive_and_several_specs_need_out_dir(tmp_path):
     from typer.testing import CliRunner
 

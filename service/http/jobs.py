@@ -55,7 +55,7 @@ from distributed import Client
 
 from abcns import SpecError, StopReason
 from service.http.limits import Limits, admit
-from service.run.jobs import JOB_RESOURCE, JobRun, ensure_job_slots, job_workers, run_one
+from service.run.jobs import JOB_RESOURCE, JobRun, WorkerWatch, ensure_job_slots, job_workers, run_one
 from service.run.runner import Progress, local_population_s, lock_path, run_job, summary
 from service.run.store import Store, StoreError
 from service.spec import JobSpec, build, cut_to_read
@@ -277,38 +277,6 @@ class JobRecord:
             self.save()
         except OSError as err:
             log.error("job %s: cannot write its job.json (status %s): %s", self.id, self.status, err)
-
-
-class WorkerWatch:
-    """Whether the worker a job's loop runs on has left the cluster for good: Dask reruns a
-    lost worker's task on another worker with a free job slot, but a worker's job slot is
-    declared after it joins (``JobSlot``), and the scheduler does not look again at a task
-    that found no worker when slots appear later: with every worker lost at once, the task
-    would wait forever. So a loop whose worker has been gone ``LOST_S`` without a new
-    placement is released and the job requeued (the dispatcher places it on a free slot)."""
-
-    LOOK_S = 1.0
-    LOST_S = 5.0
-
-    def __init__(self, client: Client, worker: str):
-        self.client, self.next_look, self.worker = client, 0.0, worker
-        self.missing_since: float | None = None
-
-    def gone(self, worker: str) -> bool:
-        now = time.monotonic()
-        if now < self.next_look:
-            return False
-        self.next_look = now + self.LOOK_S
-        try:
-            alive = worker in self.client.nthreads()
-        except Exception:  # the scheduler: the dispatcher's and _lost_scheduler's concern
-            return False
-        if alive or worker != self.worker:  # there, or placed anew (the new worker's clock starts)
-            self.worker, self.missing_since = worker, None if alive else now
-            return False
-        if self.missing_since is None:
-            self.missing_since = now
-        return now - self.missing_since >= self.LOST_S
 
 
 class QueueFull(Exception):

@@ -335,6 +335,40 @@ def _outcome(path: Path, placement: dict | None, status: str, error: str | None 
 # ---------------------------------------------------------------------------- the caller
 
 
+class WorkerWatch:
+    """Whether the worker a job's loop runs on has left the cluster for good: Dask reruns a
+    lost worker's task on another worker with a free job slot, but a worker's job slot is
+    declared after it joins (``JobSlot``), and the scheduler does not look again at a task
+    that found no worker when slots appear later: with every worker lost at once, the task
+    would wait forever. So a loop whose worker has been gone ``LOST_S`` without a new
+    placement is released and the job requeued (placed on a free slot when there is one:
+    :func:`run_jobs`, and the service's ``JobManager``)."""
+
+    LOOK_S = 1.0
+    LOST_S = 5.0
+
+    def __init__(self, client: Client, worker: str):
+        self.client, self.next_look, self.worker = client, 0.0, worker
+        self.missing_since: float | None = None
+
+    def gone(self, worker: str) -> bool:
+        now = time.monotonic()
+        if now < self.next_look:
+            return False
+        self.next_look = now + self.LOOK_S
+        try:
+            alive = worker in self.client.nthreads()
+        except Exception:  # the scheduler is away: not this watch's concern
+            return False
+        if alive or worker != self.worker:  # there, or placed anew (the new worker's clock starts)
+            self.worker, self.missing_since = worker, None if alive else now
+            return False
+        if self.missing_since is None:
+            self.missing_since = now
+        return now - self.missing_since >= self.LOST_S
+
+
+
 def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None, allow_import: bool = False,
              local_s: float | None = None, on_event: Callable[[int, dict], None] | None = None,
              poll_s: float = 0.2) -> list[Outcome]:
@@ -354,6 +388,8 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
     client.subscribe_topic(topic, lambda event: events.put(event[1]))  # on the client's loop: only queued
     waiting = deque(range(len(jobs)))
     running: dict[int, tuple[Future, str]] = {}
+    watches: dict[int, WorkerWatch] = {}
+    where: dict[int, str] = {}  # the worker of each running job's latest start event
     outcomes: list[Outcome | None] = [None] * len(jobs)
     next_look = 0.0
 
@@ -365,6 +401,8 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
             except queue.Empty:
                 return
             wait_s = 0.0
+            if isinstance(msg, dict) and msg.get("kind") == "start" and "job" in msg:
+                where[int(msg["job"])] = str((msg.get("placement") or {}).get("worker") or "")
             if on_event is not None and isinstance(msg, dict) and "job" in msg:
                 on_event(int(msg["job"]), {k: v for k, v in msg.items() if k != "job"})
 
@@ -385,14 +423,22 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
                                            topic=topic, index=i, key=f"abcns-job-{nonce}-{i}", workers=[addr],
                                            allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)
                     running[i] = (future, addr)
+                    watches[i], where[i] = WorkerWatch(client, addr), addr
             deliver(poll_s)
-            for i, (future, _) in list(running.items()):
+            for i, (future, addr) in list(running.items()):
                 if future.done():
                     deliver()  # its last population's event came before its end
                     outcomes[i] = _collect(future)
                     future.release()
                     del running[i]
                     next_look = 0.0  # a slot is free
+                elif watches[i].gone(where.get(i) or addr):  # its worker left, and Dask did not place it again
+                    future.release()
+                    del running[i]
+                    waiting.appendleft(i)  # resumed from its store on the next free slot
+                    next_look = 0.0
+                    if on_event is not None:
+                        on_event(i, {"kind": "requeued", "reason": "its worker was lost"})
         deliver(min(poll_s, 0.05))  # an event still on its way after the last task's end
     finally:
         for future, _ in running.values():
