@@ -340,7 +340,8 @@ def test_a_failed_job_keeps_its_error_when_its_record_could_not_be_written(clust
     duffing = ROOT / "examples" / "duffing_41"
     arrays = {"input": np.load(duffing / "force.npy"), "observed": np.load(duffing / "displacement.npy")}
     # workers in this process (the job loops run on workers): the patched store is theirs
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as lc, \
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, scheduler_port=0,
+                      dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False}) as lc, \
             Client(lc) as client:
         manager = JobManager(tmp_path / "jobs", client, max_running=1, loop=None)
         try:

@@ -701,7 +701,8 @@ def test_a_failing_store_disk_fails_that_job_only_and_keeps_what_was_written(clu
     folder = ROOT / "examples" / "duffing_41"
     arrays = {"input": np.load(folder / "force.npy"), "observed": np.load(folder / "displacement.npy")}
     # workers in this process (the job loops run on workers): the patched store is theirs
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as lc, \
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, scheduler_port=0,
+                      dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False}) as lc, \
             Client(lc) as client:
         manager = JobManager(tmp_path / "jobs", client, max_running=2, loop=None)
         try:
