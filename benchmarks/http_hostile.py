@@ -50,6 +50,17 @@ import psutil
 from benchmarks.harness import AUTH, ROOT, Service, StockCluster, duffing_spec
 
 
+def close_and_count(service, cluster, statuses: collections.Counter, start: float) -> str:
+    """Stop the service and its cluster, print the answers by status; the service log's
+    error lines."""
+    errors = "\n".join(line for line in service.log.read_text().splitlines() if "ERROR" in line or "Traceback" in line)
+    service.close()
+    cluster.close()
+    print(f"{sum(statuses.values())} answers in {time.monotonic() - start:.0f} s: "
+          + ", ".join(f"{n} x {s}" for s, n in sorted(statuses.items())))
+    return errors
+
+
 def peak_mb(pid: int) -> float:
     """A process's peak resident memory since its start or the last reset_peak()."""
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
@@ -191,11 +202,7 @@ def main() -> None:
     finally:
         done.set()
         poller.join(timeout=60)
-        errors = "\n".join(line for line in service.log.read_text().splitlines() if "ERROR" in line or "Traceback" in line)
-        service.close()
-        cluster.close()
-    print(f"{sum(statuses.values())} answers in {time.monotonic() - start:.0f} s: "
-          + ", ".join(f"{n} x {s}" for s, n in sorted(statuses.items())))
+        errors = close_and_count(service, cluster, statuses, start)
     print(f"/health: {len(health)} probes, slowest {max(health):.3f} s, p99 {np.percentile(health, 99):.3f} s")
     print("peak RSS by phase (MB): the service process, the process that parses submissions")
     for name, main_mb, child_mb in peaks:
@@ -413,11 +420,7 @@ def main_z() -> None:
         print(_purges(statuses, service), flush=True)
     finally:
         watch.close()
-        errors = "\n".join(line for line in service.log.read_text().splitlines() if "ERROR" in line or "Traceback" in line)
-        service.close()
-        cluster.close()
-    print(f"{sum(statuses.values())} answers in {time.monotonic() - start:.0f} s: "
-          + ", ".join(f"{n} x {s}" for s, n in sorted(statuses.items())))
+        errors = close_and_count(service, cluster, statuses, start)
     print(f"errors in the service's log: {errors[:2000] or 'none'}")
 
 

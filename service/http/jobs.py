@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import asyncio
 import datetime
-import fcntl
 import json
 import logging
 import math
@@ -56,7 +55,7 @@ from distributed import Client
 from abcns import SpecError, StopReason
 from service.http.limits import Limits, admit
 from service.run.jobs import JOB_RESOURCE, JobRun, WorkerWatch, ensure_job_slots, job_workers, run_one
-from service.run.runner import Progress, local_population_s, lock_path, run_job, summary
+from service.run.runner import Progress, local_population_s, run_job, summary, wait_for_store_lock
 from service.run.store import Store, StoreError
 from service.spec import JobSpec, build, cut_to_read
 
@@ -760,7 +759,7 @@ class JobManager:
                 gone = lost.gone((job.placement or {}).get("worker") or worker)
                 if job.cancel.is_set() or self.stopping or released.is_set() or gone:
                     future.release()  # the run stops at its next batch; what it made is stored
-                    self._wait_for_store(job)
+                    wait_for_store_lock(job.store_path)
                     return ("cancelled" if job.cancel.is_set() or self.stopping
                             else "lost" if gone else "yielded"), None, None
         finally:
@@ -772,21 +771,6 @@ class JobManager:
         if status in ("finished", "cancelled"):
             return status, None, made
         return "failed", (error or status).split("\nTraceback")[0], made
-
-    def _wait_for_store(self, job: JobRecord, timeout_s: float = 30.0) -> None:
-        """Wait (``timeout_s`` at most) until no run holds the job's store lock."""
-        lock = lock_path(job.store_path)
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            try:
-                with lock.open("a") as f:
-                    fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    fcntl.flock(f, fcntl.LOCK_UN)
-                    return
-            except BlockingIOError:
-                time.sleep(0.05)
-            except OSError:  # purged, or the disk
-                return
 
     def _end(self, job: JobRecord, status: str, error: str | None, made: dict | None = None) -> None:
         """The job's summary (``made`` by its loop's worker, else computed here once; kept in

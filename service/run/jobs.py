@@ -368,7 +368,6 @@ class WorkerWatch:
         return now - self.missing_since >= self.LOST_S
 
 
-
 def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None, allow_import: bool = False,
              local_s: float | None = None, on_event: Callable[[int, dict], None] | None = None,
              poll_s: float = 0.2) -> list[Outcome]:

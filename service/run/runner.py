@@ -284,6 +284,21 @@ def store_lock(store_path: Path) -> Iterator[None]:
             fcntl.flock(f, fcntl.LOCK_UN)
 
 
+def wait_for_store_lock(store_path: Path, timeout_s: float = 30.0) -> None:
+    """Wait (``timeout_s`` at most) until no run holds ``store_path``'s :func:`store_lock`."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            with lock_path(store_path).open("a") as f:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                fcntl.flock(f, fcntl.LOCK_UN)
+                return
+        except BlockingIOError:
+            time.sleep(0.05)
+        except OSError:  # purged, or the disk
+            return
+
+
 def run_job(
     spec: JobSpec, base_dir: Path | None, store_path: Path, client: Client | None, *, seed: int | None = None,
     on_population: Callable[[Progress], None] | None = None, cancel: Callable[[], bool] | None = None,
