@@ -154,9 +154,9 @@ def test_physically_invalid_specs_are_refused_and_a_job_that_accepts_nothing_sto
 # ---------------------------------------------------------------------------- R.3
 def test_the_time_budget_and_a_cancel_end_a_job_while_its_batch_runs(tmp_path):
     """R.3: batches of 50,000 simulations of 1,000 RK4 substeps per sample (about 90 s each
-    on this project's machine). A cancel ends one job, and a time budget of 3 s another,
-    while their batches still run on the workers (seen on the workers after the job ended);
-    before, both waited for the batch to end."""
+    on this project's machine). A cancel ends one job while its batches still run on the
+    workers (seen on the workers after the job ended), and a time budget of 3 s another
+    after ~3 s of its own run, not a batch's 90 s; before, both waited for the batch to end."""
     cluster = StockCluster(tmp_path / "dask")
     service = Service(tmp_path / "jobs", cluster.address, env={"ABCNS_MAX_BATCH_SIZE": "50000"})
     try:
@@ -177,10 +177,13 @@ def test_the_time_budget_and_a_cancel_end_a_job_while_its_batch_runs(tmp_path):
             assert info["status"] == "cancelled" and executing() >= 1, info  # the batch still runs
             spec["stop"]["max_seconds"] = 3
             second = post(service, spec).json()["id"]
-            info = wait_until(lambda: ended(service, second), 60, "the time budget to end the job", 0.2)
+            # its clock starts when its loop gets a worker (issue U: the loop is a task on one),
+            # which the first job's orphaned batches may hold for a while (Z.5)
+            info = wait_until(lambda: ended(service, second), 300, "the time budget to end the job", 0.2)
             result = get(service, f"/jobs/{second}/result").json()
             assert info["status"] == "finished" and result["stop_reason"] == "max_seconds", (info, result)
-            assert executing() >= 1  # the first job's batches still run: nothing waited for them
+            # ended by its budget, not by its batch (a batch is ~90 s; the job ran ~3 s)
+            assert result["wall_time_s"] is not None and result["wall_time_s"] < 30, result
     finally:
         service.close()
         kill(cluster)
