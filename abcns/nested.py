@@ -55,7 +55,7 @@ from abcns import evidence as ev
 from abcns import likelihood
 from abcns.executor import Executor
 from abcns.filling import Budget, Filled, Filling, Stopped, draw_inside, fill, population_rng
-from abcns.noise import Floor, Noise, Tracker, reached, waited_for
+from abcns.noise import Noise, Standing, Tracker, standing, standings, waited_for
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
 from abcns.result import Population, RunEnd
@@ -290,15 +290,15 @@ class BoundProposer:
 
 
 def _stop_reason(stop: StopRules, at_floor: bool, t: int, eps: float, eps_next: float, tied: bool,
-                 floor: Floor | None, before: Floor | None, decisions: Sequence[float | None]) -> StopReason | None:
+                 mark: Standing | None, decisions: Sequence[float | None]) -> StopReason | None:
     """The rule that ends the run after population t: ties, the noise floor (``at_floor``:
-    the run stops there, and this population was accepted at the decision tolerance:
-    :func:`abcns.noise.reached`, ``before`` the floor after population t - 1), then ``stop``'s
-    rules, which wait for the decision tolerance (:meth:`StopRules.reason_after`) while it
-    holds still (:func:`abcns.noise.waited_for` of ``decisions``, one per population)."""
+    the run stops there, and this population's ``mark`` says it was accepted at the decision
+    tolerance or below: :func:`abcns.noise.standing`), then ``stop``'s rules, which wait for
+    the decision tolerance (:meth:`StopRules.reason_after`) while it holds still
+    (:func:`abcns.noise.waited_for` of ``decisions``, one per population)."""
     if tied:
         return StopReason.TIES
-    if at_floor and reached(eps, before, floor):
+    if at_floor and mark is not None and mark.reached:
         return StopReason.NOISE_FLOOR  # the lowest population tolerance above the floor
     return stop.reason_after(eps, eps_next, t, decision=waited_for(decisions))
 
@@ -386,8 +386,8 @@ class _Run:
                                  self.settings, population_rng(self.seed, t), lower, spared)
         self.notes.extend(step.notes)
         self.decisions.append(None if floor is None else floor.decision)
-        reason = _stop_reason(self.stop, self.at_floor, t, eps, step.epsilon_next, step.tied, floor,
-                              None if previous is None else previous.floor, self.decisions)
+        mark = standing(eps, floor if previous is None else previous.floor)
+        reason = _stop_reason(self.stop, self.at_floor, t, eps, step.epsilon_next, step.tied, mark, self.decisions)
         if reason is StopReason.NOISE_FLOOR:
             assert floor is not None
             self.notes.append(f"population {t}: accepted at the decision tolerance {eps:.6g}; the run stops (noise "
@@ -398,7 +398,7 @@ class _Run:
         pop = population_from(
             t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, self.budget.elapsed(),
             step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
-            evidence=step.evidence(geometry_rng(self.seed, t)), floor=floor,
+            evidence=step.evidence(geometry_rng(self.seed, t)), floor=floor, standing=mark,
         )
         if self.settings.evidence:
             self.shells.append(likelihood.record(pop, previous))
@@ -411,8 +411,8 @@ class _Run:
             if history:
                 pop = history[-1]
                 tied = next_tolerance(pop.distances, settings.n_drop) is None
-                reason = _stop_reason(self.stop, self.at_floor, pop.t, pop.epsilon, pop.epsilon_next, tied, pop.floor,
-                                      history[-2].floor if len(history) > 1 else None, self.decisions)
+                reason = _stop_reason(self.stop, self.at_floor, pop.t, pop.epsilon, pop.epsilon_next, tied,
+                                      standings(history[-2:])[-1], self.decisions)
             else:
                 eps, self.source, self.n_pilot = initial_epsilon(self.models, settings, self.executor, budget, self.seed)
                 filled = fill(prior_proposer(self.models), settings.particles, eps, self.executor, budget,

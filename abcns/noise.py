@@ -20,8 +20,8 @@ matters is this conditional one: the noise's own sampling spread, ``F sqrt(2 / n
 shared by every model's distances and moves them together.
 
 The **decision tolerance** is the floor plus its spread, ``eps_dec = F + sqrt(2 p) v``: the
-run's model probabilities are read at the lowest population tolerance at or above it
-(:meth:`abcns.result.Result.decision_population`), and the evidence variant stops there by
+run's model probabilities are read at the population accepted at it (its
+:class:`Standing`; :meth:`abcns.result.Result.decision_population`), and the evidence variant stops there by
 default (``StopRules.noise_floor``). Why this level:
 
 - the accepted region of the true model, ``{d < eps_dec}``, holds the truth with the
@@ -50,6 +50,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from enum import IntEnum
 
 import numpy as np
 
@@ -129,17 +130,40 @@ def estimate(noise: Noise, models: Sequence[Model], best: np.ndarray, alive: np.
     return Floor(d_min, m, p, variance, method, noise.n_samples)
 
 
-def reached(epsilon: float, before: Floor | None, after: Floor | None) -> bool:
-    """Whether a population accepted at ``epsilon`` is at the decision tolerance: at or below
-    the decision tolerance estimated when ``epsilon`` was chosen (``before``: the floor after
-    the previous population), or, for the first population, the one estimated after it
-    (``after``). The one place this is decided: the evidence variant accepts a population at
-    exactly ``before.decision`` when the (alpha N)-th largest distance falls below it, and
-    stops after that population, even where the floor it finds falls further (the floor only
-    falls, so that population is also the lowest at or above the final decision tolerance,
-    where :meth:`abcns.result.Result.decision_population` reads the answer)."""
-    floor = before if before is not None else after
-    return floor is not None and epsilon <= floor.decision
+class Standing(IntEnum):
+    """Where a population's tolerance stands to the decision tolerance in force when it was
+    chosen (``Population.standing``; :func:`standing`)."""
+
+    ABOVE = 0  #: above it: the (alpha N)-th largest distance (or the run's first tolerance) set it
+    AT = 1  #: the decision tolerance set it (the quantile fell to it or below; :func:`abcns.nested.next_tolerance`)
+    BELOW = 2  #: below it: the first tolerance under a floor above the run, or a run that does not stop there
+
+    @property
+    def reached(self) -> bool:
+        """Whether the population was accepted at the decision tolerance or below it."""
+        return self is not Standing.ABOVE
+
+
+def standing(epsilon: float, in_force: Floor | None) -> Standing | None:
+    """The one place "at the decision tolerance" is decided: a population accepted at
+    ``epsilon`` against the decision tolerance ``in_force`` when ``epsilon`` was chosen (the
+    floor after the previous population; for the first population, the floor after it).
+    None without a floor. The evidence variant accepts a population at exactly
+    ``in_force.decision`` when the (alpha N)-th largest distance falls below it, and stops
+    after that population, even where the floor it finds falls further (the floor only
+    falls, so that population is also the lowest at or above the final decision tolerance)."""
+    if in_force is None:
+        return None
+    decision = in_force.decision
+    return Standing.ABOVE if epsilon > decision else Standing.AT if epsilon == decision else Standing.BELOW
+
+
+def standings(populations: Sequence) -> list[Standing | None]:
+    """Each population's :class:`Standing`: its record (``Population.standing``), or, for a
+    population made without one (a store, a result written before the record), the one
+    :func:`standing` gives it from its tolerance and the floors."""
+    return [p.standing if p.standing is not None else
+            standing(p.epsilon, (populations[i - 1] if i else p).floor) for i, p in enumerate(populations)]
 
 
 #: the stop rules wait for the decision tolerance only while it has not halved over this many

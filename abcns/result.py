@@ -11,7 +11,7 @@ import numpy as np
 from abcns.ellipsoid import Ellipsoid
 from abcns.evidence import DEAD_BEFORE, DEATH_RULES, Evidence, probabilities
 from abcns.likelihood import Reading, of_floor, read, records
-from abcns.noise import Floor, reached, waited_for
+from abcns.noise import Floor, Standing, standings, waited_for
 from abcns.priors import Model
 from abcns.settings import DEATH_PROBABILITY, StopReason
 
@@ -41,7 +41,10 @@ class Population:
     the evidence's for ABC-NS's default variant, particle shares (Eq. 12) for the paper's,
     importance-weight mass for ABC-SMC and shares for rejection. ``floor`` is the noise floor
     as estimated after this population (:class:`abcns.noise.Floor`; ABC-NS runs that know
-    their distance's noise model, else None).
+    their distance's noise model, else None). ``standing`` is where ``epsilon`` stands to
+    the decision tolerance in force when it was chosen (:class:`abcns.noise.Standing`: set by
+    it, above or below it; None without a floor, or where the population was made without the
+    record: :func:`abcns.noise.standings` then gives it from the floors).
     """
 
     t: int
@@ -63,6 +66,7 @@ class Population:
     n_simulations_by_model: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     n_failed_by_model: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     floor: Floor | None = None
+    standing: Standing | None = None
 
     @property
     def acceptance_rate(self) -> float:
@@ -164,24 +168,31 @@ class Result:
         return self.final.floor if self.populations else None
 
     def decision_population(self) -> Population:
-        """The population the run's answer is read from: the one with the lowest tolerance at
-        or above the decision tolerance (the noise floor plus its spread, as estimated at the
-        end of the run; ``abcns.noise``); the final population when the run knows no floor,
-        the first when the floor lies above every tolerance of the run."""
-        floor = self.floor
-        if floor is None:
+        """The population the run's answer is read from, by each population's standing to the
+        decision tolerance in force when its tolerance was chosen (:func:`abcns.noise.standings`):
+        the first accepted at it (the evidence variant stops there); else the one before the
+        first accepted below it (a run that went on past it; the first population when that is
+        the first: the floor lies above the run); the final population when the run knows no
+        floor or stopped above it."""
+        if self.floor is None:
             return self.final
-        above = [p for p in self.populations if p.epsilon >= floor.decision]
-        return min(above, key=lambda p: (p.epsilon, -p.t)) if above else self.populations[0]
+        for i, mark in enumerate(self._standings):
+            if mark is not None and mark.reached:
+                return self.populations[i if mark is Standing.AT or i == 0 else i - 1]
+        return self.final
+
+    @functools.cached_property
+    def _standings(self) -> list[Standing | None]:
+        return standings(self.populations)
 
     @property
     def reached_floor(self) -> bool | None:
-        """Whether the run got to its decision tolerance (:func:`abcns.noise.reached`: its
-        last population was accepted at it or below); None when it knows no floor."""
+        """Whether the run got to its decision tolerance (its last population's standing, at
+        or below it: :class:`abcns.noise.Standing`); None when it knows no floor."""
         if self.floor is None:
             return None
-        before = self.populations[-2].floor if len(self.populations) > 1 else None
-        return reached(self.final.epsilon, before, self.final.floor)
+        mark = self._standings[-1]
+        return mark is not None and mark.reached
 
     @property
     def floor_settled(self) -> bool:
@@ -193,9 +204,7 @@ class Result:
     def provisional(self) -> bool:
         """Whether the run stopped above its decision tolerance (a budget, the user's own
         rule, a stalled tolerance): its answer is not yet that of the data."""
-        floor = self.floor
-        return (floor is not None and not self.reached_floor and self.final.epsilon > floor.decision
-                and self.floor_settled)
+        return self.reached_floor is False and self.floor_settled
 
     def reading(self) -> Reading | None:
         """The likelihood-weighted answer (:attr:`_reading`, made once)."""
@@ -303,7 +312,7 @@ class Result:
                        f"the decision tolerance {floor.decision:.4g} (noise floor {floor.floor:.4g}); its model "
                        "probabilities and intervals are not yet those of the data: run it on (a larger budget, or "
                        "without the rule that stopped it)")
-        if floor is not None and pop.epsilon < floor.decision:
+        if floor is not None and self._standings[pop.t - 1] is Standing.BELOW:
             out.append(f"floor above the run: the noise floor's decision tolerance {floor.decision:.4g} lies above every "
                        f"tolerance of the run (the highest {pop.epsilon:.4g}); the stated noise is larger than the "
                        "data's misfit")

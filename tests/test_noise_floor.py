@@ -17,7 +17,7 @@ import abcns
 from abcns import OK, Model, NSSettings, StopReason, StopRules, per_model
 from abcns.distances import NMSE
 from abcns.filling import Budget
-from abcns.noise import Floor, Noise, estimate
+from abcns.noise import Floor, Noise, Standing, estimate, standings
 from service.report.export import from_dataset, to_dataset
 
 
@@ -168,3 +168,22 @@ def test_a_stated_noise_sets_the_floor():
     assert d.noise(0.01) == Noise(50, d.scale * 1e-4)
     with pytest.raises(abcns.SpecError, match=r"data\.noise_std"):
         d.noise(-1.0)
+
+
+def test_the_answer_reads_the_floor_each_tolerance_was_chosen_against():
+    """A run past its floor (the paper variant, or ``noise_floor: false``) whose decision
+    tolerance falls from 4.0 to 2.2 over five populations at tolerances 10 / t: population
+    4 (2.5) was accepted below the decision tolerance in force when it was chosen (2.6, after
+    population 3), so the answer is population 3, the floor the stop rule reads; the answer
+    used to compare every tolerance with the last floor (2.2) instead and read population 4,
+    already below the floor the run had when it got there. Hand-made floors: p = 2, v = 0.1,
+    decision = best + 0.4."""
+    from toy_results import floored_result
+
+    floors = [Floor(best=d - 0.4, model=0, n_parameters=2, variance=0.1, method=0, n_samples=100)
+              for d in (4.0, 3.0, 2.6, 2.3, 2.2)]
+    result = floored_result(floors=floors)
+    assert [p.floor.decision for p in result.populations] == pytest.approx([4.0, 3.0, 2.6, 2.3, 2.2])
+    assert standings(result.populations) == [Standing.ABOVE] * 3 + [Standing.BELOW] * 2
+    assert result.decision_population().t == 3
+    assert result.reached_floor and not result.provisional

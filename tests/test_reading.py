@@ -10,6 +10,7 @@ the box's cut is below 1e-12 of the mass for these data). The spec states the no
 0.1), as exact Bayes knows it.
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -18,7 +19,7 @@ import pytest
 import abcns
 from abcns import OK, Model, NSSettings, StopReason, StopRules, per_model
 from abcns.distances import NMSE
-from abcns.noise import reached
+from abcns.noise import Standing, standings
 
 X = np.linspace(-1, 1, 100)
 SIGMA = 0.1
@@ -72,7 +73,7 @@ def test_the_default_rules_wait_for_the_decision_tolerance():
     models, evaluate, noise = problem(3, stated=False)
     r = abcns.run(models, evaluate, SETTINGS, StopRules(), seed=3, noise=noise)
     assert r.stop_reason is StopReason.NOISE_FLOOR
-    assert reached(r.final.epsilon, r.populations[-2].floor, r.final.floor)
+    assert r.final.standing is Standing.AT
     s = r.summary()
     assert s["decision"]["rule"] == "noise_floor" and s["decision"]["provisional"] is False
     assert not [w for w in s["warnings"] if w.startswith("provisional")]
@@ -121,8 +122,9 @@ def test_the_floor_stop_ends_at_the_first_population_accepted_at_the_decision_to
                   noise=noise)
     assert r.stop_reason is StopReason.NOISE_FLOOR
     pops = r.populations
-    at = [p.t for i, p in enumerate(pops) if reached(p.epsilon, pops[i - 1].floor if i else None, p.floor)]
-    assert at == [pops[-1].t]
+    assert [p.standing for p in pops] == [Standing.ABOVE] * (len(pops) - 1) + [Standing.AT]
+    # a store's populations carry no record: the floors give the same one
+    assert standings([dataclasses.replace(p, standing=None) for p in pops]) == [p.standing for p in pops]
     assert pops[-1].epsilon == pops[-2].floor.decision
     assert r.decision_population() is r.final
 
