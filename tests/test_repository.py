@@ -148,3 +148,21 @@ def test_the_version_is_written_once():
     assert "version" not in config["project"] and "version" in config["project"]["dynamic"]
     assert config["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "abcns.__version__"}
     assert importlib.metadata.version("abcns") == abcns.__version__
+
+
+def test_the_service_says_the_version_the_package_holds(monkeypatch):
+    """X: a second version written in service/http/api.py (a literal in ``FastAPI(version=...)``)
+    passed the test above. The app's schema (what ``GET /openapi.json`` serves; the app made,
+    nothing started) says the package's version, and follows ``abcns.__version__`` when that
+    changes."""
+    import importlib.metadata
+
+    import abcns
+    from service.http.api import create_app
+
+    def served() -> str:
+        return create_app().openapi()["info"]["version"]
+
+    assert served() == importlib.metadata.version("abcns")
+    monkeypatch.setattr(abcns, "__version__", "0.0.0+written-once")
+    assert served() == "0.0.0+written-once"

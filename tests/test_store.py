@@ -408,6 +408,11 @@ def test_data_hash():
     assert h != data_hash(np.ones(2), x)
     assert data_hash(x) != data_hash(x.reshape(2, 3))
     assert data_hash(x) != data_hash(x.astype(np.float32))
+    # the same bytes and shape under another dtype (zeros; a view; the other byte order's
+    # bytes): only the dtype in the hash tells them apart
+    assert data_hash(np.zeros(3)) != data_hash(np.zeros(3, dtype=np.int64))
+    assert data_hash(x) != data_hash(x.view(np.int64))
+    assert data_hash(x) != data_hash(x.byteswap().view(x.dtype.newbyteorder()))
     assert data_hash(x) != data_hash(x + 1e-12)
     assert data_hash(x[::2]) == data_hash(np.ascontiguousarray(x[::2]))
     with pytest.raises(TypeError):

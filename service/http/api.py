@@ -47,6 +47,7 @@ from fastapi.sse import format_sse_event
 from starlette.datastructures import UploadFile
 from starlette.requests import ClientDisconnect
 
+import abcns
 from abcns import SpecError
 from service.http import page
 from service.http.intake import Intake, Refused, as_text, name_key, problem, validation_errors
@@ -546,7 +547,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if cluster is not None:
                 await asyncio.to_thread(cluster.close)
 
-    app = FastAPI(title="abcns", version="0.1.0", lifespan=lifespan, max_body_size=settings.max_request_bytes,
+    app = FastAPI(title="abcns", version=abcns.__version__, lifespan=lifespan, max_body_size=settings.max_request_bytes,
                   docs_url=None, redoc_url=None,
                   description="ABC-NS model selection and parameter estimation jobs for dynamical systems.")
     app.state.settings = settings
