@@ -249,3 +249,45 @@ def test_evidence_variant_separates_what_the_paper_variant_does_not():
     p = abc_model_probability(r.final.epsilon)
     _, se = probabilities(r.final.evidence.log_z, r.final.evidence.log_z_se)
     assert abs(r.final.model_probabilities[0] - p) < 4 * se[0]
+
+
+def test_the_evidence_corrects_for_a_bound_that_covers_part_of_the_region():
+    """X: a bound that holds only part of the accepted region. The closed-form toys' bounds
+    hold 0.9-1 of theirs, so removing the coverage correction (``- log c`` in the direct
+    estimate, ``+ log c`` in the prediction) passed every test above. Here model m's accepted
+    region at eps is the disc |theta - x0| < eps (line_and_disc's disc), and the previous
+    population's bound is the ellipse with semi-axes 1.3 eps and 0.5 eps about x0: it holds
+    c = 0.56 of the disc, exactly (quadrature), and misses only its top and bottom, outside
+    the next region (eps_next = 0.4 eps, inside the ellipse), as the correction assumes.
+    Proposals uniform in the ellipse; the bound's volume and coverage given exactly, no
+    prediction from before (the direct estimate alone). Over 100 populations (seed 0, 1,000
+    proposals each) the mean errors of log Z(eps) and of the prediction log Z(eps_next) lie
+    within 4 of their own standard errors (sd / 10: 0.0012 and 0.005) of zero (measured
+    -0.0009 and -0.009); without either correction one is off by log c = -0.58, over 100 of
+    them."""
+    from scipy import integrate
+
+    from abcns.evidence import ALIVE, Evidence, estimate
+
+    eps, a, b = 0.1, 0.13, 0.05
+    held = 2 * integrate.quad(lambda x: min(math.sqrt(eps**2 - x**2), b * math.sqrt(1 - x**2 / a**2)), -eps, eps)[0]
+    disc, ellipse = math.pi * eps**2, math.pi * a * b
+    cover = held / disc
+    assert 0.5 < cover < 0.6
+    one = lambda v: np.array([v], dtype=float)  # one model
+    previous = Evidence(log_z=one(0.0), log_z_se=one(0.0), log_z_next=one(0.0), log_z_next_se=one(np.inf),
+                        log_volume=one(math.log(ellipse)), log_volume_se=one(0.0), coverage=one(cover),
+                        n_coverage=np.array([10**6]), allocation=one(1.0), n_proposed=np.array([1000]),
+                        n_accepted=np.array([1000]), death=np.array([ALIVE]))
+    rng = np.random.default_rng(0)
+    errors = []
+    for _ in range(100):
+        u = rng.standard_normal((1000, 2))
+        u *= (np.sqrt(rng.random(1000)) / np.linalg.norm(u, axis=1))[:, None]
+        d = np.linalg.norm(u * [a, b], axis=1)  # the disc's distance of a point uniform in the ellipse
+        d = d[d < eps]
+        est = estimate(np.zeros(d.size, dtype=np.int64), d, np.ones(d.size, bool), 0.4 * eps, np.array([1000]),
+                       np.array([d.size]), previous)
+        errors.append([est.log_z[0] - math.log(disc), est.log_z_next[0] - math.log(math.pi * (0.4 * eps) ** 2)])
+    mean, se = np.mean(errors, axis=0), np.std(errors, axis=0, ddof=1) / 10
+    assert np.all(np.abs(mean) < 4 * se), (mean, se, math.log(cover))
