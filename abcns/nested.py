@@ -42,6 +42,7 @@ exactly those of the published algorithm.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 from collections.abc import Callable, Generator, Sequence
@@ -123,21 +124,21 @@ class Step:
     bounds: tuple[bd.Union, ...]
     model_probabilities: np.ndarray
     notes: list[str]
-    evidence_parts: dict  # the Evidence fields but the geometry
+    counted: ev.Evidence  # the evidence but its bounds' geometry (that of a model without a bound)
     geometry_jobs: tuple[Geometry | None, ...]
     tied: bool = False  # every particle has the same distance: no lower tolerance exists
 
     def evidence(self, geometry: np.random.Generator) -> ev.Evidence:
         """The population's evidence bookkeeping, its bounds' geometry measured now with
         ``geometry`` (used model by model, in model order)."""
-        n = len(self.geometry_jobs)
-        log_volume, log_volume_se = np.full(n, np.nan), np.full(n, np.nan)
-        cover, n_cover = np.ones(n), np.zeros(n, dtype=np.int64)
+        c = self.counted
+        log_volume, log_volume_se, cover, n_cover = (c.log_volume.copy(), c.log_volume_se.copy(), c.coverage.copy(),
+                                                     c.n_coverage.copy())
         for m, job in enumerate(self.geometry_jobs):
             if job is not None:
                 log_volume[m], log_volume_se[m], cover[m], n_cover[m] = job(geometry)
-        return ev.Evidence(log_volume=log_volume, log_volume_se=log_volume_se, coverage=cover, n_coverage=n_cover,
-                           **self.evidence_parts)
+        return dataclasses.replace(c, log_volume=log_volume, log_volume_se=log_volume_se, coverage=cover,
+                                   n_coverage=n_cover)
 
 
 def finish_population(
@@ -173,10 +174,10 @@ def finish_population(
     assert previous is None or previous_evidence is not None
     est = ev.estimate(which, distances, is_new, eps_next, n_proposed, n_accepted, previous_evidence)
 
-    death = np.where(alive_now, ev.ALIVE, ev.DEAD_BEFORE).astype(np.int64)
-    quotas = variant.survive(models, est, counts, capacity, alive_now, previous_evidence, death, spared)
+    quotas, death = variant.survive(models, est, counts, capacity, alive_now, previous_evidence, spared)
     alive_next = death == ev.ALIVE
-    death[(death != ev.ALIVE) & (n_proposed > 0) & (filled.failures(n_models) == n_proposed)] = ev.SIMULATIONS_FAILED
+    failed = (death != ev.ALIVE) & (n_proposed > 0) & (filled.failures(n_models) == n_proposed)
+    death = np.where(failed, ev.SIMULATIONS_FAILED, death)
     notes = [f"population {t}: {models[m].name} dies ({ev.DEATH_RULES[int(death[m])]}; p = {est.p_next[m]:.3g} at "
              "the next tolerance)" for m in map(int, np.flatnonzero(alive_now & ~alive_next))]
     if quotas.sum() < settings.n_survivors:
@@ -208,13 +209,15 @@ def finish_population(
 
     acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
     alloc, probabilities = variant.proposals(models, est, counts, acceptance, alive_next)
-    parts = dict(log_z=est.log_z, log_z_se=np.sqrt(est.var_z), log_z_next=est.log_z_next,
-                 log_z_next_se=np.sqrt(est.var_next), allocation=alloc, n_proposed=n_proposed,
-                 n_accepted=n_accepted, death=death)
+    counted = ev.Evidence(log_z=est.log_z, log_z_se=np.sqrt(est.var_z), log_z_next=est.log_z_next,
+                          log_z_next_se=np.sqrt(est.var_next), log_volume=np.full(n_models, np.nan),
+                          log_volume_se=np.full(n_models, np.nan), coverage=np.ones(n_models),
+                          n_coverage=np.zeros(n_models, dtype=np.int64), allocation=alloc, n_proposed=n_proposed,
+                          n_accepted=n_accepted, death=death)
     if found is None:
         notes.append(f"population {t}: every particle has the distance {float(distances[0]):.6g}; no tolerance below "
                      "it leaves a particle, so the run stops (ties)")
-    return Step(eps_next, weights, survivors, tuple(bounds), probabilities, notes, parts, tuple(geometry_jobs),
+    return Step(eps_next, weights, survivors, tuple(bounds), probabilities, notes, counted, tuple(geometry_jobs),
                 tied=found is None)
 
 
@@ -355,11 +358,12 @@ class _Run:
         self.budget = budget
         self.source, self.n_pilot = "resumed" if history else "given", 0
         self.notes: list[str] = []
-        self.frames = [bd.Frame(m, unit=settings.evidence) for m in models]
+        self.variant = variant_of(settings)
+        self.frames = [bd.Frame(m, unit=self.variant.unit_box) for m in models]
         self.floors = Tracker(noise, models, history)
         self.decisions = [None if p.floor is None else p.floor.decision for p in history]
-        self.shells = likelihood.records(history) if settings.evidence else []  # the reading so far
-        self.at_floor = settings.evidence and stop.noise_floor and noise is not None
+        self.shells = likelihood.records(history) if self.variant.reads_floor else []  # the reading so far
+        self.at_floor = self.variant.reads_floor and stop.noise_floor and noise is not None
         self.pending: Filling | None = None  # the next population, started
 
     def end(self, reason: StopReason) -> RunEnd:
@@ -371,7 +375,7 @@ class _Run:
         than beta N survive, more are new)."""
         s = self.settings
         propose = BoundProposer(tuple(self.models), tuple(self.frames), tuple(bounds),
-                                allocation if s.evidence else None, s.max_redraws)
+                                allocation if self.variant.allocates else None, s.max_redraws)
         return Filling(propose, s.particles - n_survivors, eps, self.executor, seed=self.seed, t=t,
                        batch_size=s.batch_size)
 
@@ -393,14 +397,14 @@ class _Run:
             self.notes.append(f"population {t}: accepted at the decision tolerance {eps:.6g}; the run stops (noise "
                               f"floor now {floor.floor:.6g} + its spread {floor.spread:.3g})")
         if reason is None and self.budget.reason() is None:
-            self.pending = self.start(t + 1, step.epsilon_next, step.bounds, step.evidence_parts["allocation"],
+            self.pending = self.start(t + 1, step.epsilon_next, step.bounds, step.counted.allocation,
                                       int(np.count_nonzero(step.survivors)))
         pop = population_from(
             t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, self.budget.elapsed(),
             step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
             evidence=step.evidence(geometry_rng(self.seed, t)), floor=floor, standing=mark,
         )
-        if self.settings.evidence:
+        if self.variant.reads_floor:
             self.shells.append(likelihood.record(pop, previous))
         return pop, reason
 

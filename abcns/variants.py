@@ -66,6 +66,12 @@ def _floored_quotas(total: int, shares: np.ndarray, capacity: np.ndarray, floor:
     return quota
 
 
+def deaths(alive_now: np.ndarray, dying: np.ndarray, code: int) -> np.ndarray:
+    """Death codes per model (``abcns.evidence.DEATH_RULES``): ALIVE for a model alive now,
+    ``code`` for those ``dying``, DEAD_BEFORE for the others."""
+    return np.where(dying, code, np.where(alive_now, ev.ALIVE, ev.DEAD_BEFORE)).astype(np.int64)
+
+
 @dataclass(frozen=True)
 class Paper:
     """The published algorithm: survivors per model follow particle counts, one ellipsoid per
@@ -75,13 +81,12 @@ class Paper:
 
     settings: NSSettings
 
-    def survive(self, models: Sequence[Model], est: ev.Estimate, counts: np.ndarray,
-                capacity: np.ndarray, alive_now: np.ndarray, previous_evidence: ev.Evidence | None,
-                death: np.ndarray, spared: Callable[[], np.ndarray | None] | None = None) -> np.ndarray:
-        """Survivor quotas per model; ``death`` updated in place."""
+    def survive(self, models: Sequence[Model], est: ev.Estimate, counts: np.ndarray, capacity: np.ndarray,
+                alive_now: np.ndarray, previous_evidence: ev.Evidence | None,
+                spared: Callable[[], np.ndarray | None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(survivor quotas per model, death codes: :func:`deaths`)."""
         quotas = survivor_quotas(self.settings.n_survivors, counts, capacity)
-        death[alive_now & (quotas == 0)] = ev.NO_PARTICLES
-        return quotas
+        return quotas, deaths(alive_now, alive_now & (quotas == 0), ev.NO_PARTICLES)
 
     def bound(self, points: np.ndarray, survivors: np.ndarray, fallback: ell.Ellipsoid) -> bd.Union:
         """One ellipsoid fitted to the survivors (raw units), enlarged by f0."""
@@ -89,6 +94,9 @@ class Paper:
 
     #: the bound is not a fit of every point below eps_{t+1}: its coverage is the share it holds
     cross_validated = False
+    #: bounds in raw parameter units, proposals pick an alive model with equal probability, and
+    #: the run neither stops at its noise floor nor reads by the likelihood
+    unit_box = allocates = reads_floor = False
 
     def proposals(self, models: Sequence[Model], est: ev.Estimate, counts: np.ndarray, acceptance: np.ndarray,
                   alive_next: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -109,14 +117,14 @@ class Evidence:
 
     settings: NSSettings
 
-    def survive(self, models: Sequence[Model], est: ev.Estimate, counts: np.ndarray,
-                capacity: np.ndarray, alive_now: np.ndarray, previous_evidence: ev.Evidence | None,
-                death: np.ndarray, spared: Callable[[], np.ndarray | None] | None = None) -> np.ndarray:
-        """Survivor quotas per model; ``death`` updated in place; ``spared``: the models the
+    def survive(self, models: Sequence[Model], est: ev.Estimate, counts: np.ndarray, capacity: np.ndarray,
+                alive_now: np.ndarray, previous_evidence: ev.Evidence | None,
+                spared: Callable[[], np.ndarray | None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(survivor quotas per model, death codes: :func:`deaths`); ``spared``: the models the
         likelihood reading keeps from death by probability (:func:`abcns.likelihood.spared`),
         asked only when a model would die by it."""
         s = self.settings
-        death[alive_now & (capacity == 0)] = ev.NO_PARTICLES
+        death = deaths(alive_now, alive_now & (capacity == 0), ev.NO_PARTICLES)
         # by probability only when the previous population's prediction was below the threshold
         # too: one population's error bar can be wrong (a few in a thousand beyond 3 standard
         # errors), and death is for good
@@ -129,11 +137,11 @@ class Evidence:
         kept = spared() if spared is not None and improbable.any() else None
         if kept is not None:
             improbable &= ~kept
-        death[improbable] = ev.IMPROBABLE
+        death = np.where(improbable, ev.IMPROBABLE, death)
         alive_next = death == ev.ALIVE
         shares = np.where(alive_next, est.p_next, 0.0)
         floor = np.array([bd.min_points(m.n_dim) for m in models])
-        return _floored_quotas(s.n_survivors, shares, np.where(alive_next, capacity, 0), floor)
+        return _floored_quotas(s.n_survivors, shares, np.where(alive_next, capacity, 0), floor), death
 
     def bound(self, points: np.ndarray, survivors: np.ndarray, fallback: ell.Ellipsoid) -> bd.Union:
         """A union of ellipsoids fitted to every particle below eps_{t+1} (unit box)."""
@@ -141,6 +149,9 @@ class Evidence:
 
     #: the bound is a fit of every point below eps_{t+1}: its coverage is cross-validated
     cross_validated = True
+    #: bounds in each model's unit prior box; proposals by the evidence's allocation; the run
+    #: stops at its noise floor (``StopRules.noise_floor``) and reads by the likelihood
+    unit_box = allocates = reads_floor = True
 
     def proposals(self, models: Sequence[Model], est: ev.Estimate, counts: np.ndarray, acceptance: np.ndarray,
                   alive_next: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

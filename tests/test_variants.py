@@ -56,9 +56,8 @@ def estimate_with(p_next, se_next=(0.0, 0.0)) -> ev.Estimate:
 
 def test_the_paper_variant_keeps_survivors_by_counts_and_picks_models_evenly():
     paper = Paper(NSSettings(particles=100, variant="paper"))
-    death = np.zeros(2, dtype=np.int64)
-    quotas = paper.survive(MODELS, estimate_with([0.5, 0.5]), np.array([75, 25]), np.array([60, 20]),
-                           np.array([True, True]), None, death)
+    quotas, death = paper.survive(MODELS, estimate_with([0.5, 0.5]), np.array([75, 25]), np.array([60, 20]),
+                                  np.array([True, True]), None)
     assert quotas.tolist() == [45, 15] and death.tolist() == [ev.ALIVE, ev.ALIVE]  # beta N = 60, 3:1
     alloc, probabilities = paper.proposals(MODELS, estimate_with([0.9, 0.1]), np.array([75, 25]), np.ones(2),
                                            np.array([True, True]))
@@ -70,19 +69,16 @@ def test_the_evidence_variant_kills_by_probability_only_twice_in_a_row():
     evidence = Evidence(s)
     low = estimate_with([0.9995, 0.0005])  # below the default threshold, 1e-3
     args = (MODELS, low, np.array([90, 10]), np.array([80, 8]), np.array([True, True]))
-    once = np.zeros(2, dtype=np.int64)
-    evidence.survive(*args, previous_evidence(log_z_next=np.log([0.5, 0.5])), once)
+    _, once = evidence.survive(*args, previous_evidence(log_z_next=np.log([0.5, 0.5])))
     assert once.tolist() == [ev.ALIVE, ev.ALIVE]  # the previous prediction was above the threshold
-    twice = np.zeros(2, dtype=np.int64)
-    quotas = evidence.survive(*args, previous_evidence(log_z_next=np.log([0.9995, 0.0005]),
-                                                       log_z_next_se=np.zeros(2)), twice)
+    quotas, twice = evidence.survive(*args, previous_evidence(log_z_next=np.log([0.9995, 0.0005]),
+                                                              log_z_next_se=np.zeros(2)))
     assert twice.tolist() == [ev.ALIVE, ev.IMPROBABLE] and quotas[1] == 0 and quotas.sum() == s.n_survivors
 
 
 def test_the_evidence_variant_keeps_the_survivor_floor_and_follows_p():
     s = NSSettings(particles=100)
-    death = np.zeros(2, dtype=np.int64)
-    quotas = Evidence(s).survive(MODELS, estimate_with([0.98, 0.02]), np.array([50, 50]), np.array([60, 60]),
-                                 np.array([True, True]), None, death)
+    quotas, _ = Evidence(s).survive(MODELS, estimate_with([0.98, 0.02]), np.array([50, 50]), np.array([60, 60]),
+                                    np.array([True, True]), None)
     assert quotas.sum() == s.n_survivors and quotas[1] == 6  # 2 (d + 1) for the 2-d model, above 0.02 x 60
     assert isinstance(variant_of(s), Evidence) and isinstance(variant_of(NSSettings(variant="paper")), Paper)
