@@ -277,6 +277,11 @@ def _field(loc: tuple) -> str:
     return out
 
 
+#: fields a spec may no longer name, and why (said after "Extra inputs are not permitted")
+REMOVED = {("sampler", "carry_over"): "removed (issue X): carry-over measured no gain in the useful rate and was off "
+           "by default; delete the field"}
+
+
 def parse(raw: dict) -> JobSpec:
     """Validate the structure; pydantic errors become one SpecError naming every field (the
     first as its ``field``, each once). An unknown field gets the closest allowed name
@@ -312,6 +317,7 @@ def parse(raw: dict) -> JobSpec:
             if close:
                 message += f"; did you mean `{close[0]}`?"
                 explained.add((*loc[:-1], close[0]))
+            message += "".join(f"; {why}" for at, why in REMOVED.items() if loc[:1] + loc[-1:] == at)
         problems.append((loc, _field(loc), message))
     problems = [p for p in problems if p[0] not in explained or p[0] not in missing] or problems
     first, *rest = problems

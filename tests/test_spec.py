@@ -185,6 +185,8 @@ def test_a_field_no_algorithm_reads_is_an_unknown_field(raw, algorithm):
         with pytest.raises(SpecError, match="Extra inputs are not permitted") as err:
             parse(with_sampler(raw, {"algorithm": algorithm, name: 3}))
         assert err.value.field == f"sampler.{name}"
+    with pytest.raises(SpecError, match="removed") as err:  # and says it was removed
+        parse(with_sampler(raw, {"algorithm": algorithm, "carry_over": 3}))
 
 
 @pytest.mark.parametrize(("change", "field", "match"), [
