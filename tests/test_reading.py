@@ -19,7 +19,9 @@ import pytest
 import abcns
 from abcns import OK, Model, NSSettings, StopReason, StopRules, per_model
 from abcns.distances import NMSE
+from abcns.executor import SerialExecutor
 from abcns.noise import Standing, standings
+from abcns.run import iterate
 
 X = np.linspace(-1, 1, 100)
 SIGMA = 0.1
@@ -123,8 +125,14 @@ def test_the_floor_stop_ends_at_the_first_population_accepted_at_the_decision_to
     assert r.stop_reason is StopReason.NOISE_FLOOR
     pops = r.populations
     assert [p.standing for p in pops] == [Standing.ABOVE] * (len(pops) - 1) + [Standing.AT]
-    # a store's populations carry no record: the floors give the same one
-    assert standings([dataclasses.replace(p, standing=None) for p in pops]) == [p.standing for p in pops]
+    # a store's populations carry no record: the floors give the same one, and a run resumed
+    # from them before its last population stops after it, as the run did
+    bare = [dataclasses.replace(p, standing=None) for p in pops]
+    assert standings(bare) == [p.standing for p in pops]
+    more = iterate(models, SerialExecutor(evaluate), SETTINGS, StopRules(min_epsilon_decrease=1e-9, max_populations=60),
+                   seed, noise=noise, history=bare[:-1])
+    got = list(more)
+    assert [p.epsilon for p in got] == [pops[-1].epsilon] and got[0].standing is Standing.AT
     assert pops[-1].epsilon == pops[-2].floor.decision
     assert r.decision_population() is r.final
 
