@@ -235,6 +235,7 @@ class Watch:
 
     def __init__(self, url: str):
         self.url, self.times, self.done = url, [0.0], threading.Event()
+        self.at: list[tuple[float, float]] = []  # (when it answered, seconds it took)
         self.thread = threading.Thread(target=self._poll, daemon=True)
         self.thread.start()
 
@@ -247,6 +248,7 @@ class Watch:
                 except httpx.HTTPError:
                     pass
                 self.times.append(time.perf_counter() - start)
+                self.at.append((time.time(), self.times[-1]))
                 time.sleep(0.05)
 
     def reset(self) -> None:
@@ -254,6 +256,10 @@ class Watch:
 
     def slowest(self) -> float:
         return max(self.times)
+
+    def slowest_between(self, start: float, end: float) -> float:
+        """The slowest answer that came between ``start`` and ``end`` (time.time())."""
+        return max((took for at, took in self.at if start <= at <= end), default=0.0)
 
     def close(self) -> None:
         self.done.set()
@@ -401,6 +407,118 @@ def _purges(statuses: collections.Counter, service: Service, rounds: int = 10) -
     return "two purges at once: " + ", ".join(f"{n} x {list(c)}" for c, n in sorted(pairs.items()))
 
 
+TERMINAL_EVENTS = (b"event: finished", b"event: failed", b"event: cancelled")
+
+
+async def _one_stream(port: int, path: str, token: str, connected=lambda: None) -> tuple[bool, int]:
+    """One raw event stream (a socket, no client library: 500 of them cost the client little
+    CPU): whether it got the job's terminal event, and the bytes read. ``connected()`` is
+    called once its answer's head has come."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(f"GET {path} HTTP/1.1\r\nHost: x\r\nAuthorization: {token}\r\n\r\n".encode())
+    await writer.drain()
+    got, tail, head = 0, b"", False
+    try:
+        while chunk := await reader.read(65536):
+            got += len(chunk)
+            tail = (tail + chunk)[-4096:]
+            if not head and b"\r\n\r\n" in tail:
+                head = True
+                connected()
+            if any(t in tail for t in TERMINAL_EVENTS):
+                return True, got
+        return False, got
+    finally:
+        writer.close()
+
+
+def stream_clients(port: int, path: str, token: str, n: int, ready, results) -> None:
+    """``n`` event streams at once (in a process of their own); sets ``ready`` once every
+    stream is open, then puts how many got the terminal event and the bytes read by each
+    on ``results``."""
+    count = [0]
+
+    def connected() -> None:
+        count[0] += 1
+        if count[0] == n:
+            ready.set()
+
+    async def all_of_them() -> list:
+        return await asyncio.gather(*(_one_stream(port, path, token, connected) for _ in range(n)),
+                                    return_exceptions=True)
+
+    out = asyncio.run(all_of_them())
+    results.put((sum(1 for o in out if isinstance(o, tuple) and o[0]),
+                 [o[1] if isinstance(o, tuple) else -1 for o in out]))
+
+
+def _job_times(service: Service, job_id: str) -> tuple[str, float, float, int]:
+    """(status, time of its start event, of its end event, populations) of an ended job."""
+    events = [json.loads(line) for line in (service.job_dir(job_id) / "events.jsonl").read_text().splitlines()]
+    start = next(e["time"] for e in events if e["event"] == "started")
+    return events[-1]["event"], start, events[-1]["time"], sum(e["event"] == "population" for e in events)
+
+
+def _streams(statuses: collections.Counter, service: Service, watch: Watch, counts=(0, 0, 100, 500)) -> list[str]:
+    """Z.1: ``n`` event streams on one job, opened while it waits behind another (the
+    service runs one job at a time); once all are open the other is cancelled and the job
+    runs (~5 s alone): /health's slowest answer while it runs, its time from start to end,
+    and how many streams got its end event. The first run (no streams) warms the workers."""
+    import multiprocessing
+
+    spec = duffing_spec(max_populations=100, particles=2000, noise_floor=False)
+    blocker = duffing_spec(max_populations=100_000, particles=200, noise_floor=False)
+    lines = []
+    ctx = multiprocessing.get_context("spawn")
+
+    def submit(raw: dict) -> str:
+        r = httpx.post(f"{service.url}/jobs", json=raw, headers=AUTH, timeout=120)
+        statuses[r.status_code] += 1
+        return r.json()["id"]
+
+    for n in counts:
+        first, job_id = submit(blocker), submit(spec)
+        ready, results = ctx.Event(), ctx.Queue()
+        clients = ctx.Process(target=stream_clients, args=(service.port, f"/jobs/{job_id}/events",
+                                                           AUTH["Authorization"], n, ready, results))
+        if n:
+            clients.start()
+            if not ready.wait(300):
+                lines.append(f"{n:4d} streams: not all open after 300 s")
+        statuses[httpx.delete(f"{service.url}/jobs/{first}", headers=AUTH, timeout=120).status_code] += 1
+        watch.reset()
+        while httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH, timeout=120).json()["status"] not in (
+                "finished", "failed", "cancelled"):
+            time.sleep(0.2)
+        slowest = watch.slowest()
+        got, sizes = results.get(timeout=300) if n else (0, [])
+        if n:
+            clients.join(timeout=60)
+        status, began, ended, pops = _job_times(service, job_id)
+        lines.append(f"{n:4d} streams: job {status} ({pops} populations) in {ended - began:.1f} s, "
+                     f"{got}/{n} streams got its end ({min(sizes, default=0)}-{max(sizes, default=0)} bytes), "
+                     f"/health slowest {slowest:.3f} s (while it ran {watch.slowest_between(began, ended):.3f} s)")
+    return lines
+
+
+def main_streams() -> None:
+    """Z.1: many event streams on one running job (``--streams``)."""
+    tmp = Path(tempfile.mkdtemp())
+    cluster = StockCluster(tmp / "dask")
+    service = Service(tmp / "jobs", cluster.address)
+    statuses: collections.Counter = collections.Counter()
+    watch = Watch(service.url)
+    start = time.monotonic()
+    try:
+        print("Z.1 event streams on one running job", flush=True)
+        for line in _streams(statuses, service, watch):
+            print(line, flush=True)
+    finally:
+        watch.close()
+        errors = close_and_count(service, cluster, statuses, start)
+    print(f"errors in the service's log: {errors[:2000] or 'none'}")
+
+
 def main_z() -> None:
     """Issue Z's attacks (2, 3, 4, 7, 8) on `abcns serve` with its default settings."""
     tmp = Path(tempfile.mkdtemp())
@@ -429,4 +547,7 @@ def main_z() -> None:
 if __name__ == "__main__":
     import sys
 
-    main_z() if "--issue-z" in sys.argv[1:] else main()
+    if "--streams" in sys.argv[1:]:
+        main_streams()
+    else:
+        main_z() if "--issue-z" in sys.argv[1:] else main()

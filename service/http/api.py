@@ -405,6 +405,12 @@ def event_start(
     return int(last_event_id.strip())
 
 
+def sse_bytes(e: dict) -> bytes:
+    """One event as a server-sent event (made once per event for all of a job's streams)."""
+    return format_sse_event(data_str=json.dumps(_finite(e["data"]), separators=(",", ":")), event=e["event"],
+                            id=str(e["id"]))
+
+
 @api.get("/jobs/{job_id}/events", response_class=StreamingResponse, responses={
     200: {"description": "server-sent events", "content": {"text/event-stream": {"schema": {"type": "string"}}}},
     400: {"description": "bad Last-Event-ID"}})
@@ -424,12 +430,8 @@ async def job_events(
 
     async def stream() -> AsyncIterator[bytes]:
         try:
-            async for e in job.log.follow(start, manager.closing):
-                if e is None:
-                    yield format_sse_event(comment="keep-alive")
-                else:
-                    yield format_sse_event(data_str=json.dumps(_finite(e["data"]), separators=(",", ":")),
-                                           event=e["event"], id=str(e["id"]))
+            async for chunk in job.log.follow(start, manager.closing, sse_bytes):
+                yield format_sse_event(comment="keep-alive") if chunk is None else chunk
         except (asyncio.CancelledError, GeneratorExit, OSError, anyio.BrokenResourceError, ClientDisconnect):
             log.debug("the event stream of job %s closed by its client", job.id)
             raise

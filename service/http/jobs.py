@@ -44,7 +44,7 @@ import threading
 import time
 import uuid
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -88,12 +88,29 @@ def clean_text(s: str) -> str:
     return s.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
+TAIL_EVENTS = 256  # the recent events of a log kept in memory for its followers
+SEND_GAP_S = 0.25  # a stream sends at most once per this: the events meanwhile go together
+
+
+class _Entry:
+    """A recent event, and its server-sent form once one follower has made it (shared)."""
+
+    __slots__ = ("record", "sent")
+
+    def __init__(self, record: dict):
+        self.record, self.sent = record, b""
+
+
 class EventLog:
     """Append-only events of one job, on disk; async readers wake on append.
 
-    Only the last id and the last event's name are kept in memory; readers read the file
-    (a line at a time from where they were). ``append`` may be called from any thread;
-    ``follow`` runs on the service's event loop."""
+    The last id and event name are kept in memory, and the last :data:`TAIL_EVENTS` events
+    (appended to the tail on the event loop, after the line is on disk). A follower reads
+    the file once, to catch up, then takes new events from the tail: one file read and one
+    encoding of each event for all of a job's streams together (500 streams that each read
+    the file and encoded each event stalled the service's loop for seconds, issue Z.1). A
+    follower that fell behind the tail reads the file again. ``append`` may be called from
+    any thread; ``follow`` runs on the service's event loop."""
 
     def __init__(self, path: Path, loop: asyncio.AbstractEventLoop | None):
         self.path = path
@@ -103,7 +120,8 @@ class EventLog:
         self.last_event: str | None = None
         self.last_population: dict | None = None
         self.last_error: str | None = None  # a terminal event's error (what job.json may have missed)
-        self._changed = asyncio.Event() if loop is not None else None
+        self.tail: deque[_Entry] = deque(maxlen=TAIL_EVENTS)  # touched on the loop only
+        self._changed: asyncio.Future | None = loop.create_future() if loop is not None else None
         self._scan()
 
     def _scan(self) -> None:
@@ -140,13 +158,16 @@ class EventLog:
             if event == "population":
                 self.last_population = data
         if self.loop is not None and not self.loop.is_closed():
-            self.loop.call_soon_threadsafe(self._notify)
+            self.loop.call_soon_threadsafe(self._notify, record)
         return record
 
-    def _notify(self) -> None:
-        changed, self._changed = self._changed, asyncio.Event()
+    def _notify(self, record: dict | None = None) -> None:
+        """On the loop: ``record`` joins the tail (None: only wake the followers)."""
+        if record is not None:
+            self.tail.append(_Entry(record))
+        changed, self._changed = self._changed, self.loop.create_future()  # type: ignore[union-attr]
         assert changed is not None  # called on the loop, which a log with a loop has
-        changed.set()
+        changed.set_result(None)
 
     def read(self, pos: int = 0) -> tuple[list[dict], int]:
         """The complete events from byte ``pos`` on, and the position after them."""
@@ -163,31 +184,54 @@ class EventLog:
     def ended(self) -> bool:
         return self.last_event in TERMINAL
 
-    async def follow(self, after: int, closing: asyncio.Event, heartbeat_s: float = 15.0):
-        """Every event after ``after``, then each new one, until a terminal event; at once
-        to the end for an ended job (``after`` past its last event included), and at once
-        when ``closing`` is set (the service is stopping). ``None`` is a keep-alive."""
-        pos = 0
+    def _recent(self, after: int) -> list[_Entry] | None:
+        """The tail's events after id ``after``; None when the tail does not reach back to it."""
+        if not self.tail or self.tail[0].record["id"] > after + 1:
+            return None
+        return [e for e in self.tail if e.record["id"] > after]
+
+    async def follow(self, after: int, closing: asyncio.Event, encode: Callable[[dict], bytes],
+                     heartbeat_s: float = 15.0) -> AsyncIterator[bytes | None]:
+        """Every event after ``after``, then the new ones, until a terminal event, as chunks
+        of ``encode(record)`` bytes (at most one chunk per :data:`SEND_GAP_S`; a tail event's
+        bytes are made once for every follower); at once to the end for an ended job
+        (``after`` past its last event included), and at once when ``closing`` is set (the
+        service is stopping: the manager wakes every follower). ``None`` is a keep-alive."""
+        pos, file = 0, True  # the file read to ``pos`` (a line boundary at or before ``after``)
         while True:
             waiter = self._changed
             ended = self.ended()  # before reading: an ended log's terminal line is on disk
-            events, pos = self.read(pos)
-            for e in events:
-                if e["id"] <= after:
-                    continue
-                after = e["id"]
-                yield e
-                if e["event"] in TERMINAL:
+            recent = None if file else self._recent(after)
+            if recent is None or (ended and not (recent and recent[-1].record["event"] in TERMINAL)):
+                events, pos = self.read(pos)
+                recent, file = [_Entry(e) for e in events if e["id"] > after], False
+            chunk, last = self._encoded(recent, encode)
+            if chunk:
+                after = recent[-1].record["id"]
+                yield chunk
+                if last:
                     return
             if ended or closing.is_set():
                 return
+            if chunk:
+                await asyncio.sleep(SEND_GAP_S)  # the events meanwhile go in the next chunk
+                continue
             assert waiter is not None, "a log read by follow() has an event loop"
-            wait = [asyncio.ensure_future(waiter.wait()), asyncio.ensure_future(closing.wait())]
-            done, pending = await asyncio.wait(wait, timeout=heartbeat_s, return_when=asyncio.FIRST_COMPLETED)
-            for p in pending:
-                p.cancel()
-            if not done:
+            done, _ = await asyncio.wait([waiter], timeout=heartbeat_s)  # a shared future: no task per stream
+            if not done and not closing.is_set():
                 yield None  # a keep-alive; the caller decides what to send
+
+    @staticmethod
+    def _encoded(entries: list[_Entry], encode: Callable[[dict], bytes]) -> tuple[bytes, bool]:
+        """The entries' bytes (up to a terminal one), and whether a terminal one ended them."""
+        out = []
+        for e in entries:
+            if not e.sent:
+                e.sent = encode(e.record)
+            out.append(e.sent)
+            if e.record["event"] in TERMINAL:
+                return b"".join(out), True
+        return b"".join(out), False
 
 
 @dataclass
@@ -812,7 +856,14 @@ class JobManager:
             self.stopping = True
             self.wake.notify_all()
         if self.loop is not None and not self.loop.is_closed():
-            self.loop.call_soon_threadsafe(self.closing.set)
+            self.loop.call_soon_threadsafe(self._close_streams)
+
+    def _close_streams(self) -> None:
+        """On the loop: every event stream ends (its follower wakes and sees ``closing``)."""
+        self.closing.set()
+        for job in list(self.jobs.values()):
+            if job.events is not None and job.events.loop is not None:
+                job.events._notify()
 
     def shutdown(self, timeout_s: float) -> None:
         """Stop; running jobs stop between batches and stay queued for the next start. A job
