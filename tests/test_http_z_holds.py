@@ -11,11 +11,15 @@ from pathlib import Path
 
 import httpx
 import pytest
+from http_helpers import follow
 
 from benchmarks.harness import AUTH, duffing_spec, probe_client, wait_until
 from benchmarks.http_hostile import _one_stream
+from service.cli import summary_lines
 from service.http import jobs as jobs_module
 from service.http.jobs import EventLog
+from service.run.runner import summary
+from service.run.store import Store
 
 pytestmark = pytest.mark.http
 
@@ -113,3 +117,26 @@ def test_many_streams_on_a_running_job_each_get_its_end_and_health_answers(servi
     assert len(results) == n and not failed, failed[:3]
     wait_until(lambda: httpx.get(f"{service.url}/jobs/{job.json()['id']}", headers=AUTH).json()["status"] == "finished",
                60, "the job's status to say finished")
+
+
+# ---------------------------------------------------------------------------- Z.5
+def test_a_job_whose_budget_ran_out_before_its_first_population_says_so(service):
+    """Z.5: a job whose time budget runs out before its first population is complete (a
+    budget of 1 ms here; in the issue, one spent waiting for an orphaned batch) ended a plain
+    ``finished`` with 0 populations. It ends ``failed``, its error saying there is no
+    population and why, in GET /jobs/{id}, in its terminal event (with its stop reason), and
+    in ``abcns summary`` of its store."""
+    spec = duffing_spec(max_populations=5, particles=200)
+    spec["stop"]["max_seconds"] = 0.001
+    r = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=60)
+    assert r.status_code == 201, r.text
+    job_id = r.json()["id"]
+    events = follow(service.url, job_id)
+    last = events[-1]
+    assert last["event"] == "failed" and last["data"]["stop_reason"] == "max_seconds", last
+    assert last["data"]["n_populations"] == 0 and last["data"]["error"].startswith("no population: its time budget")
+    info = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH, timeout=60).json()
+    assert info["status"] == "failed" and info["error"] == last["data"]["error"], info
+    lines = summary_lines(summary(Store.open(service.job_dir(job_id) / "store.zarr")))
+    assert lines[0].startswith("status finished  stop max_seconds  populations 0"), lines
+    assert any(line.startswith("note: no population: its time budget") for line in lines), lines

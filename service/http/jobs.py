@@ -823,9 +823,6 @@ class JobManager:
         reads the status, then the events, misses nothing). A write that fails (a full disk)
         is logged: the status holds in memory, and a restart recovers status and error
         from the terminal event when job.json missed them."""
-        data: dict[str, Any] = {"status": status}
-        if error:
-            data["error"] = error
         result = made
         if result is None:
             with self.result_lock:
@@ -835,6 +832,11 @@ class JobManager:
                     result = None
         if result is not None:
             self._cache(job, result)
+        if status == "finished" and result and result.get("no_population"):  # a budget spent before population 1
+            status, error = "failed", result["notes"][0]
+        data: dict[str, Any] = {"status": status}
+        if error:
+            data["error"] = error
         if result:
             probs = result.get("model_probabilities") or {}
             data.update(stop_reason=result.get("stop_reason"), n_populations=result.get("n_populations"),
