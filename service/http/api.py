@@ -50,7 +50,7 @@ from starlette.requests import ClientDisconnect
 from abcns import SpecError
 from service.http import page
 from service.http.intake import Intake, Refused, as_text, name_key, problem, validation_errors
-from service.http.jobs import JobManager, JobRecord, QueueFull
+from service.http.jobs import JobManager, JobRecord, NoSpace, QueueFull
 from service.http.schemas import PAGE_MAX, Health, JobCreated, JobInfo, LimitsOut, PopulationOut, Status, Summary
 from service.http.settings import Settings
 from service.run.dask_executor import local_cluster
@@ -252,7 +252,8 @@ _UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-da
 
 @api.post("/jobs", status_code=201, response_model=JobCreated, openapi_extra=_JOB_BODY,
           responses={400: {"description": "not UTF-8 JSON"}, 413: {"description": "too large, too deep, too many values"},
-                     415: {"description": "not application/json"}, 503: {"description": "cannot store it now"}})
+                     415: {"description": "not application/json"}, 503: {"description": "cannot store it now"},
+                     507: {"description": "no room on the disk for its first populations"}})
 async def submit(request: Request, response: Response, manager: Annotated[JobManager, Depends(get_manager)],
                  intake: Annotated[Intake, Depends(get_intake)]) -> JobCreated:
     """Queue a job. Data inline; only registry simulators; invalid specs -> 422 naming the field."""
@@ -279,6 +280,8 @@ async def queue_job(manager: JobManager, request: Request, response: Response, s
         raise spec_error(err) from None
     except QueueFull as err:
         raise HTTPException(429, str(err), headers=retry) from None
+    except NoSpace as err:  # the disk has no room for its first populations (issue Z.6)
+        raise Refused(507, str(err), retry) from None
     except (OSError, MemoryError) as err:
         what = err.strerror if isinstance(err, OSError) and err.strerror else type(err).__name__
         log.warning("a job could not be stored: %r", err)
@@ -523,7 +526,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         client, cluster = await asyncio.to_thread(_connect, settings)
         manager = await asyncio.to_thread(JobManager, settings.store_dir, client, settings.max_running,
                                           asyncio.get_running_loop(), settings.max_resumes, settings.limits,
-                                          settings.max_queued, settings.scheduler, settings.turn_s)
+                                          settings.max_queued, settings.scheduler, settings.turn_s,
+                                          settings.disk_reserve_mb)
         app.state.client, app.state.manager = client, manager
         app.state.workers = await asyncio.to_thread(count_workers, client)
 

@@ -54,7 +54,7 @@ from distributed import Client
 
 from abcns import SpecError, StopReason
 from service.http.limits import Limits, admit
-from service.run.jobs import JOB_RESOURCE, JobRun, WorkerWatch, ensure_job_slots, job_workers, run_one
+from service.run.jobs import JOB_RESOURCE, JobRun, WorkerWatch, ensure_job_slots, job_workers, no_space, run_one
 from service.run.runner import Progress, local_population_s, run_job, summary, wait_for_store_lock
 from service.run.store import Store, StoreError
 from service.spec import JobSpec, build, cut_to_read
@@ -70,8 +70,32 @@ log = logging.getLogger("abcns.jobs")
 
 def _write_json(path: Path, data: dict) -> None:
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(data))
-    os.replace(tmp, path)  # atomic: a reader sees the old or the new file
+    try:
+        tmp.write_text(json.dumps(data))
+        os.replace(tmp, path)  # atomic: a reader sees the old or the new file
+    except BaseException:  # a full disk: no job.tmp / result.tmp left behind (issue Z.6)
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+FIRST_POPULATIONS = 10  # the populations whose room a job needs before it is admitted, and to start
+STORE_FIXED_BYTES = 1 << 20  # its files besides its populations (§4.1's store: ~0.5 MB in 4 KB blocks)
+DEFAULT_PARTICLES = 1000  # a spec's sampler without particles: abcns's default
+MAX_NO_SPACE = 3  # requeues of a job whose writes found the disk full, before it fails (issue Z.6)
+
+
+class NoSpace(Exception):
+    """The job store's disk has no room for a job's first populations (HTTP 507)."""
+
+
+def space_needed(spec: JobSpec, data_bytes: int = 0) -> int:
+    """Bytes a job needs: its data, its files and its first :data:`FIRST_POPULATIONS`
+    populations at 8 bytes a value, uncompressed (particles x (parameters + 4): theta, the
+    distance, the weight, the model, the survivor flag; §4.1 measured 41 bytes a particle,
+    compressed, against this bound's 64)."""
+    dims = max(len(m.priors) for m in spec.models)
+    particles = int(getattr(spec.sampler, "particles", None) or DEFAULT_PARTICLES)
+    return STORE_FIXED_BYTES + data_bytes + FIRST_POPULATIONS * particles * (dims + 4) * 8
 
 
 def _read_json(path: Path) -> Any:
@@ -322,6 +346,14 @@ class JobRecord:
             log.error("job %s: cannot write its job.json (status %s): %s", self.id, self.status, err)
 
 
+def _stored(job: JobRecord) -> int:
+    """The populations in the job's store (0 without one)."""
+    try:
+        return Store.open(job.store_path).n_populations
+    except (StoreError, OSError):
+        return 0
+
+
 class QueueFull(Exception):
     """Too many jobs wait already (HTTP 429 with Retry-After)."""
 
@@ -332,7 +364,7 @@ class JobManager:
     def __init__(self, store_dir: Path, client: Client, max_running: int | None,
                  loop: asyncio.AbstractEventLoop | None,
                  max_resumes: int = 1, limits: Limits | None = None, max_queued: int | None = None,
-                 scheduler_address: str | None = None, turn_s: float | None = None):
+                 scheduler_address: str | None = None, turn_s: float | None = None, disk_reserve_mb: float = 0.0):
         self.store_dir = Path(store_dir)
         self.store_dir.mkdir(parents=True, exist_ok=True)
         self.client = client
@@ -341,6 +373,9 @@ class JobManager:
         self.max_running = max_running
         self.max_resumes = max_resumes
         self.turn_s = turn_s  # None: no turns (a job keeps its worker to its end)
+        self.disk_reserve = int(disk_reserve_mb * 2**20)  # bytes the jobs leave free on the store's disk
+        self.no_space: dict[str, int] = {}  # job id -> its requeues for a full disk
+        self.waiting_for_space: str | None = None  # the job at the queue's head that waits for room (logged once)
         self.limits = limits or Limits()
         self.max_queued = max_queued
         self.loop = loop
@@ -406,6 +441,7 @@ class JobManager:
         job_id = uuid.uuid4().hex
         folder = self.store_dir / job_id
         try:
+            self.check_space(space_needed(spec, sum(int(a.nbytes) for a in arrays.values())), "this job")
             folder.mkdir()
             stored = dict(cut_to_read(spec, arrays))  # a new dict: cut_to_read may return arrays itself
             arrays.clear()
@@ -435,6 +471,31 @@ class JobManager:
             self.queue.append(job_id)
             self.wake.notify_all()
         return job
+
+    def check_space(self, need: int, what: str) -> None:
+        """NoSpace, naming the numbers, when the store's disk has less than ``need`` bytes
+        free besides the reserve (``ABCNS_DISK_RESERVE_MB``)."""
+        free = shutil.disk_usage(self.store_dir).free
+        if free < need + self.disk_reserve:
+            raise NoSpace(f"the disk of the job store has {free / 2**20:.1f} MB free; {what} needs about "
+                          f"{need / 2**20:.1f} MB (its data and its first {FIRST_POPULATIONS} populations: particles x "
+                          f"(parameters + 4) x 8 bytes each) and the service keeps {self.disk_reserve / 2**20:.0f} MB "
+                          "free (ABCNS_DISK_RESERVE_MB); try again once there is room")
+
+    def _has_space(self, job: JobRecord) -> bool:
+        """Whether the disk has room for the job's next populations (logged once when not:
+        the job waits at the queue's head, and starts once there is room)."""
+        try:
+            self.check_space(space_needed(JobSpec.model_validate(job.spec())), f"job {job.id}")
+        except NoSpace as err:
+            if self.waiting_for_space != job.id:
+                self.waiting_for_space = job.id
+                log.warning("job %s waits: %s", job.id, err)
+            return False
+        except (OSError, ValueError):  # its spec unreadable: its run says so
+            pass
+        self.waiting_for_space = None
+        return True
 
     def get(self, job_id: str) -> JobRecord | None:
         return self.jobs.get(job_id)
@@ -538,7 +599,8 @@ class JobManager:
                 if self.stopping:
                     return
                 cap = self.max_running or (math.inf if self.client is not None else 1)
-                if (self.client is not None and not free) or not self.queue or len(self.running) >= cap:
+                if ((self.client is not None and not free) or not self.queue or len(self.running) >= cap
+                        or not self._has_space(self.jobs[self.queue[0]])):
                     if self.queue and connected:
                         self._end_a_turn()
                     self.wake.wait(timeout=1.0)  # a new job, a free slot, or the scheduler back: look again
@@ -695,6 +757,9 @@ class JobManager:
                     (self.queue.appendleft if status == "lost" else self.queue.append)(job.id)
             elif status in ("yielded", "lost"):
                 status = "cancelled"
+            if status == "no_space":
+                self._full(job, error or "no space left on the disk")
+                return
             if status == "cancelled" and job.cancel.is_set():
                 self._end(job, "cancelled", None)
             elif status == "cancelled" and self.stopping:
@@ -708,7 +773,9 @@ class JobManager:
         except (SpecError, StoreError) as err:
             self._end(job, "failed", str(err))
         except Exception as err:
-            if not self.stopping and self._lost_scheduler(started_on):
+            if no_space(err):
+                self._full(job, f"{type(err).__name__}: {err}")
+            elif not self.stopping and self._lost_scheduler(started_on):
                 # the scheduler died under the job: back to the front of the queue, resumed from
                 # its last complete population once a scheduler answers again
                 job.status = "queued"
@@ -720,6 +787,31 @@ class JobManager:
                 self._end(job, "failed", f"{type(err).__name__}: {err}")
         finally:
             self._free(job)
+
+    def _full(self, job: JobRecord, error: str) -> None:
+        """A write of the job found the disk full: its stored populations are kept, and it
+        goes back to the queue, resumed from them once the disk has room for its next
+        populations (the dispatcher waits for it: :meth:`_has_space`); at the
+        :data:`MAX_NO_SPACE`-th time (a disk that says it has room and takes nothing) it
+        fails. A job the service stops meanwhile stays queued (a restart with room resumes it)."""
+        self._release_slot(job)
+        n = self.no_space[job.id] = self.no_space.get(job.id, 0) + 1
+        stored = _stored(job)
+        if n >= MAX_NO_SPACE and not self.stopping:
+            self._end(job, "failed", f"the disk was full {n} times ({error}); its {stored} stored populations are kept")
+            return
+        job.status = "queued"
+        job.save_or_log()
+        try:
+            job.log.append("requeued", {"reason": f"the disk is full ({error}): it resumes from its {stored} stored "
+                                                  "populations once the disk has room"})
+        except OSError as err:
+            log.error("job %s: cannot append its requeued event: %s", job.id, err)
+        if not (self.stopping or job.cancel.is_set()):
+            with self.lock:
+                self.queue.append(job.id)
+        elif job.cancel.is_set():
+            self._end(job, "cancelled", None)
 
     def _release_slot(self, job: JobRecord) -> None:
         with self.lock:
@@ -812,8 +904,8 @@ class JobManager:
             place(out["placement"])
         self._backfill(job)  # populations whose messages did not come (the store is the record)
         status, error, made = out["status"], out.get("error"), out.get("summary")  # the summary: made on the worker
-        if status in ("finished", "cancelled"):
-            return status, None, made
+        if status in ("finished", "cancelled", "no_space"):
+            return status, error if status == "no_space" else None, made
         return "failed", (error or status).split("\nTraceback")[0], made
 
     def _end(self, job: JobRecord, status: str, error: str | None, made: dict | None = None) -> None:
