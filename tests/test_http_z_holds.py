@@ -5,15 +5,17 @@ finding it covers."""
 from __future__ import annotations
 
 import asyncio
+import shutil
 import threading
 import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from http_helpers import follow
 
-from benchmarks.harness import AUTH, duffing_spec, probe_client, wait_until
+from benchmarks.harness import AUTH, ROOT, Service, duffing_spec, probe_client, wait_until
 from benchmarks.http_hostile import _one_stream
 from service.cli import summary_lines
 from service.http import jobs as jobs_module
@@ -22,6 +24,7 @@ from service.run.runner import summary
 from service.run.store import Store
 
 pytestmark = pytest.mark.http
+FOLDER = ROOT / "examples" / "duffing_41"
 
 
 # ---------------------------------------------------------------------------- Z.1
@@ -140,3 +143,52 @@ def test_a_job_whose_budget_ran_out_before_its_first_population_says_so(service)
     lines = summary_lines(summary(Store.open(service.job_dir(job_id) / "store.zarr")))
     assert lines[0].startswith("status finished  stop max_seconds  populations 0"), lines
     assert any(line.startswith("note: no population: its time budget") for line in lines), lines
+
+
+# ---------------------------------------------------------------------------- Z.6
+def test_a_submission_without_room_for_its_first_populations_gets_507(cluster, tmp_path):
+    """Z.6: with a few KB free a submission got 201 and failed at once. A service whose disk
+    has less room than a job's data and first populations besides the reserve (here a
+    reserve larger than the disk's free space) answers 507 naming the numbers, and keeps
+    nothing of the job."""
+    free_mb = shutil.disk_usage(tmp_path).free / 2**20
+    service = Service(tmp_path / "jobs", cluster.address, env={"ABCNS_DISK_RESERVE_MB": str(int(free_mb) + 10_000)})
+    try:
+        r = httpx.post(f"{service.url}/jobs", json=duffing_spec(max_populations=5, particles=200), headers=AUTH,
+                       timeout=60)
+        assert r.status_code == 507 and "Retry-After" in r.headers, (r.status_code, r.text)
+        assert "MB free" in r.text and "first 10 populations" in r.text and "ABCNS_DISK_RESERVE_MB" in r.text, r.text
+        assert httpx.get(f"{service.url}/jobs", headers=AUTH, timeout=60).json() == []
+        assert list((tmp_path / "jobs").iterdir()) == []
+    finally:
+        service.close()
+
+
+def test_a_queued_job_waits_for_room_on_the_disk_then_runs(tmp_path, monkeypatch):
+    """Z.6: the dispatcher starts the job at the queue's head only when the disk has room for
+    its first populations (a job requeued for a full disk would otherwise fail again at
+    once): with the disk full (its free space as the dispatcher sees it, patched) the job
+    stays queued; with room it runs and finishes. The manager alone, jobs in its process."""
+    from service.http.jobs import JobManager
+    from service.spec import parse
+
+    full, real = [True], shutil.disk_usage
+
+    def disk_usage(path):
+        usage = real(path)
+        if full[0] and threading.current_thread().name == "abcns-dispatcher":
+            return usage._replace(free=4096)
+        return usage
+
+    monkeypatch.setattr(jobs_module.shutil, "disk_usage", disk_usage)
+    arrays = {"input": np.load(FOLDER / "force.npy"), "observed": np.load(FOLDER / "displacement.npy")}
+    manager = JobManager(tmp_path / "jobs", None, max_running=1, loop=None)  # type: ignore[arg-type]
+    try:
+        job = manager.submit(parse(duffing_spec(max_populations=2, particles=200)), arrays)
+        wait_until(lambda: manager.waiting_for_space == job.id, 30, "the dispatcher to find no room")
+        assert job.status == "queued" and not job.store_path.exists()
+        full[0] = False
+        wait_until(lambda: job.status == "finished", 120, "the job to run once there is room")
+        assert Store.open(job.store_path).n_populations == 2
+    finally:
+        manager.shutdown(10)
