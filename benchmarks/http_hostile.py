@@ -35,8 +35,10 @@ import collections
 import io
 import json
 import select
+import shutil
 import socket
 import struct
+import subprocess
 import tempfile
 import threading
 import time
@@ -47,7 +49,8 @@ import httpx
 import numpy as np
 import psutil
 
-from benchmarks.harness import AUTH, ROOT, Service, StockCluster, duffing_spec
+from benchmarks.harness import AUTH, ROOT, Service, StockCluster, duffing_spec, wait_until
+from service.run.store import Store
 
 
 def close_and_count(service, cluster, statuses: collections.Counter, start: float) -> str:
@@ -501,6 +504,98 @@ def _streams(statuses: collections.Counter, service: Service, watch: Watch, coun
     return lines
 
 
+def _fill(path: Path, leave_bytes: int) -> Path:
+    """A file in ``path`` that leaves about ``leave_bytes`` free on its disk."""
+    filler = path / "filler"
+    free = shutil.disk_usage(path).free
+    with filler.open("ab") as f:
+        f.write(bytes(max(0, free - leave_bytes)))
+    return filler
+
+
+def _disk(statuses: collections.Counter, tmp: Path, cluster: StockCluster, size_mb: int = 12) -> list[str]:
+    """Z.6 on a tmpfs of ``size_mb`` MB (mounted here: root) as the job store: a submission
+    with a few KB free; then a job whose store outgrows the disk once a filler took half of
+    it: it is requeued and waits, the filler goes, it resumes and ends; its populations
+    against the same job's on a disk with room."""
+    disk = tmp / "tmpfs"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_mb}m", "tmpfs", str(disk)], check=True)
+    service = Service(disk / "jobs", cluster.address, env={"ABCNS_DISK_RESERVE_MB": "0"})
+    lines = []
+    try:
+        filler = _fill(disk, 8 << 10)
+        r = httpx.post(f"{service.url}/jobs", json=duffing_spec(max_populations=40, particles=5000, noise_floor=False),
+                       headers=AUTH, timeout=120)
+        statuses[r.status_code] += 1
+        lines.append(f"8 KB free: {r.status_code} {r.json().get('detail', '')}")
+        filler.unlink()
+        spec = duffing_spec(max_populations=40, particles=5000, noise_floor=False)
+        r = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=120)
+        statuses[r.status_code] += 1
+        job_id = r.json()["id"]
+        filler = _fill(disk, (size_mb << 20) // 2)
+        start = time.monotonic()
+        wait_until(lambda: b"requeued" in (service.job_dir(job_id) / "events.jsonl").read_bytes(), 300,
+                   "the job to find the disk full")
+        stored = Store.open(service.job_dir(job_id) / "store.zarr").n_populations
+        lines.append(f"the disk full after {time.monotonic() - start:.1f} s at {stored} populations; "
+                     f"status {httpx.get(f'{service.url}/jobs/{job_id}', headers=AUTH).json()['status']}")
+        time.sleep(3)  # it waits for room
+        waiting = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()["status"]
+        filler.unlink()
+        wait_until(lambda: httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()["status"] in
+                   ("finished", "failed", "cancelled"), 600, "the job to end")
+        info = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()
+        left = [p.name for p in service.job_dir(job_id).rglob("*") if p.suffix in (".tmp", ".partial")]
+        same = _same(service.job_dir(job_id) / "store.zarr", _reference(tmp, cluster, spec))
+        lines.append(f"3 s later: {waiting}; room again: {info['status']} "
+                     f"({Store.open(service.job_dir(job_id) / 'store.zarr').n_populations} populations), "
+                     f"temporary files left: {left or 'none'}, populations identical to an uninterrupted run: {same}")
+    finally:
+        service.close()
+        subprocess.run(["umount", "--lazy", str(disk)], check=False)
+    return lines
+
+
+def _reference(tmp: Path, cluster: StockCluster, spec: dict) -> Path:
+    """The store of ``spec`` run by a service on a disk with room (the same cluster)."""
+    service = Service(tmp / "reference", cluster.address)
+    try:
+        job_id = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=120).json()["id"]
+        wait_until(lambda: httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()["status"] in
+                   ("finished", "failed", "cancelled"), 600, "the reference job to end")
+        return service.job_dir(job_id) / "store.zarr"
+    finally:
+        service.close()
+
+
+def _same(a: Path, b: Path) -> str:
+    """"yes", or the first population and array where two stores differ."""
+    sa, sb = Store.open(a), Store.open(b)
+    if sa.n_populations != sb.n_populations:
+        return f"no: {sa.n_populations} and {sb.n_populations} populations"
+    for p, q in zip(sa.populations(), sb.populations()):
+        for k in ("models", "theta", "distances", "weights"):
+            if not np.array_equal(getattr(p, k), getattr(q, k), equal_nan=k != "models"):
+                return f"no: population {p.t} differs in {k}"
+    return "yes"
+
+
+def main_disk() -> None:
+    """Z.6: a full disk (``--disk``; mounts a tmpfs: root)."""
+    tmp = Path(tempfile.mkdtemp())
+    cluster = StockCluster(tmp / "dask")
+    statuses: collections.Counter = collections.Counter()
+    try:
+        print("Z.6 a full disk", flush=True)
+        for line in _disk(statuses, tmp, cluster):
+            print(line, flush=True)
+    finally:
+        cluster.close()
+    print("answers: " + ", ".join(f"{n} x {s}" for s, n in sorted(statuses.items())))
+
+
 def main_streams() -> None:
     """Z.1: many event streams on one running job (``--streams``)."""
     tmp = Path(tempfile.mkdtemp())
@@ -549,5 +644,7 @@ if __name__ == "__main__":
 
     if "--streams" in sys.argv[1:]:
         main_streams()
+    elif "--disk" in sys.argv[1:]:
+        main_disk()
     else:
         main_z() if "--issue-z" in sys.argv[1:] else main()
