@@ -23,7 +23,9 @@ uninterrupted run, and its events continue. A job found ``running`` was running 
 service died; it is resumed at most ``max_resumes`` times, then marked failed with the
 reason, so a job that kills the service cannot do it again on every restart. A job whose
 record could not be written when it ended (a full disk) gets its status and its error back
-from its terminal event.
+from its terminal event. A job whose store write finds the disk full is requeued and resumes
+from its stored populations once the disk has room for its next ones (the dispatcher starts
+the queue's head only then; a submission without that room is refused: :class:`NoSpace`).
 
 Admission is exact under any concurrency: a submission takes its place in the queue under
 the manager's lock before anything is built or written (and gives it back if it fails), and

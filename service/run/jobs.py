@@ -175,7 +175,8 @@ def store_names(names: Sequence[str]) -> list[str]:
 @dataclass
 class Outcome:
     """How a job ended: ``status`` (``finished``, ``cancelled``, ``failed``: the job's own
-    failure, a simulator's exception; ``refused``: its spec, data or store; ``error``: a bug),
+    failure, a simulator's exception; ``refused``: its spec, data or store; ``no_space``: a
+    write found the disk full, its stored populations stand; ``error``: a bug),
     its message, the placement and the store's JSON summary (None when it has no store)."""
 
     status: str
