@@ -183,8 +183,8 @@ class EventLog:
             self.last_id, self.last_event = record["id"], event
             if event == "population":
                 self.last_population = data
-        if self.loop is not None and not self.loop.is_closed():
-            self.loop.call_soon_threadsafe(self._notify, record)
+            if self.loop is not None and not self.loop.is_closed():  # under the lock: the tail in id order
+                self.loop.call_soon_threadsafe(self._notify, record)
         return record
 
     def _notify(self, record: dict | None = None) -> None:
