@@ -35,8 +35,10 @@ import collections
 import io
 import json
 import select
+import shutil
 import socket
 import struct
+import subprocess
 import tempfile
 import threading
 import time
@@ -47,7 +49,8 @@ import httpx
 import numpy as np
 import psutil
 
-from benchmarks.harness import AUTH, ROOT, Service, StockCluster, duffing_spec
+from benchmarks.harness import AUTH, ROOT, Service, StockCluster, duffing_spec, wait_until
+from service.run.store import Store
 
 
 def close_and_count(service, cluster, statuses: collections.Counter, start: float) -> str:
@@ -235,6 +238,7 @@ class Watch:
 
     def __init__(self, url: str):
         self.url, self.times, self.done = url, [0.0], threading.Event()
+        self.at: list[tuple[float, float]] = []  # (when it answered, seconds it took)
         self.thread = threading.Thread(target=self._poll, daemon=True)
         self.thread.start()
 
@@ -247,6 +251,7 @@ class Watch:
                 except httpx.HTTPError:
                     pass
                 self.times.append(time.perf_counter() - start)
+                self.at.append((time.time(), self.times[-1]))
                 time.sleep(0.05)
 
     def reset(self) -> None:
@@ -254,6 +259,10 @@ class Watch:
 
     def slowest(self) -> float:
         return max(self.times)
+
+    def slowest_between(self, start: float, end: float) -> float:
+        """The slowest answer that came between ``start`` and ``end`` (time.time())."""
+        return max((took for at, took in self.at if start <= at <= end), default=0.0)
 
     def close(self) -> None:
         self.done.set()
@@ -401,6 +410,210 @@ def _purges(statuses: collections.Counter, service: Service, rounds: int = 10) -
     return "two purges at once: " + ", ".join(f"{n} x {list(c)}" for c, n in sorted(pairs.items()))
 
 
+TERMINAL_EVENTS = (b"event: finished", b"event: failed", b"event: cancelled")
+
+
+async def _one_stream(port: int, path: str, token: str, connected=lambda: None) -> tuple[bool, int]:
+    """One raw event stream (a socket, no client library: 500 of them cost the client little
+    CPU): whether it got the job's terminal event, and the bytes read. ``connected()`` is
+    called once its answer's head has come."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(f"GET {path} HTTP/1.1\r\nHost: x\r\nAuthorization: {token}\r\n\r\n".encode())
+    await writer.drain()
+    got, tail, head = 0, b"", False
+    try:
+        while chunk := await reader.read(65536):
+            got += len(chunk)
+            tail = (tail + chunk)[-4096:]
+            if not head and b"\r\n\r\n" in tail:
+                head = True
+                connected()
+            if any(t in tail for t in TERMINAL_EVENTS):
+                return True, got
+        return False, got
+    finally:
+        writer.close()
+
+
+def stream_clients(port: int, path: str, token: str, n: int, ready, results) -> None:
+    """``n`` event streams at once (in a process of their own); sets ``ready`` once every
+    stream is open, then puts how many got the terminal event and the bytes read by each
+    on ``results``."""
+    count = [0]
+
+    def connected() -> None:
+        count[0] += 1
+        if count[0] == n:
+            ready.set()
+
+    async def all_of_them() -> list:
+        return await asyncio.gather(*(_one_stream(port, path, token, connected) for _ in range(n)),
+                                    return_exceptions=True)
+
+    out = asyncio.run(all_of_them())
+    results.put((sum(1 for o in out if isinstance(o, tuple) and o[0]),
+                 [o[1] if isinstance(o, tuple) else -1 for o in out]))
+
+
+def _job_times(service: Service, job_id: str) -> tuple[str, float, float, int]:
+    """(status, time of its start event, of its end event, populations) of an ended job."""
+    events = [json.loads(line) for line in (service.job_dir(job_id) / "events.jsonl").read_text().splitlines()]
+    start = next(e["time"] for e in events if e["event"] == "started")
+    return events[-1]["event"], start, events[-1]["time"], sum(e["event"] == "population" for e in events)
+
+
+def _streams(statuses: collections.Counter, service: Service, watch: Watch, counts=(0, 0, 100, 500)) -> list[str]:
+    """Z.1: ``n`` event streams on one job, opened while it waits behind another (the
+    service runs one job at a time); once all are open the other is cancelled and the job
+    runs (~5 s alone): /health's slowest answer while it runs, its time from start to end,
+    and how many streams got its end event. The first run (no streams) warms the workers."""
+    import multiprocessing
+
+    spec = duffing_spec(max_populations=100, particles=2000, noise_floor=False)
+    blocker = duffing_spec(max_populations=100_000, particles=200, noise_floor=False)
+    lines = []
+    ctx = multiprocessing.get_context("spawn")
+
+    def submit(raw: dict) -> str:
+        r = httpx.post(f"{service.url}/jobs", json=raw, headers=AUTH, timeout=120)
+        statuses[r.status_code] += 1
+        return r.json()["id"]
+
+    for n in counts:
+        first, job_id = submit(blocker), submit(spec)
+        ready, results = ctx.Event(), ctx.Queue()
+        clients = ctx.Process(target=stream_clients, args=(service.port, f"/jobs/{job_id}/events",
+                                                           AUTH["Authorization"], n, ready, results))
+        if n:
+            clients.start()
+            if not ready.wait(300):
+                lines.append(f"{n:4d} streams: not all open after 300 s")
+        statuses[httpx.delete(f"{service.url}/jobs/{first}", headers=AUTH, timeout=120).status_code] += 1
+        watch.reset()
+        while httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH, timeout=120).json()["status"] not in (
+                "finished", "failed", "cancelled"):
+            time.sleep(0.2)
+        slowest = watch.slowest()
+        got, sizes = results.get(timeout=300) if n else (0, [])
+        if n:
+            clients.join(timeout=60)
+        status, began, ended, pops = _job_times(service, job_id)
+        lines.append(f"{n:4d} streams: job {status} ({pops} populations) in {ended - began:.1f} s, "
+                     f"{got}/{n} streams got its end ({min(sizes, default=0)}-{max(sizes, default=0)} bytes), "
+                     f"/health slowest {slowest:.3f} s (while it ran {watch.slowest_between(began, ended):.3f} s)")
+    return lines
+
+
+def _fill(path: Path, leave_bytes: int) -> Path:
+    """A file in ``path`` that leaves about ``leave_bytes`` free on its disk."""
+    filler = path / "filler"
+    free = shutil.disk_usage(path).free
+    with filler.open("ab") as f:
+        f.write(bytes(max(0, free - leave_bytes)))
+    return filler
+
+
+def _disk(statuses: collections.Counter, tmp: Path, cluster: StockCluster, size_mb: int = 12) -> list[str]:
+    """Z.6 on a tmpfs of ``size_mb`` MB (mounted here: root) as the job store: a submission
+    with a few KB free; then a job whose store outgrows the disk once a filler took half of
+    it: it is requeued and waits, the filler goes, it resumes and ends; its populations
+    against the same job's on a disk with room."""
+    disk = tmp / "tmpfs"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_mb}m", "tmpfs", str(disk)], check=True)
+    service = Service(disk / "jobs", cluster.address, env={"ABCNS_DISK_RESERVE_MB": "0"})
+    lines = []
+    try:
+        filler = _fill(disk, 8 << 10)
+        r = httpx.post(f"{service.url}/jobs", json=duffing_spec(max_populations=40, particles=5000, noise_floor=False),
+                       headers=AUTH, timeout=120)
+        statuses[r.status_code] += 1
+        lines.append(f"8 KB free: {r.status_code} {r.json().get('detail', '')}")
+        filler.unlink()
+        spec = duffing_spec(max_populations=40, particles=5000, noise_floor=False)
+        r = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=120)
+        statuses[r.status_code] += 1
+        job_id = r.json()["id"]
+        filler = _fill(disk, (size_mb << 20) // 2)
+        start = time.monotonic()
+        wait_until(lambda: b"requeued" in (service.job_dir(job_id) / "events.jsonl").read_bytes(), 300,
+                   "the job to find the disk full")
+        stored = Store.open(service.job_dir(job_id) / "store.zarr").n_populations
+        lines.append(f"the disk full after {time.monotonic() - start:.1f} s at {stored} populations; "
+                     f"status {httpx.get(f'{service.url}/jobs/{job_id}', headers=AUTH).json()['status']}")
+        time.sleep(3)  # it waits for room
+        waiting = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()["status"]
+        filler.unlink()
+        wait_until(lambda: httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()["status"] in
+                   ("finished", "failed", "cancelled"), 600, "the job to end")
+        info = httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()
+        left = [p.name for p in service.job_dir(job_id).rglob("*") if p.suffix in (".tmp", ".partial")]
+        same = _same(service.job_dir(job_id) / "store.zarr", _reference(tmp, cluster, spec))
+        lines.append(f"3 s later: {waiting}; room again: {info['status']} "
+                     f"({Store.open(service.job_dir(job_id) / 'store.zarr').n_populations} populations), "
+                     f"temporary files left: {left or 'none'}, populations identical to an uninterrupted run: {same}")
+    finally:
+        service.close()
+        subprocess.run(["umount", "--lazy", str(disk)], check=False)
+    return lines
+
+
+def _reference(tmp: Path, cluster: StockCluster, spec: dict) -> Path:
+    """The store of ``spec`` run by a service on a disk with room (the same cluster)."""
+    service = Service(tmp / "reference", cluster.address)
+    try:
+        job_id = httpx.post(f"{service.url}/jobs", json=spec, headers=AUTH, timeout=120).json()["id"]
+        wait_until(lambda: httpx.get(f"{service.url}/jobs/{job_id}", headers=AUTH).json()["status"] in
+                   ("finished", "failed", "cancelled"), 600, "the reference job to end")
+        return service.job_dir(job_id) / "store.zarr"
+    finally:
+        service.close()
+
+
+def _same(a: Path, b: Path) -> str:
+    """"yes", or the first population and array where two stores differ."""
+    sa, sb = Store.open(a), Store.open(b)
+    if sa.n_populations != sb.n_populations:
+        return f"no: {sa.n_populations} and {sb.n_populations} populations"
+    for p, q in zip(sa.populations(), sb.populations()):
+        for k in ("models", "theta", "distances", "weights"):
+            if not np.array_equal(getattr(p, k), getattr(q, k), equal_nan=k != "models"):
+                return f"no: population {p.t} differs in {k}"
+    return "yes"
+
+
+def main_disk() -> None:
+    """Z.6: a full disk (``--disk``; mounts a tmpfs: root)."""
+    tmp = Path(tempfile.mkdtemp())
+    cluster = StockCluster(tmp / "dask")
+    statuses: collections.Counter = collections.Counter()
+    try:
+        print("Z.6 a full disk", flush=True)
+        for line in _disk(statuses, tmp, cluster):
+            print(line, flush=True)
+    finally:
+        cluster.close()
+    print("answers: " + ", ".join(f"{n} x {s}" for s, n in sorted(statuses.items())))
+
+
+def main_streams() -> None:
+    """Z.1: many event streams on one running job (``--streams``)."""
+    tmp = Path(tempfile.mkdtemp())
+    cluster = StockCluster(tmp / "dask")
+    service = Service(tmp / "jobs", cluster.address)
+    statuses: collections.Counter = collections.Counter()
+    watch = Watch(service.url)
+    start = time.monotonic()
+    try:
+        print("Z.1 event streams on one running job", flush=True)
+        for line in _streams(statuses, service, watch):
+            print(line, flush=True)
+    finally:
+        watch.close()
+        errors = close_and_count(service, cluster, statuses, start)
+    print(f"errors in the service's log: {errors[:2000] or 'none'}")
+
+
 def main_z() -> None:
     """Issue Z's attacks (2, 3, 4, 7, 8) on `abcns serve` with its default settings."""
     tmp = Path(tempfile.mkdtemp())
@@ -429,4 +642,9 @@ def main_z() -> None:
 if __name__ == "__main__":
     import sys
 
-    main_z() if "--issue-z" in sys.argv[1:] else main()
+    if "--streams" in sys.argv[1:]:
+        main_streams()
+    elif "--disk" in sys.argv[1:]:
+        main_disk()
+    else:
+        main_z() if "--issue-z" in sys.argv[1:] else main()

@@ -51,7 +51,7 @@ import abcns
 from abcns import SpecError
 from service.http import page
 from service.http.intake import Intake, Refused, as_text, name_key, problem, validation_errors
-from service.http.jobs import JobManager, JobRecord, QueueFull
+from service.http.jobs import JobManager, JobRecord, NoSpace, QueueFull
 from service.http.schemas import PAGE_MAX, Health, JobCreated, JobInfo, LimitsOut, PopulationOut, Status, Summary
 from service.http.settings import Settings
 from service.run.dask_executor import local_cluster
@@ -253,7 +253,8 @@ _UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-da
 
 @api.post("/jobs", status_code=201, response_model=JobCreated, openapi_extra=_JOB_BODY,
           responses={400: {"description": "not UTF-8 JSON"}, 413: {"description": "too large, too deep, too many values"},
-                     415: {"description": "not application/json"}, 503: {"description": "cannot store it now"}})
+                     415: {"description": "not application/json"}, 503: {"description": "cannot store it now"},
+                     507: {"description": "no room on the disk for its first populations"}})
 async def submit(request: Request, response: Response, manager: Annotated[JobManager, Depends(get_manager)],
                  intake: Annotated[Intake, Depends(get_intake)]) -> JobCreated:
     """Queue a job. Data inline; only registry simulators; invalid specs -> 422 naming the field."""
@@ -280,6 +281,8 @@ async def queue_job(manager: JobManager, request: Request, response: Response, s
         raise spec_error(err) from None
     except QueueFull as err:
         raise HTTPException(429, str(err), headers=retry) from None
+    except NoSpace as err:  # the disk has no room for its first populations (issue Z.6)
+        raise Refused(507, str(err), retry) from None
     except (OSError, MemoryError) as err:
         what = err.strerror if isinstance(err, OSError) and err.strerror else type(err).__name__
         log.warning("a job could not be stored: %r", err)
@@ -406,6 +409,12 @@ def event_start(
     return int(last_event_id.strip())
 
 
+def sse_bytes(e: dict) -> bytes:
+    """One event as a server-sent event (made once per event for all of a job's streams)."""
+    return format_sse_event(data_str=json.dumps(_finite(e["data"]), separators=(",", ":")), event=e["event"],
+                            id=str(e["id"]))
+
+
 @api.get("/jobs/{job_id}/events", response_class=StreamingResponse, responses={
     200: {"description": "server-sent events", "content": {"text/event-stream": {"schema": {"type": "string"}}}},
     400: {"description": "bad Last-Event-ID"}})
@@ -425,12 +434,8 @@ async def job_events(
 
     async def stream() -> AsyncIterator[bytes]:
         try:
-            async for e in job.log.follow(start, manager.closing):
-                if e is None:
-                    yield format_sse_event(comment="keep-alive")
-                else:
-                    yield format_sse_event(data_str=json.dumps(_finite(e["data"]), separators=(",", ":")),
-                                           event=e["event"], id=str(e["id"]))
+            async for chunk in job.log.follow(start, manager.closing, sse_bytes):
+                yield format_sse_event(comment="keep-alive") if chunk is None else chunk
         except (asyncio.CancelledError, GeneratorExit, OSError, anyio.BrokenResourceError, ClientDisconnect):
             log.debug("the event stream of job %s closed by its client", job.id)
             raise
@@ -522,7 +527,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         client, cluster = await asyncio.to_thread(_connect, settings)
         manager = await asyncio.to_thread(JobManager, settings.store_dir, client, settings.max_running,
                                           asyncio.get_running_loop(), settings.max_resumes, settings.limits,
-                                          settings.max_queued, settings.scheduler, settings.turn_s)
+                                          settings.max_queued, settings.scheduler, settings.turn_s,
+                                          settings.disk_reserve_mb)
         app.state.client, app.state.manager = client, manager
         app.state.workers = await asyncio.to_thread(count_workers, client)
 

@@ -23,7 +23,9 @@ uninterrupted run, and its events continue. A job found ``running`` was running 
 service died; it is resumed at most ``max_resumes`` times, then marked failed with the
 reason, so a job that kills the service cannot do it again on every restart. A job whose
 record could not be written when it ended (a full disk) gets its status and its error back
-from its terminal event.
+from its terminal event. A job whose store write finds the disk full is requeued and resumes
+from its stored populations once the disk has room for its next ones (the dispatcher starts
+the queue's head only then; a submission without that room is refused: :class:`NoSpace`).
 
 Admission is exact under any concurrency: a submission takes its place in the queue under
 the manager's lock before anything is built or written (and gives it back if it fails), and
@@ -44,7 +46,7 @@ import threading
 import time
 import uuid
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -54,7 +56,7 @@ from distributed import Client
 
 from abcns import SpecError, StopReason
 from service.http.limits import Limits, admit
-from service.run.jobs import JOB_RESOURCE, JobRun, WorkerWatch, ensure_job_slots, job_workers, run_one
+from service.run.jobs import JOB_RESOURCE, JobRun, WorkerWatch, ensure_job_slots, job_workers, no_space, run_one
 from service.run.runner import Progress, local_population_s, run_job, summary, wait_for_store_lock
 from service.run.store import Store, StoreError
 from service.spec import JobSpec, build, cut_to_read
@@ -70,8 +72,32 @@ log = logging.getLogger("abcns.jobs")
 
 def _write_json(path: Path, data: dict) -> None:
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(data))
-    os.replace(tmp, path)  # atomic: a reader sees the old or the new file
+    try:
+        tmp.write_text(json.dumps(data))
+        os.replace(tmp, path)  # atomic: a reader sees the old or the new file
+    except BaseException:  # a full disk: no job.tmp / result.tmp left behind (issue Z.6)
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+FIRST_POPULATIONS = 10  # the populations whose room a job needs before it is admitted, and to start
+STORE_FIXED_BYTES = 1 << 20  # its files besides its populations (§4.1's store: ~0.5 MB in 4 KB blocks)
+DEFAULT_PARTICLES = 1000  # a spec's sampler without particles: abcns's default
+MAX_NO_SPACE = 3  # requeues of a job whose writes found the disk full, before it fails (issue Z.6)
+
+
+class NoSpace(Exception):
+    """The job store's disk has no room for a job's first populations (HTTP 507)."""
+
+
+def space_needed(spec: JobSpec, data_bytes: int = 0) -> int:
+    """Bytes a job needs: its data, its files and its first :data:`FIRST_POPULATIONS`
+    populations at 8 bytes a value, uncompressed (particles x (parameters + 4): theta, the
+    distance, the weight, the model, the survivor flag; §4.1 measured 41 bytes a particle,
+    compressed, against this bound's 64)."""
+    dims = max(len(m.priors) for m in spec.models)
+    particles = int(getattr(spec.sampler, "particles", None) or DEFAULT_PARTICLES)
+    return STORE_FIXED_BYTES + data_bytes + FIRST_POPULATIONS * particles * (dims + 4) * 8
 
 
 def _read_json(path: Path) -> Any:
@@ -88,12 +114,29 @@ def clean_text(s: str) -> str:
     return s.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
+TAIL_EVENTS = 256  # the recent events of a log kept in memory for its followers
+SEND_GAP_S = 0.25  # a stream sends at most once per this: the events meanwhile go together
+
+
+class _Entry:
+    """A recent event, and its server-sent form once one follower has made it (shared)."""
+
+    __slots__ = ("record", "sent")
+
+    def __init__(self, record: dict):
+        self.record, self.sent = record, b""
+
+
 class EventLog:
     """Append-only events of one job, on disk; async readers wake on append.
 
-    Only the last id and the last event's name are kept in memory; readers read the file
-    (a line at a time from where they were). ``append`` may be called from any thread;
-    ``follow`` runs on the service's event loop."""
+    The last id and event name are kept in memory, and the last :data:`TAIL_EVENTS` events
+    (appended to the tail on the event loop, after the line is on disk). A follower reads
+    the file once, to catch up, then takes new events from the tail: one file read and one
+    encoding of each event for all of a job's streams together (500 streams that each read
+    the file and encoded each event stalled the service's loop for seconds, issue Z.1). A
+    follower that fell behind the tail reads the file again. ``append`` may be called from
+    any thread; ``follow`` runs on the service's event loop."""
 
     def __init__(self, path: Path, loop: asyncio.AbstractEventLoop | None):
         self.path = path
@@ -103,7 +146,8 @@ class EventLog:
         self.last_event: str | None = None
         self.last_population: dict | None = None
         self.last_error: str | None = None  # a terminal event's error (what job.json may have missed)
-        self._changed = asyncio.Event() if loop is not None else None
+        self.tail: deque[_Entry] = deque(maxlen=TAIL_EVENTS)  # touched on the loop only
+        self._changed: asyncio.Future | None = loop.create_future() if loop is not None else None
         self._scan()
 
     def _scan(self) -> None:
@@ -139,14 +183,17 @@ class EventLog:
             self.last_id, self.last_event = record["id"], event
             if event == "population":
                 self.last_population = data
-        if self.loop is not None and not self.loop.is_closed():
-            self.loop.call_soon_threadsafe(self._notify)
+            if self.loop is not None and not self.loop.is_closed():  # under the lock: the tail in id order
+                self.loop.call_soon_threadsafe(self._notify, record)
         return record
 
-    def _notify(self) -> None:
-        changed, self._changed = self._changed, asyncio.Event()
+    def _notify(self, record: dict | None = None) -> None:
+        """On the loop: ``record`` joins the tail (None: only wake the followers)."""
+        if record is not None:
+            self.tail.append(_Entry(record))
+        changed, self._changed = self._changed, self.loop.create_future()  # type: ignore[union-attr]
         assert changed is not None  # called on the loop, which a log with a loop has
-        changed.set()
+        changed.set_result(None)
 
     def read(self, pos: int = 0) -> tuple[list[dict], int]:
         """The complete events from byte ``pos`` on, and the position after them."""
@@ -163,31 +210,54 @@ class EventLog:
     def ended(self) -> bool:
         return self.last_event in TERMINAL
 
-    async def follow(self, after: int, closing: asyncio.Event, heartbeat_s: float = 15.0):
-        """Every event after ``after``, then each new one, until a terminal event; at once
-        to the end for an ended job (``after`` past its last event included), and at once
-        when ``closing`` is set (the service is stopping). ``None`` is a keep-alive."""
-        pos = 0
+    def _recent(self, after: int) -> list[_Entry] | None:
+        """The tail's events after id ``after``; None when the tail does not reach back to it."""
+        if not self.tail or self.tail[0].record["id"] > after + 1:
+            return None
+        return [e for e in self.tail if e.record["id"] > after]
+
+    async def follow(self, after: int, closing: asyncio.Event, encode: Callable[[dict], bytes],
+                     heartbeat_s: float = 15.0) -> AsyncIterator[bytes | None]:
+        """Every event after ``after``, then the new ones, until a terminal event, as chunks
+        of ``encode(record)`` bytes (at most one chunk per :data:`SEND_GAP_S`; a tail event's
+        bytes are made once for every follower); at once to the end for an ended job
+        (``after`` past its last event included), and at once when ``closing`` is set (the
+        service is stopping: the manager wakes every follower). ``None`` is a keep-alive."""
+        pos, file = 0, True  # the file read to ``pos`` (a line boundary at or before ``after``)
         while True:
             waiter = self._changed
             ended = self.ended()  # before reading: an ended log's terminal line is on disk
-            events, pos = self.read(pos)
-            for e in events:
-                if e["id"] <= after:
-                    continue
-                after = e["id"]
-                yield e
-                if e["event"] in TERMINAL:
+            recent = None if file else self._recent(after)
+            if recent is None or (ended and not (recent and recent[-1].record["event"] in TERMINAL)):
+                events, pos = self.read(pos)
+                recent, file = [_Entry(e) for e in events if e["id"] > after], False
+            chunk, last = self._encoded(recent, encode)
+            if chunk:
+                after = recent[-1].record["id"]
+                yield chunk
+                if last:
                     return
             if ended or closing.is_set():
                 return
+            if chunk:
+                await asyncio.sleep(SEND_GAP_S)  # the events meanwhile go in the next chunk
+                continue
             assert waiter is not None, "a log read by follow() has an event loop"
-            wait = [asyncio.ensure_future(waiter.wait()), asyncio.ensure_future(closing.wait())]
-            done, pending = await asyncio.wait(wait, timeout=heartbeat_s, return_when=asyncio.FIRST_COMPLETED)
-            for p in pending:
-                p.cancel()
-            if not done:
+            done, _ = await asyncio.wait([waiter], timeout=heartbeat_s)  # a shared future: no task per stream
+            if not done and not closing.is_set():
                 yield None  # a keep-alive; the caller decides what to send
+
+    @staticmethod
+    def _encoded(entries: list[_Entry], encode: Callable[[dict], bytes]) -> tuple[bytes, bool]:
+        """The entries' bytes (up to a terminal one), and whether a terminal one ended them."""
+        out = []
+        for e in entries:
+            if not e.sent:
+                e.sent = encode(e.record)
+            out.append(e.sent)
+            if e.record["event"] in TERMINAL:
+                return b"".join(out), True
+        return b"".join(out), False
 
 
 @dataclass
@@ -278,6 +348,14 @@ class JobRecord:
             log.error("job %s: cannot write its job.json (status %s): %s", self.id, self.status, err)
 
 
+def _stored(job: JobRecord) -> int:
+    """The populations in the job's store (0 without one)."""
+    try:
+        return Store.open(job.store_path).n_populations
+    except (StoreError, OSError):
+        return 0
+
+
 class QueueFull(Exception):
     """Too many jobs wait already (HTTP 429 with Retry-After)."""
 
@@ -288,7 +366,7 @@ class JobManager:
     def __init__(self, store_dir: Path, client: Client, max_running: int | None,
                  loop: asyncio.AbstractEventLoop | None,
                  max_resumes: int = 1, limits: Limits | None = None, max_queued: int | None = None,
-                 scheduler_address: str | None = None, turn_s: float | None = None):
+                 scheduler_address: str | None = None, turn_s: float | None = None, disk_reserve_mb: float = 0.0):
         self.store_dir = Path(store_dir)
         self.store_dir.mkdir(parents=True, exist_ok=True)
         self.client = client
@@ -297,6 +375,9 @@ class JobManager:
         self.max_running = max_running
         self.max_resumes = max_resumes
         self.turn_s = turn_s  # None: no turns (a job keeps its worker to its end)
+        self.disk_reserve = int(disk_reserve_mb * 2**20)  # bytes the jobs leave free on the store's disk
+        self.no_space: dict[str, int] = {}  # job id -> its requeues for a full disk
+        self.waiting_for_space: str | None = None  # the job at the queue's head that waits for room (logged once)
         self.limits = limits or Limits()
         self.max_queued = max_queued
         self.loop = loop
@@ -362,6 +443,7 @@ class JobManager:
         job_id = uuid.uuid4().hex
         folder = self.store_dir / job_id
         try:
+            self.check_space(space_needed(spec, sum(int(a.nbytes) for a in arrays.values())), "this job")
             folder.mkdir()
             stored = dict(cut_to_read(spec, arrays))  # a new dict: cut_to_read may return arrays itself
             arrays.clear()
@@ -391,6 +473,31 @@ class JobManager:
             self.queue.append(job_id)
             self.wake.notify_all()
         return job
+
+    def check_space(self, need: int, what: str) -> None:
+        """NoSpace, naming the numbers, when the store's disk has less than ``need`` bytes
+        free besides the reserve (``ABCNS_DISK_RESERVE_MB``)."""
+        free = shutil.disk_usage(self.store_dir).free
+        if free < need + self.disk_reserve:
+            raise NoSpace(f"the disk of the job store has {free / 2**20:.1f} MB free; {what} needs about "
+                          f"{need / 2**20:.1f} MB (its data and its first {FIRST_POPULATIONS} populations: particles x "
+                          f"(parameters + 4) x 8 bytes each) and the service keeps {self.disk_reserve / 2**20:.0f} MB "
+                          "free (ABCNS_DISK_RESERVE_MB); try again once there is room")
+
+    def _has_space(self, job: JobRecord) -> bool:
+        """Whether the disk has room for the job's next populations (logged once when not:
+        the job waits at the queue's head, and starts once there is room)."""
+        try:
+            self.check_space(space_needed(JobSpec.model_validate(job.spec())), f"job {job.id}")
+        except NoSpace as err:
+            if self.waiting_for_space != job.id:
+                self.waiting_for_space = job.id
+                log.warning("job %s waits: %s", job.id, err)
+            return False
+        except (OSError, ValueError):  # its spec unreadable: its run says so
+            pass
+        self.waiting_for_space = None
+        return True
 
     def get(self, job_id: str) -> JobRecord | None:
         return self.jobs.get(job_id)
@@ -494,7 +601,8 @@ class JobManager:
                 if self.stopping:
                     return
                 cap = self.max_running or (math.inf if self.client is not None else 1)
-                if (self.client is not None and not free) or not self.queue or len(self.running) >= cap:
+                if ((self.client is not None and not free) or not self.queue or len(self.running) >= cap
+                        or not self._has_space(self.jobs[self.queue[0]])):
                     if self.queue and connected:
                         self._end_a_turn()
                     self.wake.wait(timeout=1.0)  # a new job, a free slot, or the scheduler back: look again
@@ -651,6 +759,9 @@ class JobManager:
                     (self.queue.appendleft if status == "lost" else self.queue.append)(job.id)
             elif status in ("yielded", "lost"):
                 status = "cancelled"
+            if status == "no_space":
+                self._full(job, error or "no space left on the disk")
+                return
             if status == "cancelled" and job.cancel.is_set():
                 self._end(job, "cancelled", None)
             elif status == "cancelled" and self.stopping:
@@ -664,7 +775,9 @@ class JobManager:
         except (SpecError, StoreError) as err:
             self._end(job, "failed", str(err))
         except Exception as err:
-            if not self.stopping and self._lost_scheduler(started_on):
+            if no_space(err):
+                self._full(job, f"{type(err).__name__}: {err}")
+            elif not self.stopping and self._lost_scheduler(started_on):
                 # the scheduler died under the job: back to the front of the queue, resumed from
                 # its last complete population once a scheduler answers again
                 job.status = "queued"
@@ -676,6 +789,31 @@ class JobManager:
                 self._end(job, "failed", f"{type(err).__name__}: {err}")
         finally:
             self._free(job)
+
+    def _full(self, job: JobRecord, error: str) -> None:
+        """A write of the job found the disk full: its stored populations are kept, and it
+        goes back to the queue, resumed from them once the disk has room for its next
+        populations (the dispatcher waits for it: :meth:`_has_space`); at the
+        :data:`MAX_NO_SPACE`-th time (a disk that says it has room and takes nothing) it
+        fails. A job the service stops meanwhile stays queued (a restart with room resumes it)."""
+        self._release_slot(job)
+        n = self.no_space[job.id] = self.no_space.get(job.id, 0) + 1
+        stored = _stored(job)
+        if n >= MAX_NO_SPACE and not self.stopping:
+            self._end(job, "failed", f"the disk was full {n} times ({error}); its {stored} stored populations are kept")
+            return
+        job.status = "queued"
+        job.save_or_log()
+        try:
+            job.log.append("requeued", {"reason": f"the disk is full ({error}): it resumes from its {stored} stored "
+                                                  "populations once the disk has room"})
+        except OSError as err:
+            log.error("job %s: cannot append its requeued event: %s", job.id, err)
+        if not (self.stopping or job.cancel.is_set()):
+            with self.lock:
+                self.queue.append(job.id)
+        elif job.cancel.is_set():
+            self._end(job, "cancelled", None)
 
     def _release_slot(self, job: JobRecord) -> None:
         with self.lock:
@@ -768,8 +906,8 @@ class JobManager:
             place(out["placement"])
         self._backfill(job)  # populations whose messages did not come (the store is the record)
         status, error, made = out["status"], out.get("error"), out.get("summary")  # the summary: made on the worker
-        if status in ("finished", "cancelled"):
-            return status, None, made
+        if status in ("finished", "cancelled", "no_space"):
+            return status, error if status == "no_space" else None, made
         return "failed", (error or status).split("\nTraceback")[0], made
 
     def _end(self, job: JobRecord, status: str, error: str | None, made: dict | None = None) -> None:
@@ -779,9 +917,6 @@ class JobManager:
         reads the status, then the events, misses nothing). A write that fails (a full disk)
         is logged: the status holds in memory, and a restart recovers status and error
         from the terminal event when job.json missed them."""
-        data: dict[str, Any] = {"status": status}
-        if error:
-            data["error"] = error
         result = made
         if result is None:
             with self.result_lock:
@@ -791,6 +926,11 @@ class JobManager:
                     result = None
         if result is not None:
             self._cache(job, result)
+        if status == "finished" and result and result.get("no_population"):  # a budget spent before population 1
+            status, error = "failed", result["notes"][0]
+        data: dict[str, Any] = {"status": status}
+        if error:
+            data["error"] = error
         if result:
             probs = result.get("model_probabilities") or {}
             data.update(stop_reason=result.get("stop_reason"), n_populations=result.get("n_populations"),
@@ -812,7 +952,14 @@ class JobManager:
             self.stopping = True
             self.wake.notify_all()
         if self.loop is not None and not self.loop.is_closed():
-            self.loop.call_soon_threadsafe(self.closing.set)
+            self.loop.call_soon_threadsafe(self._close_streams)
+
+    def _close_streams(self) -> None:
+        """On the loop: every event stream ends (its follower wakes and sees ``closing``)."""
+        self.closing.set()
+        for job in list(self.jobs.values()):
+            if job.events is not None and job.events.loop is not None:
+                job.events._notify()
 
     def shutdown(self, timeout_s: float) -> None:
         """Stop; running jobs stop between batches and stay queued for the next start. A job

@@ -45,6 +45,7 @@ class Settings(BaseSettings):
     max_job_simulations: int = Field(default=Limits.max_job_simulations, ge=1)  # likewise
     max_queued: int = Field(default=64, ge=1)  # jobs waiting; beyond: 429 with Retry-After
     retry_after_s: int = Field(default=30, ge=1)
+    disk_reserve_mb: float = Field(default=64.0, ge=0)  # left free on the job store's disk: beyond it, 507 / jobs wait
 
     @property
     def limits(self) -> Limits:

@@ -75,6 +75,7 @@ resumes.
 
 from __future__ import annotations
 
+import errno
 import math
 import queue
 import re
@@ -174,7 +175,8 @@ def store_names(names: Sequence[str]) -> list[str]:
 @dataclass
 class Outcome:
     """How a job ended: ``status`` (``finished``, ``cancelled``, ``failed``: the job's own
-    failure, a simulator's exception; ``refused``: its spec, data or store; ``error``: a bug),
+    failure, a simulator's exception; ``refused``: its spec, data or store; ``no_space``: a
+    write found the disk full, its stored populations stand; ``error``: a bug),
     its message, the placement and the store's JSON summary (None when it has no store)."""
 
     status: str
@@ -312,7 +314,19 @@ def run_one(spec_json: dict, data: dict[str, np.ndarray], store: str, *, seed: i
     except SpecError as err:
         return _outcome(path, placement, "refused", str(err))
     except Exception as err:  # a bug; the other jobs go on, the caller says so
+        if no_space(err):  # a full disk: the stored populations stand, the caller may resume them
+            return _outcome(path, placement, "no_space", f"{type(err).__name__}: {err}")
         return _outcome(path, placement, "error", f"{type(err).__name__}: {err}\n{traceback.format_exc()}")
+
+
+def no_space(err: BaseException | None) -> bool:
+    """Whether ``err`` (or what caused it) is a full disk (ENOSPC, EDQUOT)."""
+    seen = 0
+    while err is not None and seen < 10:
+        if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        err, seen = err.__cause__ or err.__context__, seen + 1
+    return False
 
 
 def _finished(path: Path) -> bool:

@@ -90,6 +90,20 @@ def stored_job_key(store: Store) -> str | None:
         return None
 
 
+#: the stop reasons of a budget: a run they stop before its first population has no result
+BUDGETS = {"max_seconds": "its time budget (stop.max_seconds, or the service's max_job_seconds) ran out",
+           "max_simulations": "its simulation budget (stop.max_simulations) was spent"}
+
+
+def no_population_note(reason: str | None, n_simulations: int | None) -> str | None:
+    """The sentence of a run that a budget stopped before its first population (issue Z.5:
+    such a job ended a plain ``finished``), or None."""
+    if reason not in BUDGETS:
+        return None
+    return (f"no population: {BUDGETS[reason]} after {n_simulations or 0:,} simulations, before the first population "
+            "was complete; there is no result (give the job a larger budget)")
+
+
 def summary(store: Store) -> dict:
     # without a population, the run's notes and simulations still say why and after how much it stopped
     run = store.attrs.get("run", {})
@@ -97,6 +111,10 @@ def summary(store: Store) -> dict:
         "notes": run.get("notes", []), "n_simulations": run.get("n_simulations"), "wall_time_s": run.get("wall_time_s")}
     out["status"] = store.attrs.get("status", "unknown")
     out["stop_reason"] = store.attrs.get("stop_reason")
+    if not store.n_populations and out["status"] == "finished" and (
+            note := no_population_note(out["stop_reason"], out.get("n_simulations"))):
+        out["notes"] = [note, *out.get("notes", [])]
+        out["no_population"] = True
     if store.attrs.get("error"):
         out["error"] = store.attrs["error"]
     out["n_populations"] = store.n_populations
