@@ -2,7 +2,8 @@
 
 Built-ins: ``duffing``, ``bouc_wen``, ``linear`` (exact, for a held or a linear input), ``gandk``
 (driven by a force, or none), and ``bouc_wen_restoring``, ``bwbn_restoring``, ``spencer_mr`` (driven by a measured
-displacement, predicting the force: :mod:`worker.restoring`).
+displacement, predicting the force: :mod:`worker.restoring`), ``spencer_mr_voltage`` (the
+displacement and the coil voltage, ``data.voltage``).
 Plugins: any installed package can add simulators through the entry-point group
 ``abcns.simulators`` (``name = "package.module:factory"``); they must be installed on the
 service and on every worker. The CLI (never HTTP) may also name a local
@@ -31,11 +32,11 @@ import importlib
 from importlib.metadata import EntryPoint, entry_points
 
 from abcns.priors import SpecError
-from worker.restoring import BoucWenRestoring, BWBNRestoring, SpencerMR
+from worker.restoring import BoucWenRestoring, BWBNRestoring, SpencerMR, SpencerMRVoltage
 from worker.simulators import BoucWen, Duffing, GAndK, Linear
 
 BUILTINS: dict[str, type] = {cls.name: cls for cls in (Duffing, BoucWen, Linear, GAndK, BoucWenRestoring, BWBNRestoring,
-                                                        SpencerMR)}
+                                                        SpencerMR, SpencerMRVoltage)}
 GROUP = "abcns.simulators"
 
 

@@ -1,0 +1,204 @@
+"""Spencer's MR-damper model with the coil voltage as a second input channel
+(``spencer_mr_voltage``, worker/restoring.py; the spec's ``data.voltage``).
+
+- the numba kernel against the numpy reference (integer and real exponents), and the
+  constant-voltage model as its special case (no voltage terms);
+- the voltage laws (alpha, c0, c1 linear in the filtered voltage u, u' = -eta (u - e)) against
+  the constant-voltage model at those values, independently of the reference;
+- the channel through the spec, the worker's rebuild and the analysis; bad input refused
+  before a run, naming the field (a voltage missing, NaN, of the wrong length, negative, with
+  no input, or given to models that read none);
+- synthetic truth (benchmarks/spencer_voltage.py's problem, smaller): its own parameters
+  recovered at 1 % noise, the truth inside the 95 % intervals, and Bouc-Wen vs Spencer on
+  Spencer data picks Spencer with p >= 0.9. Seed 1 (``ABCNS_TEST_SEED`` overrides it); seeds
+  1-5 with larger runs are the benchmark's (``python -m benchmarks.spencer_voltage``).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from abcns import SpecError
+from abcns.executor import OK
+from benchmarks import spencer_voltage as problem
+from service.report.analysis import job_data
+from service.spec import build, description, job_arrays, parse
+from worker.description import job_parts
+from worker.restoring import SpencerMR, SpencerMRVoltage
+
+SEED = int(os.environ.get("ABCNS_TEST_SEED", "1"))
+TRUE = np.array([problem.SPENCER_TRUE[p] for p in SpencerMRVoltage.parameter_names])
+
+
+def draw(rng: np.random.Generator, size: int, n: np.ndarray) -> np.ndarray:
+    """Around Spencer's values, each within a factor 1.4 (x0 within +-1 cm)."""
+    p = TRUE[None, :] * rng.uniform(0.7, 1.4, (size, TRUE.size))
+    p[:, 8] = rng.uniform(-1.0, 1.0, size)
+    p[:, 12] = n
+    return p
+
+
+def test_the_kernel_matches_the_numpy_reference():
+    """Seed 3; 20 particles, n = 2 (specialised) and 2.5 (pow) in one batch, over the
+    benchmark's records (square-wave voltage). Tolerance 1e-9 of the force's scale: the
+    kernel contracts multiply-adds (FMA), the reference does not (measured ~4e-16)."""
+    rng = np.random.default_rng(3)
+    x, e = problem.records(400)
+    params = draw(rng, 20, rng.choice([2.0, 2.5], 20))
+    fast = SpencerMRVoltage(x, 1 / problem.FS, substeps=16, voltage=e).simulate(params)
+    slow = SpencerMRVoltage(x, 1 / problem.FS, substeps=16, voltage=e, backend="numpy").simulate(params)
+    assert np.all(fast.status == OK) and np.all(slow.status == OK)
+    np.testing.assert_allclose(fast.values, slow.values, rtol=0, atol=1e-9 * np.max(np.abs(slow.values)))
+    observed = slow.values[4] + 5.0 * rng.standard_normal(x.size)
+    d, status = SpencerMRVoltage(x, 1 / problem.FS, substeps=16, voltage=e).distance_nmse(params, observed, 0, x.size)
+    d_ref, _ = SpencerMRVoltage(x, 1 / problem.FS, substeps=16, voltage=e,
+                                backend="numpy").distance_nmse(params, observed, 0, x.size)
+    assert np.all(status == OK)
+    np.testing.assert_allclose(d, d_ref, rtol=1e-7)
+
+
+def test_without_voltage_terms_it_is_the_constant_voltage_model():
+    """alpha_b = c0b = c1b = 0: the voltage plays no part, and the force is spencer_mr's at
+    (alpha_a, c0a, c1a) to rounding, whatever the voltage record; with the voltage terms the
+    2.25 V half-periods raise the force (Spencer's 0 V and 2.25 V loops differ ~4x)."""
+    x, e = problem.records(400)
+    full = TRUE.copy()
+    full[[1, 3, 5]] = 0.0
+    const = full[[0, 2, 4, 6, 7, 8, 9, 10, 11, 12]][None, :]
+    a = SpencerMR(x, 1 / problem.FS, substeps=16).simulate(const).values[0]
+    for backend in ("numba", "numpy"):
+        b = SpencerMRVoltage(x, 1 / problem.FS, substeps=16, voltage=e, backend=backend).simulate(full[None]).values[0]
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-12 * np.max(np.abs(a)))
+    driven = SpencerMRVoltage(x, 1 / problem.FS, substeps=16, voltage=e).simulate(TRUE[None]).values[0]
+    assert np.max(np.abs(driven)) > 2 * np.max(np.abs(a))
+
+
+@pytest.mark.parametrize("volts", [0.0, 1.0, 2.25])
+def test_the_voltage_laws_and_the_filter(volts):
+    """A constant command e with a fast filter (eta = 2e4 /s: u is within 2e-9 e of e after the
+    first 1 ms sample step, while the sine has moved 0.24 mm) is spencer_mr at alpha = alpha_a +
+    alpha_b e, c0 = c0a + c0b e, c1 = c1a + c1b e from the second sample on (the first is at
+    u(0) = 0): within 1e-4 of the force's scale (the filter's first steps are the difference;
+    measured 1.5e-6). RK4 on u: eta h = 0.6 (< 2.78), 1e-3 s / 32."""
+    t = np.arange(1000) / 1000.0
+    x = 1.5 * np.sin(2 * np.pi * 2.5 * t)  # Spencer's 2.5 Hz, 1.5 cm test
+    p = TRUE.copy()
+    p[13] = 2e4
+    v = SpencerMRVoltage(x, 1e-3, substeps=32, voltage=np.full(x.size, volts)).simulate(p[None]).values[0]
+    al, c0, c1 = p[0] + p[1] * volts, p[2] + p[3] * volts, p[4] + p[5] * volts
+    const = np.array([[al, c0, c1, p[6], p[7], p[8], p[9], p[10], p[11], p[12]]])
+    a = SpencerMR(x, 1e-3, substeps=32).simulate(const).values[0]
+    assert np.max(np.abs(v[1:] - a[1:])) < 1e-4 * np.max(np.abs(a))
+
+
+def spec(x: np.ndarray, e: np.ndarray, force: np.ndarray) -> dict:
+    """Bouc-Wen vs Spencer with the voltage over inline records (the problem's priors)."""
+    sp = {"name": "spencer", "simulator": "spencer_mr_voltage", "fixed": dict(problem.SPENCER_FIXED),
+          "priors": {k: list(v) for k, v in problem.SPENCER_PRIORS.items()}, "integrator": {"substeps": 16}}
+    bw = {"name": "bw", "simulator": "bouc_wen_restoring", "fixed": dict(problem.BW_FIXED),
+          "priors": {k: list(v) for k, v in problem.BW_PRIORS.items()}, "integrator": {"substeps": 2}}
+    return {"name": "mr", "data": {"fs": problem.FS, "input": x.tolist(), "voltage": e.tolist(),
+                                   "observed": force.tolist()},
+            "models": [bw, sp], "sampler": {"particles": 100}, "stop": {"max_populations": 2}, "seed": 1}
+
+
+@pytest.fixture(scope="module")
+def records() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    x, e, observed, _noise = problem.data(200, np.random.default_rng(SEED))
+    return x, e, observed
+
+
+def test_the_voltage_travels_to_the_worker_and_the_analysis(records, tmp_path):
+    """The job built from the spec, the worker's rebuild from (description, job_arrays) and
+    the analysis's whole-record simulators hold the same voltage and give the same forces;
+    with a fit window the job's simulators hold its first samples only."""
+    x, e, f = records
+    job = build(parse(spec(x, e, f)))
+    np.testing.assert_array_equal(job.voltage, e)
+    _models, sims, _d = job_parts(description(job.spec), job_arrays(job))
+    np.testing.assert_array_equal(sims[1].voltage, e)
+    analysed = job_data(spec(x, e, f), None).simulators["spencer"]
+    np.testing.assert_array_equal(analysed.voltage, e)
+    np.testing.assert_array_equal(analysed.simulate(TRUE[None]).values, job.simulators[1].simulate(TRUE[None]).values)
+    raw = spec(x, e, f)
+    raw["data"]["fit"] = [0, 150]
+    assert build(parse(raw)).simulators[1].voltage.size == 150
+
+
+def _put(raw: dict, field: str, value) -> dict:
+    raw["data"][field] = value
+    return raw
+
+
+@pytest.mark.parametrize(("change", "words"), [
+    (lambda r: r["data"].pop("voltage"), "needs the coil voltage record"),
+    (lambda r: _put(r, "voltage", r["data"]["voltage"][:-1]), "one sample per displacement sample (200)"),
+    (lambda r: r["data"]["voltage"].__setitem__(5, -0.5), "sample 5 is -0.5"),
+    (lambda r: r.update(models=r["models"][:1]), "no model's simulator reads a voltage record"),
+    (lambda r: (r["data"].pop("input"), r["data"].pop("fs")), "needs the input record"),
+])
+def test_bad_voltage_is_refused_naming_the_field(records, change, words):
+    raw = spec(*records)
+    change(raw)
+    with pytest.raises(SpecError) as err:
+        build(parse(raw))
+    assert err.value.field == "data.voltage" and words in err.value.message, err.value
+
+
+def test_a_voltage_with_nan_is_refused_naming_the_field(records, tmp_path):
+    """Through the spec (a file: JSON has no NaN) and through the library directly."""
+    x, e, f = records
+    bad = e.copy()
+    bad[7] = np.nan
+    np.save(tmp_path / "e.npy", bad)
+    raw = spec(x, e, f)
+    raw["data"]["voltage"] = "e.npy"
+    with pytest.raises(SpecError) as err:
+        build(parse(raw), tmp_path)
+    assert err.value.field == "data.voltage" and "sample 7 is nan" in err.value.message
+    with pytest.raises(SpecError) as err:
+        SpencerMRVoltage(x, 1 / problem.FS, voltage=bad)
+    assert err.value.field == "data.voltage" and "sample 7 is nan" in err.value.message
+
+
+@pytest.mark.parametrize(("field", "value", "words"), [
+    ("c0a", 0.0, "must be a number > 0"), ("eta", -1.0, "must be a number > 0"),
+    ("alpha_b", -10.0, "must be a number >= 0"), ("n", 0.2, "must be a number >= 0.5 and <= 10")])
+def test_a_parameter_outside_its_range_is_refused(records, field, value, words):
+    raw = spec(*records)
+    raw["models"][1]["priors"].pop(field, None)
+    raw["models"][1]["fixed"][field] = value
+    with pytest.raises(SpecError) as err:
+        build(parse(raw))
+    assert err.value.field == f"models[1].fixed.{field}" and words in err.value.message
+
+
+# ---------------------------------------------------------------- synthetic truth
+# 500 samples (1 s), 200 particles (the benchmark: 1000 and 400); ~15-30 s each here.
+N_SAMPLES, PARTICLES = 500, 200
+
+
+@pytest.mark.slow
+def test_spencer_recovers_its_parameters():
+    """Spencer data with 1 % noise (the noise std given, so the run stops at its decision
+    tolerance): every true value inside its 95 % posterior interval (the issue's criterion).
+    Its false-failure rate is the intervals' own: five intervals that each miss 1 time in 20
+    fail together on ~23 % of seeds if they were exact and independent. Measured: at this
+    test's size seeds 1-5 all pass (~4 s each); the benchmark (1000 samples, 400 particles) held
+    24 of 25 intervals (seed 1 missed eta, [187.9, 189.9] against 190). Seed 1, fixed, passes."""
+    result = problem.run(["spencer"], N_SAMPLES, PARTICLES, SEED)
+    cov = problem.coverage(result, "spencer", problem.TRUTHS)
+    assert set(cov) == set(problem.SPENCER_PRIORS)
+    assert all(inside for _lo, _hi, inside in cov.values()), cov
+
+
+@pytest.mark.slow
+def test_model_selection_picks_spencer_on_spencer_data():
+    """Bouc-Wen (no voltage) vs Spencer with the voltage on Spencer data: p(spencer) >= 0.9,
+    the issue's threshold (the benchmark measured 1.0000 on seeds 1-5: a model blind to the
+    voltage cannot follow a force that changes ~4x with it)."""
+    result = problem.run(["bw", "spencer"], N_SAMPLES, PARTICLES, SEED)
+    assert result.summary()["model_probabilities"]["spencer"] >= 0.9
