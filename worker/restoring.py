@@ -304,10 +304,9 @@ def _voltage(voltage, n_samples: int) -> np.ndarray:
     v = np.asarray(voltage, dtype=float)
     if v.ndim != 1 or v.size != n_samples:
         raise SpecError("data.voltage", f"must have one sample per displacement sample ({n_samples}), got shape {v.shape}")
-    bad = np.flatnonzero(~np.isfinite(v) | (v < 0))
+    bad = np.flatnonzero(~np.isfinite(v))
     if bad.size:
-        raise SpecError("data.voltage", f"must be finite and >= 0 (a coil's command, in volts): sample {bad[0]} is "
-                                        f"{v[bad[0]]}")
+        raise SpecError("data.voltage", f"has non-finite values (sample {bad[0]} is {v[bad[0]]})")
     return v
 
 
@@ -333,6 +332,7 @@ def _spencer_numpy(params: np.ndarray, x: np.ndarray, v: np.ndarray, e: np.ndarr
             z = np.where(np.abs(z) > zmax, np.nan, z)
             c1 = c1a + c1b * u
             f = c1 * rates(x[i], v[i], e[i], y, z, u)[0] + k1 * (x[i] - x0)
+            f = np.where(c0a + c0b * u + c1 > 0, f, np.nan)
             bad |= ~np.isfinite(f) | ~np.isfinite(y) | ~np.isfinite(z) | ~np.isfinite(u) | (np.abs(f) > state_bound)
             y[bad], z[bad], u[bad] = 0.0, 0.0, 0.0
             out[:, i] = np.where(bad, 0.0, f)
@@ -367,8 +367,11 @@ class SpencerMRVoltage(SpencerMR):
 
     Valid ranges (refused before a run, naming the field): c0a, c1a, eta > 0; alpha_a,
     alpha_b, c0b, c1b, k0, k1, A, gamma >= 0; n in 0.5..10; beta, x0 any finite number. The
-    voltage record must be finite and >= 0 (``data.voltage``), so that c0 + c1 > 0. With
-    alpha_b = c0b = c1b = 0 it is :class:`SpencerMR` (the voltage plays no part)."""
+    voltage record must be finite (``data.voltage``); the laws take u as it is, negative
+    included (a measured command rings below 0 at its steps, and so does a decimated one), and
+    a particle whose c0 + c1 is not positive at a sample (c0a + c1a < -(c0b + c1b) u) is
+    DIVERGED. With alpha_b = c0b = c1b = 0 it is :class:`SpencerMR` (the voltage plays no
+    part)."""
 
     name = "spencer_mr_voltage"
     parameter_names = ("alpha_a", "alpha_b", "c0a", "c0b", "c1a", "c1b", "k0", "k1", "x0", "gamma", "beta", "A", "n",

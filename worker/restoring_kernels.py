@@ -479,8 +479,10 @@ def _spencer_v_output(w, n_act, x, v, out):
         uj = u[j]
         c0 = w[7, j] + w[8, j] * uj
         c1 = w[9, j] + w[10, j] * uj
-        yd = ((w[5, j] + w[6, j] * uj) * z[j] + c0 * v + w[11, j] * (x - y[j])) / (c0 + c1)
+        s = c0 + c1
+        yd = ((w[5, j] + w[6, j] * uj) * z[j] + c0 * v + w[11, j] * (x - y[j])) / s
         f = c1 * yd + w[12, j] * (x - w[13, j])
+        f = f if s > 0.0 else np.nan  # flagged DIVERGED: c0 + c1 must stay positive
         F[j] = f
         out[j] = f
 
