@@ -60,6 +60,8 @@ def spec_for(x: np.ndarray, volts: np.ndarray, force: np.ndarray, seed: int, par
     q, (a, b) = raw["data"]["decimate"], raw["data"]["fit"]
     offset = float(np.mean(force[a * q : b * q]))
     raw["data"].update(input=x.tolist(), voltage=np.clip(volts, 0.0, None).tolist(), observed=(force - offset).tolist())
+    if not any(m["simulator"] == "spencer_mr_voltage" for m in raw["models"]):
+        raw["data"].pop("voltage")  # Bouc-Wen alone reads none (a voltage no model reads is refused)
     raw["seed"] = seed
     if particles is not None:
         raw["sampler"]["particles"] = particles
