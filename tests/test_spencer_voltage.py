@@ -242,3 +242,42 @@ def test_the_mr_damper_example_reads_the_source_layout_and_builds(tmp_path):
     (tmp_path / "other.csv").write_text("a,b\n1,2\n3,4\n")
     with pytest.raises(SystemExit, match="no column"):
         mr.read_record(tmp_path / "other.csv")
+
+
+def test_a_run_stores_the_voltage_and_its_analysis_reads_it_back(records, tmp_path):
+    """The runner (in this process) over a spec with the voltage in a file: the data hash it
+    stores covers the voltage, so the analysis reads the same voltage back (store_job_data
+    checks the hash) and a changed voltage is told apart."""
+    from service.report.analysis import store_job_data
+    from service.run.runner import run_job
+    from service.run.store import Store
+
+    x, e, f = records
+    np.save(tmp_path / "e.npy", e)
+    raw = spec(x, e, f)
+    raw["data"]["voltage"] = "e.npy"
+    raw["stop"] = {"max_populations": 1}
+    run_job(parse(raw), tmp_path, tmp_path / "mr.zarr", None)
+    store = Store.open(tmp_path / "mr.zarr")
+    np.testing.assert_array_equal(store_job_data(store, tmp_path).simulators["spencer"].voltage, e)
+    np.save(tmp_path / "e.npy", np.roll(e, 1))
+    with pytest.raises(ValueError, match="not the data this store was run on"):
+        store_job_data(store, tmp_path)
+
+
+def test_the_http_intake_takes_an_inline_voltage_and_refuses_a_file_name(records):
+    """Over HTTP the voltage comes inline (stored with the job's other arrays) or as npz:KEY of
+    an upload, never as a file name on the server (422 naming data.voltage)."""
+    import json
+
+    from service.http.intake import Refused, spec_of
+
+    x, e, f = records
+    raw = spec(x, e, f)
+    spec_obj, arrays = spec_of(json.dumps(raw).encode(), "spec", "json", 10**6)
+    np.testing.assert_array_equal(arrays["voltage"], e)
+    assert spec_obj.data.voltage.endswith(":voltage")
+    raw["data"]["voltage"] = "/etc/passwd"
+    with pytest.raises(Refused) as err:
+        spec_of(json.dumps(raw).encode(), "spec", "json", 10**6)
+    assert err.value.status == 422 and err.value.detail[0]["field"] == "data.voltage"
