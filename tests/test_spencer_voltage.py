@@ -216,11 +216,19 @@ def test_model_selection_picks_spencer_on_spencer_data():
     assert result.summary()["model_probabilities"]["spencer"] >= 0.9
 
 
+def _source_csv(path, t: np.ndarray, x: np.ndarray, volts: np.ndarray, force: np.ndarray) -> None:
+    """A record in the source's layout (quoted header, trailing empty column)."""
+    rows = "\n".join(f"{a:.7g},0,{b:.7g},{c:.7g},,0,{d:.7g}," for a, b, c, d in zip(t, x, volts, force, strict=True))
+    path.write_text('"t","A","D","Y","fs","V","F",\n' + rows + "\n")
+
+
 def test_the_mr_damper_example_reads_the_source_layout_and_builds(tmp_path):
     """examples/mr_damper (its data are not in the repository): the script reads a CSV in the
-    source's layout (quoted header, trailing empty column), keeps the active 21 s, and its
-    models.yaml builds over the records with the voltage clipped at 0 and the force less its
-    fit-window mean; a file without the columns is refused saying so."""
+    source's layout, keeps the active 21 s, and its models.yaml builds over the records with
+    the voltage clipped at 0 and the force less its fit-window mean; ``--predict`` scores the
+    posterior means on another record without its saturated samples (a saturated sample's
+    value, past the preload's window, plays no part); a file without the columns is refused
+    saying so."""
     from examples.mr_damper import run as mr
 
     n = int(mr.ACTIVE_S * mr.FS) + 300
@@ -228,10 +236,8 @@ def test_the_mr_damper_example_reads_the_source_layout_and_builds(tmp_path):
     x = 0.2 * np.sin(2 * np.pi * 3.0 * t)
     volts = np.where(np.floor(t / 0.02) % 2 == 1, 2.25, -0.1)
     force = 800.0 * np.tanh(20 * x) - 129.0
-    rows = "\n".join(f"{a:.7g},0,{b:.7g},{c:.7g},,0,{d:.7g}," for a, b, c, d in zip(t, x, volts, force, strict=True))
-    path = tmp_path / "ranran_50_converted.csv"
-    path.write_text('"t","A","D","Y","fs","V","F",\n' + rows + "\n")
-    xs, es, fs = mr.read_record(path)
+    _source_csv(tmp_path / "ranran.csv", t, x, volts, force)
+    xs, es, fs = mr.read_record(tmp_path / "ranran.csv")
     assert xs.size == int(mr.ACTIVE_S * mr.FS)
     np.testing.assert_allclose(es, volts[: xs.size], rtol=1e-6)
     raw = mr.spec_for(xs, es, fs, 1, 100)
@@ -239,9 +245,16 @@ def test_the_mr_damper_example_reads_the_source_layout_and_builds(tmp_path):
     job = build(parse(raw))
     assert [m.name for m in job.models] == ["bw", "bw_v", "spencer"]
     assert job.simulators[2].voltage.size == 2000  # the fit window, decimated by 3
-    (tmp_path / "other.csv").write_text("a,b\n1,2\n3,4\n")
+    post = {"spencer": {k: {"mean": problem.SPENCER_TRUE[k]} for k in raw["models"][2]["priors"]}}
+    scores = []
+    for peak in (5000.0, 1e6):  # 3 s of record
+        force[7000] = peak
+        _source_csv(tmp_path / "other.csv", t[:9000], x[:9000], volts[:9000], force[:9000])
+        scores.append(mr.predict_other(tmp_path / "other.csv", {"posterior": post}, 1)["spencer"])
+    assert np.isfinite(scores[0]) and scores[0] == scores[1]
+    (tmp_path / "bad.csv").write_text("a,b\n1,2\n3,4\n")
     with pytest.raises(SystemExit, match="no column"):
-        mr.read_record(tmp_path / "other.csv")
+        mr.read_record(tmp_path / "bad.csv")
 
 
 def test_a_run_stores_the_voltage_and_its_analysis_reads_it_back(records, tmp_path):
