@@ -111,7 +111,7 @@ def records() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return x, e, observed
 
 
-def test_the_voltage_travels_to_the_worker_and_the_analysis(records, tmp_path):
+def test_the_voltage_travels_to_the_worker_and_the_analysis(records):
     """The job built from the spec, the worker's rebuild from (description, job_arrays) and
     the analysis's whole-record simulators hold the same voltage and give the same forces;
     with a fit window the job's simulators hold its first samples only."""
