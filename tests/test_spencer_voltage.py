@@ -294,3 +294,24 @@ def test_the_http_intake_takes_an_inline_voltage_and_refuses_a_file_name(records
     with pytest.raises(Refused) as err:
         spec_of(json.dumps(raw).encode(), "spec", "json", 10**6)
     assert err.value.status == 422 and err.value.detail[0]["field"] == "data.voltage"
+
+
+def test_a_factory_that_takes_only_kwargs_is_not_offered_the_voltage(records, monkeypatch):
+    """A plugin written before the voltage channel (``factory(**kwargs)``, as
+    benchmarks/sleepy.py) gets the keywords it always got, not ``voltage``; spencer_mr_voltage,
+    which names it, gets the record."""
+    from worker import description, registry
+
+    seen: dict = {}
+
+    def old_plugin(**kwargs):
+        seen.update(kwargs)
+        return SpencerMR(kwargs["force"], kwargs["dt"], substeps=2)
+
+    monkeypatch.setitem(registry.BUILTINS, "old_plugin", old_plugin)
+    x, e, f = records
+    desc = {"name": "p", "simulator": "old_plugin", "priors": {}, "fixed": {}, "integrator": {"substeps": 2}}
+    description.simulator_for(desc, x, 0.002, f, "models[0]", voltage=e)
+    assert "voltage" not in seen and set(seen) == set(description.INPUT_KEYWORDS)
+    desc["simulator"] = "spencer_mr_voltage"
+    assert description.simulator_for(desc, x, 0.002, f, "models[0]", voltage=e).voltage is e

@@ -34,7 +34,7 @@ def _bounds(desc: dict, factory) -> dict[str, tuple[float, float]]:
 
 
 #: the keywords :func:`simulator_for` offers a factory driven by the input record
-INPUT_KEYWORDS = ("force", "dt", "n_samples", "substeps", "output", "state_bound", "input_interpolation", "voltage")
+INPUT_KEYWORDS = ("force", "dt", "n_samples", "substeps", "output", "state_bound", "input_interpolation")
 # RK4 substeps per sample, given or chosen: past a billion no simulation ends (a record of
 # 500 samples is 5 x 10^11 steps, hours at the kernels' ~10^8 steps/s), and past 2^63 the
 # kernels cannot even count them (a sampling rate of 1e-300 Hz asked for 7 x 10^301 and
@@ -62,6 +62,16 @@ def _accepted(factory: Callable, offered: dict) -> dict:
     return {k: v for k, v in offered.items() if k in names}
 
 
+def _names_explicitly(factory: Callable, name: str) -> bool:
+    """Whether ``factory``'s signature names the keyword ``name`` itself (not ``**kwargs``)."""
+    try:
+        param = inspect.signature(factory).parameters.get(name)
+    except (TypeError, ValueError):
+        return False
+    return param is not None and param.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                                inspect.Parameter.KEYWORD_ONLY)
+
+
 def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observed: np.ndarray, where: str,
                   allow_import: bool = False, input_interpolation: str = "hold",
                   voltage: np.ndarray | None = None) -> Simulator:
@@ -73,9 +83,10 @@ def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observ
     - False (g-and-k): ``factory(n_samples=observed.size)``;
     - True (the oscillators): the input is required (a SpecError on ``data.input`` without
       it) and the factory gets those of :data:`INPUT_KEYWORDS` (``force``, ``dt``,
-      ``n_samples``, ``substeps``, ``output``, ``state_bound``, ``input_interpolation``,
-      ``voltage``: the second input channel, ``data.voltage``, or None) its signature names,
-      e.g. ``Linear`` (exact, no substeps) gets no ``substeps``; a factory
+      ``n_samples``, ``substeps``, ``output``, ``state_bound``, ``input_interpolation``) its
+      signature names, e.g. ``Linear`` (exact, no substeps) gets no ``substeps``, and
+      ``voltage`` (the second input channel, ``data.voltage``, or None) when its signature
+      names it explicitly (not through ``**kwargs``: plugins written before it); a factory
       that does not take ``input_interpolation`` cannot be asked for anything but ``hold``
       (a SpecError on ``data.input_interpolation``);
     - absent (a plugin written before ``needs_input``): as True, except that the input may
@@ -110,8 +121,10 @@ def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observ
         # the divergence guard: 1000 x the observed scale (for a displacement output)
         bound = 1e3 * float(np.max(np.abs(observed))) if integ["output"] == "displacement" else np.inf
         offered = dict(zip(INPUT_KEYWORDS, (force, dt, int(observed.size), integ["substeps"], integ["output"], bound,
-                                            input_interpolation, voltage), strict=True))
+                                            input_interpolation), strict=True))
         accepted = _accepted(factory, offered)
+        if _names_explicitly(factory, "voltage"):
+            accepted["voltage"] = voltage
         if input_interpolation != "hold" and "input_interpolation" not in accepted:
             raise SpecError("data.input_interpolation", f"simulator {desc['simulator']!r} does not take "
                             f"input_interpolation; only 'hold' (the default) is possible with it")

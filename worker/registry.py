@@ -21,7 +21,8 @@ service checks the sampling rate against both, ``service.spec.check_meaningful``
 False: called as ``factory(n_samples=...)`` (the observed record's length); True: the input
 is required, and the factory is called with those of the keywords ``force``, ``dt``,
 ``n_samples``, ``substeps``, ``output``, ``state_bound`` and ``input_interpolation`` its
-signature names (all with ``**kwargs``); absent: as True, but ``force`` may be None (no
+signature names (all with ``**kwargs``), and ``voltage`` (``data.voltage``) when it names
+that one explicitly; absent: as True, but ``force`` may be None (no
 input given). See ``worker/simulators.py`` for four examples and
 :func:`worker.description.simulator_for`.
 """
