@@ -83,10 +83,11 @@ def run(truth: str, names: list[str], n_samples: int, particles: int, seed: int)
                      noise=nmse.noise(noise_std))
 
 
-def coverage(result: Result, truth: str) -> dict[str, tuple[float, float, bool]]:
-    """{parameter: (q2.5, q97.5, truth inside)} of the true model's posterior."""
+def coverage(result: Result, truth: str, truths: dict = TRUTHS) -> dict[str, tuple[float, float, bool]]:
+    """{parameter: (q2.5, q97.5, truth inside)} of the true model's posterior (``truths``:
+    {model: {parameter: true value}})."""
     post = result.summary()["posterior"][truth]
-    return {p: (v["q2_5"], v["q97_5"], v["q2_5"] <= TRUTHS[truth][p] <= v["q97_5"]) for p, v in post.items()}
+    return {p: (v["q2_5"], v["q97_5"], v["q2_5"] <= truths[truth][p] <= v["q97_5"]) for p, v in post.items()}
 
 
 def main() -> None:

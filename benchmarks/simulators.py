@@ -26,6 +26,9 @@ GFLOP/s per core (AVX2, two FMA ports at ~3.5 GHz).
   + 10 = ~118 flops, plus 4 x (2 ``pow``, 2 ``exp``, 1 division), not counted.
 - Spencer's MR damper (y and z, in time): 4 stages x ~14 + 4 stage FMAs x 2 + 10 = ~74 flops
   per RK4 step (n = 2), the output ~10 flops per sample.
+- Spencer's MR damper with the voltage as an input (y, z and the filtered voltage u): 4
+  stages x ~22 (the voltage laws, u's rate, a division) + 6 stage FMAs x 2 + 15 = ~115 flops
+  per RK4 step, the output ~16 flops per sample.
 The per-sample bookkeeping (checks, squared error: ~4 flops) is added for the RK4 models. The
 restoring-force models run the same record length and substeps as Bouc-Wen, so their rates
 compare per sample with it (their ``goal`` is Bouc-Wen's).
@@ -47,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from worker.restoring import BoucWenRestoring, BWBNRestoring, SpencerMR
+from worker.restoring import BoucWenRestoring, BWBNRestoring, SpencerMR, SpencerMRVoltage
 from worker.simulators import BoucWen, Duffing, Linear
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -101,10 +104,23 @@ def restoring_setups(rng: np.random.Generator, n: int):
     sp[:, 9] = 2.0
     yield ("spencer_mr", "1500 samples at 8 kHz, 8 substeps, n = 2", SpencerMR, dict(force=x, dt=1 / 8000, substeps=8), sp,
            flops_spencer(1500, 8), 37_000)
+    # the same with the coil voltage as an input: a square wave 0 / 2.25 V switched every 20 ms
+    # (as the measured MR-damper record), Spencer's voltage-dependent values x 0.7..1.4
+    e = np.where(np.floor(np.arange(1500) / 8000.0 / 0.02) % 2 == 1, 2.25, 0.0)
+    spv = np.array([1.4e4, 6.95e4, 2100.0, 350.0, 28300.0, 295.0, 4690.0, 500.0, 0.0, 3.63e6, 3.63e6, 301.0, 2.0,
+                    190.0]) * rng.uniform(0.7, 1.4, (n, 14))
+    spv[:, 8] = 0.0
+    spv[:, 12] = 2.0
+    yield ("spencer_mr_voltage", "1500 samples at 8 kHz, 8 substeps, n = 2, voltage input", SpencerMRVoltage,
+           dict(force=x, dt=1 / 8000, substeps=8, voltage=e), spv, flops_spencer_voltage(1500, 8), 37_000)
 
 
 def flops_spencer(n_samples: int, substeps: int) -> float:
     return (n_samples - 1) * substeps * (4 * 14 + 8 + 10) + n_samples * 10
+
+
+def flops_spencer_voltage(n_samples: int, substeps: int) -> float:
+    return (n_samples - 1) * substeps * (4 * 22 + 12 + 15) + n_samples * 16
 
 
 def flops_linear(n_samples: int) -> float:

@@ -67,6 +67,9 @@ class DataSpec(_Strict):
     dt: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
     fs: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
     input: str | list[float] | None = None
+    # a second input channel, for the simulators that read it (spencer_mr_voltage: the coil's
+    # commanded voltage, one sample per input sample); loaded, decimated and checked as input
+    voltage: str | list[float] | None = None
     observed: str | list[float]
     fit: Window | None = None
     test: Window | None = None
@@ -260,6 +263,7 @@ class Job:
     observed: np.ndarray
     simulators: list[Simulator]  # the ones ``evaluate`` runs (their substeps as chosen)
     noise: Noise | None = None  # the distance's noise model (abcns.noise): the NMSE's; None for the others
+    voltage: np.ndarray | None = None  # the second input channel (data.voltage), as the job uses it
 
 
 def spec_loc(loc: tuple) -> tuple:
@@ -414,6 +418,25 @@ def load_data(spec: JobSpec, base_dir: Path | None) -> tuple[np.ndarray | None, 
     return force, observed
 
 
+def load_voltage(spec: JobSpec, base_dir: Path | None) -> np.ndarray | None:
+    """The second input channel (``data.voltage``) as the job uses it, decimated as the input
+    is; None when the spec has none. It must come with an input (``data.input``)."""
+    data = spec.data
+    if data.voltage is None:
+        return None
+    if data.input is None:
+        raise SpecError("data.voltage", "is a second input channel: it needs the input record (data.input) beside it")
+    voltage = load_array(data.voltage, base_dir, "data.voltage")
+    return _decimate(voltage, data.decimate, "data.voltage") if data.decimate > 1 else voltage
+
+
+def job_arrays(job: Job) -> dict[str, np.ndarray | None]:
+    """The records a worker builds the job from (:func:`worker.description.job_parts`):
+    input (``force``), observed and, when the spec has one, the voltage."""
+    arrays = {"force": job.force, "observed": job.observed}
+    return arrays if job.voltage is None else {**arrays, "voltage": job.voltage}
+
+
 def check_applicable(spec: JobSpec) -> None:
     """``distance.summaries`` applies to ``summary_euclidean`` only, as an unknown field is an
     error (a sampler field another algorithm reads is refused by the schema itself)."""
@@ -453,10 +476,10 @@ def cut_to_read(spec: JobSpec, arrays: dict[str, np.ndarray]) -> dict[str, np.nd
     return {k: a[:n] for k, a in arrays.items()}
 
 
-def check_records(force: np.ndarray | None, observed: np.ndarray) -> None:
-    """Input and observed samples finite and within ``MAX_MAGNITUDE`` (before a distance
-    computes anything of them). SpecError naming the record."""
-    for field, record in (("data.input", force), ("data.observed", observed)):
+def check_records(force: np.ndarray | None, observed: np.ndarray, voltage: np.ndarray | None = None) -> None:
+    """Input, observed (and voltage) samples finite and within ``MAX_MAGNITUDE`` (before a
+    distance computes anything of them). SpecError naming the record."""
+    for field, record in (("data.input", force), ("data.observed", observed), ("data.voltage", voltage)):
         if record is not None and record.size and not (-MAX_MAGNITUDE <= record.min() and record.max() <= MAX_MAGNITUDE):
             big = np.flatnonzero(~(np.abs(record) <= MAX_MAGNITUDE))  # (min and max: no copy of a long record)
             if big.size:
@@ -611,8 +634,10 @@ def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = Fals
     check_applicable(spec)
     data = spec.data
     force, observed = load_data(spec, base_dir)
-    check_records(force, observed)  # before a distance computes anything of them
-    models, simulators, distance = job_parts(description(spec), {"force": force, "observed": observed}, allow_import)
+    voltage = load_voltage(spec, base_dir)
+    check_records(force, observed, voltage)  # before a distance computes anything of them
+    arrays = {"force": force, "observed": observed, **({} if voltage is None else {"voltage": voltage})}
+    models, simulators, distance = job_parts(description(spec), arrays, allow_import)
     evaluate = evaluator(models, simulators, distance)  # checks the records' lengths: before a window that misses
     if data.test is not None:
         check_window(data.test, observed.size, "data.test")
@@ -627,4 +652,4 @@ def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = Fals
         raise SpecError("data.noise_std", f"applies to distance 'nmse' only, not {spec.distance.name!r}")
     else:
         noise = None
-    return Job(spec, models, evaluate, settings, stop, spec.seed, force, observed, simulators, noise)
+    return Job(spec, models, evaluate, settings, stop, spec.seed, force, observed, simulators, noise, voltage)

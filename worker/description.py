@@ -62,8 +62,19 @@ def _accepted(factory: Callable, offered: dict) -> dict:
     return {k: v for k, v in offered.items() if k in names}
 
 
+def _names_explicitly(factory: Callable, name: str) -> bool:
+    """Whether ``factory``'s signature names the keyword ``name`` itself (not ``**kwargs``)."""
+    try:
+        param = inspect.signature(factory).parameters.get(name)
+    except (TypeError, ValueError):
+        return False
+    return param is not None and param.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                                inspect.Parameter.KEYWORD_ONLY)
+
+
 def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observed: np.ndarray, where: str,
-                  allow_import: bool = False, input_interpolation: str = "hold") -> Simulator:
+                  allow_import: bool = False, input_interpolation: str = "hold",
+                  voltage: np.ndarray | None = None) -> Simulator:
     """The simulator a job builds for one model description, over the record given (the
     evaluator passes the record up to the fit end; the analysis the whole record).
 
@@ -73,7 +84,9 @@ def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observ
     - True (the oscillators): the input is required (a SpecError on ``data.input`` without
       it) and the factory gets those of :data:`INPUT_KEYWORDS` (``force``, ``dt``,
       ``n_samples``, ``substeps``, ``output``, ``state_bound``, ``input_interpolation``) its
-      signature names, e.g. ``Linear`` (exact, no substeps) gets no ``substeps``; a factory
+      signature names, e.g. ``Linear`` (exact, no substeps) gets no ``substeps``, and
+      ``voltage`` (the second input channel, ``data.voltage``, or None) when its signature
+      names it explicitly (not through ``**kwargs``: plugins written before it); a factory
       that does not take ``input_interpolation`` cannot be asked for anything but ``hold``
       (a SpecError on ``data.input_interpolation``);
     - absent (a plugin written before ``needs_input``): as True, except that the input may
@@ -110,6 +123,8 @@ def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observ
         offered = dict(zip(INPUT_KEYWORDS, (force, dt, int(observed.size), integ["substeps"], integ["output"], bound,
                                             input_interpolation), strict=True))
         accepted = _accepted(factory, offered)
+        if _names_explicitly(factory, "voltage"):
+            accepted["voltage"] = voltage
         if input_interpolation != "hold" and "input_interpolation" not in accepted:
             raise SpecError("data.input_interpolation", f"simulator {desc['simulator']!r} does not take "
                             f"input_interpolation; only 'hold' (the default) is possible with it")
@@ -126,8 +141,9 @@ def job_parts(description: dict, arrays: dict,
     ``description``: ``{"models": [{name, simulator, priors, fixed, integrator}], "distance":
     {name: nmse | summary_euclidean, summaries}, "data": {"dt": float | None, "fit": [a, b] | None,
     "input_interpolation": "hold" | "linear" (default hold)}}``;
-    ``arrays``: ``{"force": array | None, "observed": array}``. ``allow_import`` lets a
-    model name a ``package.module:factory`` simulator (the CLI; never HTTP). Without
+    ``arrays``: ``{"force": array | None, "observed": array, "voltage": array (optional: the
+    second input channel of the simulators that read it; refused when none does)}``.
+    ``allow_import`` lets a model name a ``package.module:factory`` simulator (the CLI; never HTTP). Without
     ``integrator.substeps`` a simulator with ``omega_max`` gets substeps from
     ``worker.kernels.choose_substeps`` (RK4 error below 1e-4 per radian at the highest
     natural frequency the priors allow). Raises SpecError naming the field.
@@ -140,12 +156,16 @@ def job_parts(description: dict, arrays: dict,
     observed = np.require(arrays["observed"], dtype=float, requirements=("C", "A"))
     force = arrays.get("force")
     force = np.require(force, dtype=float, requirements=("C", "A")) if force is not None else None
+    voltage = arrays.get("voltage")
+    voltage = np.require(voltage, dtype=float, requirements=("C", "A")) if voltage is not None else None
     data = description.get("data", {})
     dist = description.get("distance", {"name": "nmse"})
     if dist["name"] == "nmse":
         nmse = NMSE(observed, data.get("fit"))
         if force is not None and np.size(force) == observed.size and nmse.stop < observed.size:
             # nothing after the fit window is scored: simulate only up to its end
+            if voltage is not None and voltage.size == observed.size:
+                voltage = voltage[: nmse.stop]
             force, observed = force[: nmse.stop], observed[: nmse.stop]
             nmse = NMSE(observed, (nmse.start, nmse.stop))
         distance: Distance = nmse
@@ -160,5 +180,8 @@ def job_parts(description: dict, arrays: dict,
     for i, desc in enumerate(description["models"]):
         models.append(model_of(desc, f"models[{i}]"))
         simulators.append(simulator_for(desc, force, data.get("dt"), observed, f"models[{i}]", allow_import,
-                                        interpolation))
+                                        interpolation, voltage))
+    if voltage is not None and not any(getattr(sim, "voltage", None) is not None for sim in simulators):
+        raise SpecError("data.voltage", "no model's simulator reads a voltage record (spencer_mr_voltage does): "
+                                        "remove it, or use a simulator that takes it")
     return models, simulators, distance

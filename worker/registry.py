@@ -2,7 +2,8 @@
 
 Built-ins: ``duffing``, ``bouc_wen``, ``linear`` (exact, for a held or a linear input), ``gandk``
 (driven by a force, or none), and ``bouc_wen_restoring``, ``bwbn_restoring``, ``spencer_mr`` (driven by a measured
-displacement, predicting the force: :mod:`worker.restoring`).
+displacement, predicting the force: :mod:`worker.restoring`), ``spencer_mr_voltage`` (the
+displacement and the coil voltage, ``data.voltage``).
 Plugins: any installed package can add simulators through the entry-point group
 ``abcns.simulators`` (``name = "package.module:factory"``); they must be installed on the
 service and on every worker. The CLI (never HTTP) may also name a local
@@ -20,7 +21,8 @@ service checks the sampling rate against both, ``service.spec.check_meaningful``
 False: called as ``factory(n_samples=...)`` (the observed record's length); True: the input
 is required, and the factory is called with those of the keywords ``force``, ``dt``,
 ``n_samples``, ``substeps``, ``output``, ``state_bound`` and ``input_interpolation`` its
-signature names (all with ``**kwargs``); absent: as True, but ``force`` may be None (no
+signature names (all with ``**kwargs``), and ``voltage`` (``data.voltage``) when it names
+that one explicitly; absent: as True, but ``force`` may be None (no
 input given). See ``worker/simulators.py`` for four examples and
 :func:`worker.description.simulator_for`.
 """
@@ -31,11 +33,11 @@ import importlib
 from importlib.metadata import EntryPoint, entry_points
 
 from abcns.priors import SpecError
-from worker.restoring import BoucWenRestoring, BWBNRestoring, SpencerMR
+from worker.restoring import BoucWenRestoring, BWBNRestoring, SpencerMR, SpencerMRVoltage
 from worker.simulators import BoucWen, Duffing, GAndK, Linear
 
 BUILTINS: dict[str, type] = {cls.name: cls for cls in (Duffing, BoucWen, Linear, GAndK, BoucWenRestoring, BWBNRestoring,
-                                                        SpencerMR)}
+                                                        SpencerMR, SpencerMRVoltage)}
 GROUP = "abcns.simulators"
 
 

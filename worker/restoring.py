@@ -19,7 +19,10 @@ displacement, z(0) = 0):
   ``zeta_2 = (psi + delta_psi e) (lambda + zeta_1)``.
 
 A third, ``spencer_mr`` (:class:`SpencerMR`), is Spencer et al.'s modified Bouc-Wen for MR
-dampers, integrated in time (its internal displacement has dynamics); see its docstring.
+dampers, integrated in time (its internal displacement has dynamics); see its docstring. Its
+form with the coil voltage as a second input channel (the spec's ``data.voltage``) and the
+voltage-dependent alpha, c0, c1 of Spencer et al. is ``spencer_mr_voltage``
+(:class:`SpencerMRVoltage`).
 
 Note the names: ``alpha`` here weighs the hysteretic force (Ortiz's (1 - alpha) k), and
 ``beta``/``gamma`` are the ``|x'|`` and ``x'`` coefficients; in the force-driven
@@ -41,7 +44,7 @@ import numpy as np
 
 from abcns.executor import DIVERGED, OK
 from abcns.priors import SpecError
-from worker.simulators import Oscillator, Range, SimOutput, _substeps
+from worker.simulators import BoucWen, Oscillator, Range, SimOutput, _substeps
 
 NONNEGATIVE = Range(0.0, math.inf)
 POSITIVE_OPEN = Range(0.0, math.inf, low_open=True)
@@ -172,8 +175,6 @@ class BoucWenRestoring(_Restoring):
 
     def z_bound(self, p: tuple) -> np.ndarray:
         """As :meth:`worker.simulators.BoucWen.z_bound` (its alpha is this beta, its beta this gamma)."""
-        from worker.simulators import BoucWen
-
         return BoucWen.z_bound(p[4], p[5], p[3], p[6])
 
     def slopes(self, p, state, s):
@@ -252,7 +253,7 @@ class SpencerMR(_Restoring):
     (an RK4 step too coarse for its stiffness: refine ``substeps``) is DIVERGED."""
 
     name = "spencer_mr"
-    parameter_names = ("alpha", "c0", "c1", "k0", "k1", "x0", "gamma", "beta", "A", "n")
+    parameter_names: tuple[str, ...] = ("alpha", "c0", "c1", "k0", "k1", "x0", "gamma", "beta", "A", "n")
     defaults = {"x0": 0.0}
     ranges = {"alpha": NONNEGATIVE, "c0": POSITIVE_OPEN, "c1": POSITIVE_OPEN, "k0": NONNEGATIVE, "k1": NONNEGATIVE,
               "A": NONNEGATIVE, "gamma": NONNEGATIVE, "n": EXPONENT}
@@ -274,44 +275,133 @@ class SpencerMR(_Restoring):
 
     def z_bound(self, p: tuple) -> np.ndarray:
         """As :meth:`worker.simulators.BoucWen.z_bound` (its alpha is this gamma, its beta this beta)."""
-        from worker.simulators import BoucWen
-
         return BoucWen.z_bound(p[6], p[7], p[8], p[9])
 
     def _call(self, w, extra, kind, *args):
-        self._kernels_r().spencer_run(w, extra[0], self.force, self.velocity, self.dt / self.substeps, self.substeps,
-                                      *args)
+        self._kernels_r().spencer_run(w, extra[0], self.force, self.velocity, NO_VOLTAGE, self.dt / self.substeps,
+                                      self.substeps, *args)
+
+    def _simulate_numpy(self, params: np.ndarray) -> SimOutput:
+        """The reference of :class:`SpencerMRVoltage` at zero voltage with no voltage terms."""
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        zero = np.zeros(params.shape[0])
+        al, c0, c1, k0, k1, x0, ga, be, A, n = params.T
+        full = np.column_stack([al, zero, c0, zero, c1, zero, k0, k1, x0, ga, be, A, n, zero])
+        return _spencer_numpy(full, self.force, self.velocity, np.zeros(self.force.size), self.dt, self.substeps,
+                              self.state_bound)
+
+
+#: the constant-voltage kernel's voltage record (none)
+NO_VOLTAGE = np.zeros(0)
+
+
+def _voltage(voltage, n_samples: int) -> np.ndarray:
+    """The coil voltage record, checked against the displacement's length (errors name
+    ``data.voltage``)."""
+    if voltage is None:
+        raise SpecError("data.voltage", "simulator 'spencer_mr_voltage' needs the coil voltage record (data.voltage, "
+                                        "one sample per displacement sample)")
+    v = np.asarray(voltage, dtype=float)
+    if v.ndim != 1 or v.size != n_samples:
+        raise SpecError("data.voltage", f"must have one sample per displacement sample ({n_samples}), got shape {v.shape}")
+    bad = np.flatnonzero(~np.isfinite(v))
+    if bad.size:
+        raise SpecError("data.voltage", f"has non-finite values (sample {bad[0]} is {v[bad[0]]})")
+    return v
+
+
+def _spencer_numpy(params: np.ndarray, x: np.ndarray, v: np.ndarray, e: np.ndarray, dt: float, substeps: int,
+                   state_bound: float) -> SimOutput:
+    """(numpy reference) :class:`SpencerMRVoltage`'s parameters ``params`` (n, 14) over the
+    displacement ``x`` (velocity ``v`` at the samples) and the commanded voltage ``e``."""
+    ala, alb, c0a, c0b, c1a, c1b, k0, k1, x0, ga, be, A, n, eta = params.T
+    h = dt / substeps
+    y, z, u = (np.zeros(params.shape[0]) for _ in range(3))
+    out = np.empty((params.shape[0], x.size))
+    bad = np.zeros(params.shape[0], dtype=bool)
+
+    def rates(xt, vt, et, y, z, u):
+        c0, c1 = c0a + c0b * u, c1a + c1b * u
+        yd = ((ala + alb * u) * z + c0 * vt + k0 * (xt - y)) / (c0 + c1)
+        w = vt - yd
+        return yd, w * (A - np.abs(z) ** n * (be + ga * np.sign(w * z))), -eta * (u - et)
+
+    zmax = BoucWen.z_bound(ga, be, A, n)
+    with np.errstate(all="ignore"):
+        for i in range(x.size):
+            z = np.where(np.abs(z) > zmax, np.nan, z)
+            c1 = c1a + c1b * u
+            f = c1 * rates(x[i], v[i], e[i], y, z, u)[0] + k1 * (x[i] - x0)
+            f = np.where(c0a + c0b * u + c1 > 0, f, np.nan)
+            bad |= ~np.isfinite(f) | ~np.isfinite(y) | ~np.isfinite(z) | ~np.isfinite(u) | (np.abs(f) > state_bound)
+            y[bad], z[bad], u[bad] = 0.0, 0.0, 0.0
+            out[:, i] = np.where(bad, 0.0, f)
+            if i + 1 < x.size:
+                vs, es = (x[i + 1] - x[i]) / dt, (e[i + 1] - e[i]) / dt
+                for s in range(substeps):
+                    xa, ea = x[i] + vs * (s * h), e[i] + es * (s * h)
+                    xm, em = xa + vs * 0.5 * h, ea + es * 0.5 * h
+                    a1, b1, c1_ = rates(xa, vs, ea, y, z, u)
+                    a2, b2, c2 = rates(xm, vs, em, y + 0.5 * h * a1, z + 0.5 * h * b1, u + 0.5 * h * c1_)
+                    a3, b3, c3 = rates(xm, vs, em, y + 0.5 * h * a2, z + 0.5 * h * b2, u + 0.5 * h * c2)
+                    a4, b4, c4 = rates(xa + vs * h, vs, ea + es * h, y + h * a3, z + h * b3, u + h * c3)
+                    y = y + (h / 6.0) * ((a1 + a4) + 2.0 * (a2 + a3))
+                    z = z + (h / 6.0) * ((b1 + b4) + 2.0 * (b2 + b3))
+                    u = u + (h / 6.0) * ((c1_ + c4) + 2.0 * (c2 + c3))
+    return SimOutput(out, np.where(bad, DIVERGED, OK).astype(np.int8))
+
+
+class SpencerMRVoltage(SpencerMR):
+    """Spencer, Dyke, Sain & Carlson's modified Bouc-Wen model of an MR damper with the coil
+    voltage as a second input channel (J. Eng. Mech. 123(3), 1997, Eqs. 6-12): the model of
+    :class:`SpencerMR` with
+
+    ``alpha = alpha_a + alpha_b u``, ``c0 = c0a + c0b u``, ``c1 = c1a + c1b u``,
+    ``u' = -eta (u - e)``,
+
+    ``e`` the commanded voltage (the spec's ``data.voltage``, one sample per displacement
+    sample, linear between samples like the displacement) and ``u`` its first-order filter
+    (the current driver and the fluid's reaction; u(0) = 0). y, z and u are integrated
+    together: ``substeps`` RK4 steps per sample (RK4 on ``u`` needs ``eta dt / substeps <
+    2.78``; Spencer's eta = 190 /s is 0.06 at 3 kHz).
+
+    Valid ranges (refused before a run, naming the field): c0a, c1a, eta > 0; alpha_a,
+    alpha_b, c0b, c1b, k0, k1, A, gamma >= 0; n in 0.5..10; beta, x0 any finite number. The
+    voltage record must be finite (``data.voltage``); the laws take u as it is, negative
+    included (a measured command rings below 0 at its steps, and so does a decimated one), and
+    a particle whose c0 + c1 is not positive at a sample (c0a + c1a < -(c0b + c1b) u) is
+    DIVERGED. With alpha_b = c0b = c1b = 0 it is :class:`SpencerMR` (the voltage plays no
+    part)."""
+
+    name = "spencer_mr_voltage"
+    parameter_names = ("alpha_a", "alpha_b", "c0a", "c0b", "c1a", "c1b", "k0", "k1", "x0", "gamma", "beta", "A", "n",
+                       "eta")
+    defaults = {"x0": 0.0}
+    ranges = {"alpha_a": NONNEGATIVE, "alpha_b": NONNEGATIVE, "c0a": POSITIVE_OPEN, "c0b": NONNEGATIVE,
+              "c1a": POSITIVE_OPEN, "c1b": NONNEGATIVE, "k0": NONNEGATIVE, "k1": NONNEGATIVE, "A": NONNEGATIVE,
+              "gamma": NONNEGATIVE, "n": EXPONENT, "eta": POSITIVE_OPEN}
+    n_state = 4
+    n_column = 12
+
+    def __init__(self, force=None, dt: float = 0.01, substeps: int = 1, state_bound: float = np.inf,
+                 backend: str = "numba", voltage=None):
+        super().__init__(force, dt, substeps=substeps, state_bound=state_bound, backend=backend)
+        self.voltage = _voltage(voltage, self.force.size)
+
+    def config(self) -> dict:
+        return {**super().config(), "input": "displacement, voltage"}
+
+    def _work(self, params):
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        parts = self._groups(params, self._kernels_r().SPENCER_V_ROWS, 5)
+        for _sel, w, _extra in parts:
+            w[19] = BoucWen.z_bound(w[14], w[15], w[16], w[17])
+        return parts
+
+    def _call(self, w, extra, kind, *args):
+        self._kernels_r().spencer_run(w, extra[0], self.force, self.velocity, self.voltage, self.dt / self.substeps,
+                                      self.substeps, *args)
 
     def _simulate_numpy(self, params: np.ndarray) -> SimOutput:
         params = np.atleast_2d(np.asarray(params, dtype=float))
-        al, c0, c1, k0, k1, x0, ga, be, A, n = (params[:, j] for j in range(10))
-        x, v, h = self.force, self.velocity, self.dt / self.substeps
-        y, z = np.zeros(params.shape[0]), np.zeros(params.shape[0])
-        out = np.empty((params.shape[0], x.size))
-        bad = np.zeros(params.shape[0], dtype=bool)
-
-        def rates(xt, vt, y, z):
-            yd = (al * z + c0 * vt + k0 * (xt - y)) / (c0 + c1)
-            u = vt - yd
-            return yd, u * (A - np.abs(z) ** n * (be + ga * np.sign(u * z)))
-
-        zmax = self.z_bound((al, c0, c1, k0, k1, x0, ga, be, A, n))
-        with np.errstate(all="ignore"):
-            for i in range(x.size):
-                z = np.where(np.abs(z) > zmax, np.nan, z)
-                yd = (al * z + c0 * v[i] + k0 * (x[i] - y)) / (c0 + c1)
-                f = c1 * yd + k1 * (x[i] - x0)
-                bad |= ~np.isfinite(f) | ~np.isfinite(y) | ~np.isfinite(z) | (np.abs(f) > self.state_bound)
-                y[bad], z[bad] = 0.0, 0.0
-                out[:, i] = np.where(bad, 0.0, f)
-                if i + 1 < x.size:
-                    vs = (x[i + 1] - x[i]) / self.dt
-                    for s in range(self.substeps):
-                        xa = x[i] + vs * (s * h)
-                        a1, b1 = rates(xa, vs, y, z)
-                        a2, b2 = rates(xa + vs * 0.5 * h, vs, y + 0.5 * h * a1, z + 0.5 * h * b1)
-                        a3, b3 = rates(xa + vs * 0.5 * h, vs, y + 0.5 * h * a2, z + 0.5 * h * b2)
-                        a4, b4 = rates(xa + vs * h, vs, y + h * a3, z + h * b3)
-                        y = y + (h / 6.0) * ((a1 + a4) + 2.0 * (a2 + a3))
-                        z = z + (h / 6.0) * ((b1 + b4) + 2.0 * (b2 + b3))
-        return SimOutput(out, np.where(bad, DIVERGED, OK).astype(np.int8))
+        return _spencer_numpy(params, self.force, self.velocity, self.voltage, self.dt, self.substeps, self.state_bound)

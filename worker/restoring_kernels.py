@@ -358,10 +358,12 @@ def _spencer_output(w, n_act, x, v, out):
 
 
 @njit(**_JIT)
-def spencer_run(w, n_exp, disp, vel, h, substeps, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist,
+def spencer_run(w, n_exp, disp, vel, volt, h, substeps, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist,
                 status):
-    """Run a Spencer MR-damper batch in place. ``w`` is ``(SPENCER_ROWS, n)``; ``h`` the RK4
-    step in time (dt / substeps); ``n_exp`` as in :func:`bw_restoring_run` (row 13)."""
+    """Run a Spencer MR-damper batch in place: at a constant voltage (``volt`` empty, ``w``
+    is ``(SPENCER_ROWS, n)``) or driven by the coil voltage ``volt`` (one per sample, ``w``
+    is ``(SPENCER_V_ROWS, n)``). ``h`` the RK4 step in time (dt / substeps); ``n_exp`` as in
+    :func:`bw_restoring_run` (the exponent's row)."""
     n = w.shape[1]
     idx = cols.copy()
     out = np.empty(n)
@@ -369,27 +371,34 @@ def spencer_run(w, n_exp, disp, vel, h, substeps, bound, obs, start, stop, scale
     n_act = n
     ns = disp.shape[0]
     dt = h * substeps
+    driven = volt.shape[0] > 0
+    n_state = 4 if driven else 3  # the state rows after F: y, z (and u)
     z = w[2]
-    zmax = w[15]
+    zmax = w[w.shape[0] - 1]
     for i in range(ns):
         for j in range(n_act):  # past the bound the equation implies: the integration is wrong
             if abs(z[j]) > zmax[j]:
                 z[j] = np.nan  # the finiteness test below flags it DIVERGED
-        _spencer_output(w, n_act, disp[i], vel[i], out)
-        if _account(w, 3, 3, n_act, i, out, bound, obs, start, stop, scale, eps, want_traj, traj, idx, flag,
+        if driven:
+            _spencer_v_output(w, n_act, disp[i], vel[i], out)
+        else:
+            _spencer_output(w, n_act, disp[i], vel[i], out)
+        if _account(w, n_state, n_state, n_act, i, out, bound, obs, start, stop, scale, eps, want_traj, traj, idx, flag,
                     dist, status):
             n_act = _compact(w, idx, flag, n_act)
             if n_act == 0:
                 return
         if i + 1 < ns:
             v = (disp[i + 1] - disp[i]) / dt
-            if n_exp == 1:
+            if driven:
+                _spencer_v_step(w, n_act, disp[i], v, volt[i], (volt[i + 1] - volt[i]) / dt, h, substeps, n_exp)
+            elif n_exp == 1:
                 _spencer_1(w, n_act, disp[i], v, h, substeps)
             elif n_exp == 2:
                 _spencer_2(w, n_act, disp[i], v, h, substeps)
             else:
                 _spencer_0(w, n_act, disp[i], v, h, substeps)
-    _finish(w, 3, n_act, scale, idx, dist, status)
+    _finish(w, n_state, n_act, scale, idx, dist, status)
 
 
 @njit(**_JIT)
@@ -405,3 +414,99 @@ def _spencer_1(w, n_act, x0, v, h, substeps):
 @njit(**_JIT)
 def _spencer_2(w, n_act, x0, v, h, substeps):
     _spencer_steps(w, n_act, x0, v, h, substeps, 2)
+
+
+# ------------------------------------------------------- Spencer with the coil voltage as an input
+
+# rows: 0 F, 1 y, 2 z, 3 u (the filtered voltage), 4 acc, 5 alpha_a, 6 alpha_b, 7 c0a, 8 c0b, 9 c1a, 10 c1b, 11 k0,
+# 12 k1, 13 x0, 14 gamma, 15 beta, 16 A, 17 n, 18 eta, 19 |z| bound (inf: none)
+SPENCER_V_ROWS = 20
+
+
+@njit(inline="always", **_JIT)
+def _spencer_v_rates(x, v, e, y, z, u, p, n_exp):
+    """(y', z', u') of Spencer et al.'s model with voltage-dependent alpha, c0, c1 (their Eqs.
+    9-12) at displacement x, velocity v and commanded voltage e: alpha = alpha_a + alpha_b u,
+    c0 = c0a + c0b u, c1 = c1a + c1b u in :func:`_spencer_rates`, and ``u' = -eta (u - e)``;
+    ``p``: (alpha_a, alpha_b, c0a, c0b, c1a, c1b, k0, gamma, beta, A, n, eta)."""
+    ala, alb, c0a, c0b, c1a, c1b, k0, ga, be, A, n, eta = p
+    c0 = c0a + c0b * u
+    inv = 1.0 / (c0 + c1a + c1b * u)
+    yd, zd = _spencer_rates(x, v, y, z, (ala + alb * u, c0, k0, ga, be, A, n, inv), n_exp)
+    return yd, zd, -eta * (u - e)
+
+
+@njit(inline="always", **_JIT)
+def _spencer_v_steps(w, n_act, x0, v, e0, de, h, substeps, n_exp):
+    """Advance (y, z, u) over one sample step in time: ``substeps`` RK4 steps of size ``h``,
+    the displacement ``x0 + v t`` and the commanded voltage ``e0 + de t`` (both linear
+    between samples)."""
+    y = w[1]
+    z = w[2]
+    u = w[3]
+    hh = 0.5 * h
+    h6 = h / 6.0
+    for s in range(substeps):
+        xa = x0 + v * (s * h)
+        xm = xa + v * hh
+        xb = xa + v * h
+        ea = e0 + de * (s * h)
+        em = ea + de * hh
+        eb = ea + de * h
+        for j in range(n_act):
+            p = (w[5, j], w[6, j], w[7, j], w[8, j], w[9, j], w[10, j], w[11, j], w[14, j], w[15, j], w[16, j], w[17, j],
+                 w[18, j])
+            y0 = y[j]
+            z0 = z[j]
+            u0 = u[j]
+            a1, b1, c1 = _spencer_v_rates(xa, v, ea, y0, z0, u0, p, n_exp)
+            a2, b2, c2 = _spencer_v_rates(xm, v, em, y0 + hh * a1, z0 + hh * b1, u0 + hh * c1, p, n_exp)
+            a3, b3, c3 = _spencer_v_rates(xm, v, em, y0 + hh * a2, z0 + hh * b2, u0 + hh * c2, p, n_exp)
+            a4, b4, c4 = _spencer_v_rates(xb, v, eb, y0 + h * a3, z0 + h * b3, u0 + h * c3, p, n_exp)
+            y[j] = y0 + h6 * ((a1 + a4) + 2.0 * (a2 + a3))
+            z[j] = z0 + h6 * ((b1 + b4) + 2.0 * (b2 + b3))
+            u[j] = u0 + h6 * ((c1 + c4) + 2.0 * (c2 + c3))
+
+
+@njit(**_JIT)
+def _spencer_v_output(w, n_act, x, v, out):
+    """``F = c1(u) y' + k1 (x - x0)`` with y' at the sample's velocity ``v``."""
+    F = w[0]
+    y = w[1]
+    z = w[2]
+    u = w[3]
+    for j in range(n_act):
+        uj = u[j]
+        c0 = w[7, j] + w[8, j] * uj
+        c1 = w[9, j] + w[10, j] * uj
+        s = c0 + c1
+        yd = ((w[5, j] + w[6, j] * uj) * z[j] + c0 * v + w[11, j] * (x - y[j])) / s
+        f = c1 * yd + w[12, j] * (x - w[13, j])
+        f = f if s > 0.0 else np.nan  # flagged DIVERGED: c0 + c1 must stay positive
+        F[j] = f
+        out[j] = f
+
+
+@njit(**_JIT)
+def _spencer_v_0(w, n_act, x0, v, e0, de, h, substeps):
+    _spencer_v_steps(w, n_act, x0, v, e0, de, h, substeps, 0)
+
+
+@njit(**_JIT)
+def _spencer_v_1(w, n_act, x0, v, e0, de, h, substeps):
+    _spencer_v_steps(w, n_act, x0, v, e0, de, h, substeps, 1)
+
+
+@njit(**_JIT)
+def _spencer_v_2(w, n_act, x0, v, e0, de, h, substeps):
+    _spencer_v_steps(w, n_act, x0, v, e0, de, h, substeps, 2)
+
+
+@njit(**_JIT)
+def _spencer_v_step(w, n_act, x0, v, e0, de, h, substeps, n_exp):
+    if n_exp == 1:
+        _spencer_v_1(w, n_act, x0, v, e0, de, h, substeps)
+    elif n_exp == 2:
+        _spencer_v_2(w, n_act, x0, v, e0, de, h, substeps)
+    else:
+        _spencer_v_0(w, n_act, x0, v, e0, de, h, substeps)

@@ -144,7 +144,7 @@ def npz_arrays(file: IO[bytes], spec: JobSpec, max_samples: int) -> dict[str, np
     each one's npy header (shape, dtype) is read and checked first, and only the samples
     the job reads (``service.spec.samples_read``) are then decompressed, in chunks, into
     an array allocated for them: at most ``max_samples`` x 8 bytes, whatever the file."""
-    wanted = {key: value[4:] for key in ("input", "observed")
+    wanted = {key: value[4:] for key in ("input", "observed", "voltage")
               if isinstance(value := getattr(spec.data, key), str) and value.startswith("npz:")}
     if not wanted:
         return {}

@@ -330,7 +330,7 @@ def spec_of(text: bytes, field: str, kind: str, max_values: int,
         raw = parse_json(text, field)
     spec = validate_spec(raw, max_values, field)
     arrays = {}
-    for key in ("input", "observed"):
+    for key in ("input", "observed", "voltage"):
         value = getattr(spec.data, key)
         if isinstance(value, list):
             arrays[key] = np.asarray(value, dtype=float)

@@ -68,7 +68,7 @@ def admit(spec: JobSpec, job: Job, limits: Limits) -> JobSpec:
         over("sampler.batch_size", s.batch_size, limits.max_batch_size)
     if len(job.models) > limits.max_models:
         over("models", len(job.models), limits.max_models, " models")
-    for name, arr in (("data.observed", job.observed), ("data.input", job.force)):
+    for name, arr in (("data.observed", job.observed), ("data.input", job.force), ("data.voltage", job.voltage)):
         if arr is not None and arr.size > limits.max_samples:
             over(name, arr.size, limits.max_samples, " samples")
     for i, sim in enumerate(job.simulators):

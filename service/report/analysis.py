@@ -23,7 +23,7 @@ import numpy as np
 from abcns import OK, Model, Result
 from abcns.analysis import Confusion, Predictive, confusion, fit_test_nmse, nmse, predictive
 from service.run.store import Store, data_hash
-from service.spec import JobSpec, load_data, parse
+from service.spec import JobSpec, load_data, load_voltage, parse
 from worker.compose import check_model, full_parameters
 from worker.description import model_of, simulator_for
 from worker.simulators import Simulator
@@ -65,8 +65,9 @@ def job_data(spec: dict | JobSpec, base_dir: str | Path | None, expect_hash: str
     spec = spec if isinstance(spec, JobSpec) else parse(spec)
     base = Path(base_dir) if base_dir is not None else None
     force, observed = load_data(spec, base)
+    voltage = load_voltage(spec, base)
     if expect_hash is not None:
-        got = data_hash(*(a for a in (force, observed) if a is not None))
+        got = data_hash(*(a for a in (force, observed, voltage) if a is not None))
         if got != expect_hash:
             raise ValueError(f"the data under {base} are not the data this store was run on (hash {got[:12]} != "
                              f"{expect_hash[:12]}); pass the directory of the spec the store was run from")
@@ -75,7 +76,8 @@ def job_data(spec: dict | JobSpec, base_dir: str | Path | None, expect_hash: str
     for i, desc in enumerate(spec.models):
         d = desc.model_dump()
         m = model_of(d, f"models[{i}]")
-        sim = simulator_for(d, force, dt, observed, f"models[{i}]", allow_import, spec.data.input_interpolation)
+        sim = simulator_for(d, force, dt, observed, f"models[{i}]", allow_import, spec.data.input_interpolation,
+                            voltage)
         check_model(m, sim, f"models[{i}]")
         models[m.name], sims[m.name] = m, sim
     fit = spec.data.fit or (0, observed.size)  # tuples already: the spec's Windows (pydantic)

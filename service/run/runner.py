@@ -37,7 +37,7 @@ from abcns.filling import Budget
 from abcns.run import algorithm_name, consume, iterate
 from service.run.dask_executor import LOCAL_POPULATION_S, DaskExecutor
 from service.run.store import Store, StoreIncomplete, data_hash, result_from_store
-from service.spec import Job, JobSpec, build, description
+from service.spec import Job, JobSpec, build, description, job_arrays
 
 
 @dataclass
@@ -350,8 +350,8 @@ def _run_job(
         spec = spec.model_copy(update={"seed": seed})
     job: Job = build(with_records(spec, data), base_dir, allow_import)  # every check before anything runs
     interval_s, local_s = write_interval(), local_population_s() if local_s is None else local_s
-    arrays = {"force": job.force, "observed": job.observed}
-    dhash = data_hash(*(a for a in (job.force, job.observed) if a is not None))
+    arrays = job_arrays(job)
+    dhash = data_hash(*(a for a in arrays.values() if a is not None))
     key = job_key(spec, job.seed, dhash)
     store_path = Path(store_path)
     store = _existing_store(store_path, key, owned_store)
