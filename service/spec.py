@@ -74,9 +74,10 @@ class DataSpec(_Strict):
     # the measurement noise's standard deviation in the observed record's units (after decimation),
     # when known: it sets the noise floor (abcns.noise) instead of the estimate from the best fit
     noise_std: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
-    # the input between samples: held (zero-order hold, as the paper's data were made) or
-    # linearly interpolated (first-order hold, for a measured continuous input); docs/design.md
-    input_interpolation: Literal["hold", "linear"] = "hold"
+    # the input between samples: held (zero-order hold, as the paper's data were made),
+    # linearly interpolated (first-order hold) or band-limited (the signal through the samples,
+    # for a measured continuous input; Duffing and Bouc-Wen); docs/design.md, "A continuous input"
+    input_interpolation: Literal["hold", "linear", "bandlimited"] = "hold"
 
     @model_validator(mode="after")
     def _one_rate(self) -> DataSpec:

@@ -36,6 +36,7 @@ from abcns.executor import SerialExecutor
 from abcns.filling import Budget
 from abcns.run import algorithm_name, consume, iterate
 from service.run.dask_executor import LOCAL_POPULATION_S, DaskExecutor
+from service.run.model_error import model_error_warning, residual_check
 from service.run.store import Store, StoreIncomplete, data_hash, result_from_store
 from service.spec import Job, JobSpec, build, description
 
@@ -100,6 +101,11 @@ def summary(store: Store) -> dict:
     if store.attrs.get("error"):
         out["error"] = store.attrs["error"]
     out["n_populations"] = store.n_populations
+    if run.get("residuals"):  # the best fit's residuals against independent noise (service.run.model_error)
+        out["residuals"] = run["residuals"]
+        warning = model_error_warning(run["residuals"])
+        if warning:
+            out["warnings"] = [*out.get("warnings", []), warning]
     if run.get("placement"):  # where the job ran and why (service.run.jobs)
         out["placement"] = run["placement"]
     return out
@@ -391,6 +397,8 @@ def _run_job(
         finally:
             getattr(executor, "close", lambda: None)()  # the Dask executor releases the job's data
         assert writer.store is not None  # close() raised otherwise
+        if writer.store.n_populations:  # model error made visible (service.run.model_error)
+            run_info["residuals"] = residual_check(job, result_from_store(writer.store))
         _record_end(writer.store, key, end, run_info, budget)
         return result_from_store(writer.store)
 
