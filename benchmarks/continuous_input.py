@@ -3,6 +3,7 @@ check see a wrong one? (issues P.4, AA)
 
     python -m benchmarks.continuous_input [--seeds 1-5] [--systems duffing,bouc_wen]
         [--interpolations hold,linear,bandlimited,exact] [--processes 2] [--particles 300]
+    python -m benchmarks.continuous_input --rule [--seeds 1-5]   # own error vs sampling rate
 
 The data are made as a user's own measurement would be, not by our simulators: the system
 is driven by a *continuous* random-phase multisine (``tones`` tones up to ``top`` Hz, i.e.
@@ -26,8 +27,10 @@ interpolation; ``exact`` fits data made by the simulator itself (the held force,
 substeps) plus i.i.d. Gaussian noise with ``hold``: there is no model error, so the model-error
 warning's rate there is its false-alarm rate. The table gives, per run, the simulator's own
 error at the truth (its NMSE against the clean response over the noise floor's, %/%), the
-Ljung-Box p-value of the best fit's residuals and whether the warning fired, and how many
-95 % intervals hold the truth.
+Ljung-Box p-value of the best fit's residuals, how far the simulator's own error would move
+the best fit (``shift sd``: the largest of service.run.model_error.parameter_shift's, in the
+fit's standard deviations), whether the model-error warning fired, and how many 95 %
+intervals hold the truth.
 """
 
 from __future__ import annotations
@@ -106,12 +109,12 @@ def truth_vector(system: System, sim) -> np.ndarray:
     return np.array([[system.truth.get(name, sim.defaults.get(name, 0.0)) for name in sim.parameter_names]])
 
 
-def make_data(name: str, seed: int, exact: bool = False) -> dict:
+def make_data(name: str, seed: int, exact: bool = False, system: System | None = None) -> dict:
     """(force, observed, clean, noise floor in %) of seed ``seed``: through DOP853 and the
     continuous force, or (``exact``) by the simulator itself with the held force."""
     from scipy.integrate import solve_ivp
 
-    system = SYSTEMS[name]
+    system = system or SYSTEMS[name]
     rng = np.random.default_rng(seed)
     u = multisine(system, rng)
     t = np.arange(system.n_samples) / system.fs
@@ -128,11 +131,12 @@ def make_data(name: str, seed: int, exact: bool = False) -> dict:
     return {"force": force, "observed": observed, "clean": clean, "floor": float(floor)}
 
 
-def model_error(name: str, data: dict, interpolation: str) -> float:
+def model_error(name: str, data: dict, interpolation: str, system: System | None = None) -> float:
     """The simulator's own error at the truth: its NMSE against the clean response, over the
     noise's (both Eq. 7 with the observed record's variance)."""
-    sim = simulator(SYSTEMS[name], data["force"], interpolation)
-    y = sim.simulate(truth_vector(SYSTEMS[name], sim)).values[0]
+    system = system or SYSTEMS[name]
+    sim = simulator(system, data["force"], interpolation)
+    y = sim.simulate(truth_vector(system, sim)).values[0]
     own = 100.0 * np.mean((y - data["clean"]) ** 2) / np.var(data["observed"], ddof=1)
     return float(own / data["floor"])
 
@@ -173,19 +177,20 @@ def one(name: str, seed: int, interpolation: str, particles: int) -> dict:
     res = s.get("residuals") or {}
     return {"system": name, "seed": seed, "interpolation": interpolation, "floor": data["floor"],
             "own_error": model_error(name, data, used), "stop": s["stop_reason"], "populations": s["n_populations"],
-            "p_value": res.get("p_value", np.nan), "fired": any(w.startswith("model error") for w in s.get("warnings", [])),
+            "p_value": res.get("p_value", np.nan), "shift_sd": max([o["sd"] for o in res.get("own_error", [])] or [np.nan]),
+            "fired": any(w.startswith("model error") for w in s.get("warnings", [])),
             "intervals": intervals, "holds": {p: bool(lo <= truth[p] <= hi) for p, (lo, hi) in intervals.items()},
             "wall_s": time.monotonic() - start}
 
 
 def table(rows: list[dict]) -> str:
-    head = ("| system | input | seed | own error / noise | stop | pops | Ljung-Box p | warning | intervals holding the truth |"
-            " missed |")
+    head = ("| system | input | seed | own error / noise | stop | pops | Ljung-Box p | shift sd | warning | intervals holding "
+            "the truth | missed |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         missed = ", ".join(f"{p} [{lo:.5g}, {hi:.5g}]" for p, (lo, hi) in r["intervals"].items() if not r["holds"][p])
         lines.append(f"| {r['system']} | {r['interpolation']} | {r['seed']} | {r['own_error']:.3g} | {r['stop']} | "
-                     f"{r['populations']} | {r['p_value']:.2g} | {'FIRED' if r['fired'] else '-'} | "
+                     f"{r['populations']} | {r['p_value']:.2g} | {r['shift_sd']:.2g} | {'FIRED' if r['fired'] else '-'} | "
                      f"{sum(r['holds'].values())} of {len(r['holds'])} | {missed or '-'} |")
     return "\n".join(lines)
 
@@ -204,6 +209,31 @@ def totals(rows: list[dict]) -> list[str]:
     return out
 
 
+#: samples per period of the highest tone that ``--rule`` samples each system at
+RULE_SAMPLES_PER_PERIOD = (4, 5, 6.7, 8.3, 10, 15, 20, 30)
+
+
+def rule(names: list[str], seeds: list[int]) -> str:
+    """The simulator's own error at the truth over the noise's (mean over ``seeds``) against
+    the samples per period of the highest input tone, each system's record kept as long in
+    seconds (the substeps scaled to keep the RK4 step)."""
+    from dataclasses import replace
+
+    head = "| system | samples per period of the top tone | fs Hz | hold | linear | bandlimited |"
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for name in names:
+        base = SYSTEMS[name]
+        for spp in RULE_SAMPLES_PER_PERIOD:
+            fs = spp * base.band_hz[1]
+            system = replace(base, fs=fs, n_samples=round(base.n_samples * fs / base.fs),
+                             substeps=max(1, round(base.substeps * base.fs / fs)))
+            datas = [make_data(name, s, system=system) for s in seeds]
+            cells = [f"{np.mean([model_error(name, d, i, system) for d in datas]):.3g}"
+                     for i in ("hold", "linear", "bandlimited")]
+            lines.append(f"| {name} | {spp:g} | {fs:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", default="1-5")
@@ -211,7 +241,11 @@ def main() -> None:
     parser.add_argument("--interpolations", default="hold,linear,bandlimited,exact")
     parser.add_argument("--particles", type=int, default=300)
     parser.add_argument("--processes", type=int, default=2)
+    parser.add_argument("--rule", action="store_true", help="only the simulator's own error against the sampling rate")
     args = parser.parse_args()
+    if args.rule:
+        print(rule(args.systems.split(","), seeds_of(args.seeds)))
+        return
     jobs = [(n, s, i, args.particles) for n in args.systems.split(",") for i in args.interpolations.split(",")
             for s in seeds_of(args.seeds)]
     with ProcessPoolExecutor(args.processes) as pool:

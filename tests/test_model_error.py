@@ -68,6 +68,52 @@ def test_the_warning_names_what_to_try():
     assert "bandlimited" not in model_error_warning({**check, "input_interpolation": "bandlimited"})
     assert model_error_warning({**check, "correlated": False}) is None
     assert model_error_warning(None) is None
+    own = [{"field": "data.input_interpolation", "sd": 12.7, "own_error_sd": 13.7, "shift": {"c": -0.004}}]
+    text = model_error_warning({**check, "correlated": False, "warn": True, "own_error": own})
+    assert "would move by 13 of its standard deviations (c -0.004)" in text and "Ljung-Box" not in text
+
+
+def continuous_duffing(seed: int, n: int = 600, fs: float = 100.0):
+    """A Duffing oscillator (c 1, k 400, k3 1000) driven by a continuous multisine with tones
+    to 0.15 fs, through DOP853, with 1 % noise: (force at the samples, observed)."""
+    from scipy.integrate import solve_ivp
+
+    rng = np.random.default_rng(seed)
+    freqs, phases = np.linspace(0.2, 0.15 * fs, 20), rng.uniform(0, 2 * np.pi, 20)
+    u = lambda t: 3.0 * np.sum(np.cos(2 * np.pi * freqs[:, None] * np.atleast_1d(t)[None, :] + phases[:, None]), axis=0)
+    t = np.arange(n) / fs
+    sol = solve_ivp(lambda tt, s: [s[1], u(tt)[0] - s[1] - 400.0 * s[0] - 1000.0 * s[0] ** 3], (0, t[-1]), [0.0, 0.0],
+                    t_eval=t, method="DOP853", rtol=1e-10, atol=1e-12)
+    return u(t), sol.y[0] + 0.01 * np.std(sol.y[0]) * rng.standard_normal(n)
+
+
+def duffing_raw(force, observed, interpolation: str, k3: bool = True) -> dict:
+    fixed = {"m": 1, "k5": 0} if k3 else {"m": 1, "k3": 0, "k5": 0}
+    priors = {"c": [0.1, 5], "k": [200, 800], **({"k3": [0, 5000]} if k3 else {})}
+    return {"data": {"dt": 0.01, "input": force.tolist(), "observed": observed.tolist(),
+                     "input_interpolation": interpolation},
+            "models": [{"name": "d", "simulator": "duffing", "fixed": fixed, "priors": priors,
+                        "integrator": {"substeps": 4}}], "sampler": {"particles": 100}, "seed": 1}
+
+
+def test_a_linear_input_too_coarse_for_the_data_moves_the_fit():
+    """The residual test cannot see an input error that the parameters absorb (``linear``
+    at 6.7 samples per period of the top tone: c absorbs it); the simulator's own error at
+    the fit, projected on its parameters, does: at the truth the band-limited input moves
+    the fit by ~13 standard deviations, c by -0.4 % (measured); twice the substeps by
+    0.006 (no warning), and a band-limited run has no such error (seed 4)."""
+    from service.run.model_error import SHIFT_SD, parameter_shift
+    from service.spec import build
+
+    force, observed = continuous_duffing(4)
+    theta = np.array([1.0, 400.0, 1000.0])
+    shifts = {s["field"]: s for s in parameter_shift(build(parse(duffing_raw(force, observed, "linear"))), 0, theta,
+                                                     (0, observed.size))}
+    assert shifts["data.input_interpolation"]["sd"] > 5 * SHIFT_SD
+    assert -0.01 < shifts["data.input_interpolation"]["shift"]["c"] < -0.001
+    assert shifts["integrator.substeps"]["sd"] < 0.1 * SHIFT_SD
+    band = parameter_shift(build(parse(duffing_raw(force, observed, "bandlimited"))), 0, theta, (0, observed.size))
+    assert [s["field"] for s in band] == ["integrator.substeps"] and band[0]["sd"] < 0.1 * SHIFT_SD
 
 
 def test_a_held_continuous_input_is_flagged_in_the_summary(tmp_path):
