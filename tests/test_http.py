@@ -121,6 +121,8 @@ def test_tokens_ids_and_bad_specs(service):
     assert httpx.get(f"{service.url}/jobs").status_code == 401
     assert httpx.get(f"{service.url}/jobs", headers={"Authorization": "Bearer wrong"}).status_code == 403
     assert httpx.get(f"{service.url}/health").status_code == 200
+    icon = httpx.get(f"{service.url}/favicon.ico")  # the browser's own request, without the token (AA, point 4)
+    assert icon.status_code == 200 and icon.headers["content-type"].startswith("image/svg+xml")
     assert httpx.get(f"{service.url}/jobs/..%2F..%2Fetc", headers=AUTH).status_code in (404, 422)
     assert httpx.get(f"{service.url}/jobs/{'0' * 32}", headers=AUTH).status_code == 404
     bad = duffing_spec()
