@@ -421,7 +421,7 @@ def test_labels_apart_distinct_ticks_and_the_workers_as_a_chart(browser):
                "the four populations and the marginals")
     boxes = read_all(page, "#eps text.mark-label", "e => { const b = e.getBoundingClientRect(); "
                                                    "return [b.top, b.bottom, e.textContent]; }")
-    (top_a, bottom_a, text_a), (top_b, bottom_b, text_b) = boxes
+    (_, bottom_a, text_a), (top_b, _, text_b) = boxes
     assert text_a.startswith("decision") and text_b.startswith("noise floor")
     assert bottom_a <= top_b, boxes  # the decision's label wholly above the floor's
     ticks = page.evaluate("""() => Array.from(document.querySelectorAll("#hists .hist svg"),
