@@ -133,7 +133,7 @@ def test_a_held_continuous_input_is_flagged_in_the_summary(tmp_path):
     raw = {"data": {"dt": 1 / fs, "input": u(t).tolist(), "observed": observed.tolist()},
            "models": [{"name": "lin", "simulator": "duffing", "fixed": {"m": 1, "k3": 0, "k5": 0},
                        "priors": {"c": [0.1, 5], "k": [200, 800]}, "integrator": {"substeps": 2}}],
-           "sampler": {"particles": 100}, "stop": {"max_populations": 15}, "seed": 1}
+           "sampler": {"particles": 100}, "seed": 1}
     run_job(parse(raw), None, tmp_path / "store", None)
     s = summary(Store.open(tmp_path / "store"))
     assert s["residuals"]["correlated"] and s["residuals"]["model"] == "lin"

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from service.cli import app, page_link
+from service.cli import app
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
@@ -29,6 +29,8 @@ def test_3_serve_prints_its_address_with_the_token_to_open(monkeypatch, tmp_path
 def test_3_the_job_link_carries_the_token():
     """``abcns submit``'s job link (the same function) opens with the token (tests/test_submit.py
     checks the printed line of a real submit)."""
+    from service.cli import page_link
+
     assert page_link("http://h:1/jobs/ab/view", "t") == "http://h:1/jobs/ab/view#token=t"
     assert page_link("http://h:1/jobs/ab/view", None) == "http://h:1/jobs/ab/view"
 

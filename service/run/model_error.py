@@ -95,8 +95,12 @@ def residual_check(job: Job, result: Result) -> dict | None:
     """The whiteness test of the best fit's residuals on the fit window and the simulator's
     own error at it (:func:`parameter_shift`), as JSON for the run's record
     (``run.residuals``); None where it does not apply (a distance other than the NMSE, a
-    simulator not driven by an input record, a best fit that does not simulate)."""
-    best = best_fit(result) if job.noise is not None else None
+    simulator not driven by an input record, a best fit that does not simulate) and where the
+    best fit is not yet the data's: a run with no noise floor (noise-free data, an exact fit:
+    its residuals are rounding) or a provisional one (stopped above its decision tolerance;
+    both have their own warning)."""
+    applies = job.noise is not None and result.floor is not None and result.floor_settled and not result.provisional
+    best = best_fit(result) if applies else None
     if best is None:
         return None
     m, theta = best
