@@ -397,10 +397,10 @@ def _run_job(
         finally:
             getattr(executor, "close", lambda: None)()  # the Dask executor releases the job's data
         assert writer.store is not None  # close() raised otherwise
-        if writer.store.n_populations:  # model error made visible (service.run.model_error)
-            run_info["residuals"] = residual_check(job, result_from_store(writer.store))
         _record_end(writer.store, key, end, run_info, budget)
-        return result_from_store(writer.store)
+        result = result_from_store(writer.store)
+        _record_residuals(writer.store, job, result)
+        return result
 
 
 def _place(store: Store | None, key: str, run_info: dict, placement: dict | None) -> None:
@@ -439,6 +439,16 @@ def _new_store(path: Path, spec_json: dict, job: Job, dhash: str, key: str) -> S
                         parameter_names=[list(m.parameter_names) for m in job.models],
                         n_particles=job.settings.particles, data_hash=dhash, algorithm=algorithm_name(job.settings),
                         max_ellipsoids=getattr(job.settings, "n_ellipsoids", 1), job_key=key)
+
+
+def _record_residuals(store: Store, job: Job, result: Result) -> None:
+    """The best fit's residuals against independent noise (:mod:`service.run.model_error`)
+    in the run's information, once the run has ended (a second write: a run killed in between
+    is finished without them)."""
+    check = residual_check(job, result)
+    if check is not None:
+        store.set_status(store.attrs["status"], store.attrs.get("stop_reason"),
+                         run={**store.attrs.get("run", {}), "residuals": check})
 
 
 def _record_end(store: Store, key: str, end: RunEnd, run_info: dict, budget: Budget) -> None:
