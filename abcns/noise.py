@@ -250,3 +250,13 @@ def whiteness(residuals: np.ndarray, lags: int = WHITENESS_LAGS) -> Whiteness | 
     rho = np.array([float(r[:-k] @ r[k:]) / c0 for k in range(1, lags + 1)])
     q = float(n * (n + 2) * np.sum(rho**2 / (n - np.arange(1, lags + 1))))
     return Whiteness(q, lags, float(chi2.sf(q, lags)), tuple(float(v) for v in rho), n)
+
+
+def projected_shift(jacobian: np.ndarray, delta: np.ndarray, sigma: float) -> tuple[np.ndarray, float]:
+    """How far a change ``delta`` (n,) of a simulated record moves a least-squares fit whose
+    Jacobian is ``jacobian`` (n, p): the parameter move ``J^+ delta`` and its length in the
+    fit's standard deviations, ``||J J^+ delta|| / sigma`` (the Mahalanobis length of the move
+    under the linearised Gaussian posterior with noise sd ``sigma``; docs/design.md, "Model
+    error made visible")."""
+    shift = np.linalg.lstsq(jacobian, delta, rcond=None)[0]
+    return shift, float(np.linalg.norm(jacobian @ shift) / sigma)

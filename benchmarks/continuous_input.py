@@ -4,6 +4,7 @@ check see a wrong one? (issues P.4, AA)
     python -m benchmarks.continuous_input [--seeds 1-5] [--systems duffing,bouc_wen]
         [--interpolations hold,linear,bandlimited,exact] [--processes 2] [--particles 300]
     python -m benchmarks.continuous_input --rule [--seeds 1-5]   # own error vs sampling rate
+    python -m benchmarks.continuous_input --speed                # simulations per second
 
 The data are made as a user's own measurement would be, not by our simulators: the system
 is driven by a *continuous* random-phase multisine (``tones`` tones up to ``top`` Hz, i.e.
@@ -234,6 +235,33 @@ def rule(names: list[str], seeds: list[int]) -> str:
     return "\n".join(lines)
 
 
+def speed(names: list[str], repeats: int = 5) -> str:
+    """Simulations per second of each input interpolation (the in-kernel NMSE of 1000 particles
+    near the truth, best of ``repeats``; the band-limited input made once, outside the timing)."""
+    head = "| system | hold sims/s | linear sims/s | bandlimited sims/s |"
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    rng = np.random.default_rng(0)
+    for name in names:
+        data, cells = make_data(name, 1), []
+        for interpolation in ("hold", "linear", "bandlimited"):
+            sim = simulator(SYSTEMS[name], data["force"], interpolation)
+            params = truth_vector(SYSTEMS[name], sim) * (1 + 0.01 * rng.standard_normal((1000, len(sim.parameter_names))))
+            params[:, list(sim.parameter_names).index("m")] = SYSTEMS[name].truth["m"]
+            if name == "bouc_wen":
+                params[:, -1] = SYSTEMS[name].truth["n"]
+            sim.distance_nmse(params[:10], data["observed"], 0, data["observed"].size)  # compiled
+            best = min(_timed(sim, params, data["observed"]) for _ in range(repeats))
+            cells.append(f"{params.shape[0] / best:,.0f}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _timed(sim, params: np.ndarray, observed: np.ndarray) -> float:
+    start = time.perf_counter()
+    sim.distance_nmse(params, observed, 0, observed.size)
+    return time.perf_counter() - start
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", default="1-5")
@@ -242,7 +270,11 @@ def main() -> None:
     parser.add_argument("--particles", type=int, default=300)
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--rule", action="store_true", help="only the simulator's own error against the sampling rate")
+    parser.add_argument("--speed", action="store_true", help="only the simulations per second of each interpolation")
     args = parser.parse_args()
+    if args.speed:
+        print(speed(args.systems.split(",")))
+        return
     if args.rule:
         print(rule(args.systems.split(","), seeds_of(args.seeds)))
         return

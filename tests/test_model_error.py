@@ -138,3 +138,19 @@ def test_a_held_continuous_input_is_flagged_in_the_summary(tmp_path):
     s = summary(Store.open(tmp_path / "store"))
     assert s["residuals"]["correlated"] and s["residuals"]["model"] == "lin"
     assert any(w.startswith("model error:") for w in s["warnings"])
+
+
+def test_projected_shift_is_the_fit_s_move_in_its_standard_deviations():
+    """A change in the span of the Jacobian moves the fit by all of it; one orthogonal to it
+    not at all (exact linear algebra, to rounding)."""
+    from abcns.noise import projected_shift
+
+    rng = np.random.default_rng(5)
+    jac = rng.standard_normal((200, 3))
+    move = np.array([0.1, -0.2, 0.3])
+    shift, sd = projected_shift(jac, jac @ move, 0.5)
+    np.testing.assert_allclose(shift, move, rtol=1e-12)
+    assert abs(sd - np.linalg.norm(jac @ move) / 0.5) < 1e-9
+    other = rng.standard_normal(200)
+    other -= jac @ np.linalg.lstsq(jac, other, rcond=None)[0]
+    assert projected_shift(jac, other, 0.5)[1] < 1e-12

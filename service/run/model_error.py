@@ -3,8 +3,9 @@ independent noise would give (:func:`abcns.noise.whiteness`, docs/design.md "Mod
 made visible"), and the words the summary, the CLI and the live page show when they are
 correlated (the noise floor is then likely optimistic).
 
-The statistic lives in :mod:`abcns.noise`; this module only simulates the best fit (the
-lowest distance of the final population) over the fit window and words the result.
+The statistics live in :mod:`abcns.noise` (``whiteness``, ``projected_shift``); this module
+only simulates the best fit (the lowest distance of the final population) over the fit window,
+and finer versions of its simulator, and words the result.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from abcns import OK, Result
-from abcns.noise import whiteness
+from abcns.noise import projected_shift, whiteness
 from service.spec import Job
 from worker.compose import full_parameters
 from worker.simulators import Simulator
@@ -84,8 +85,8 @@ def parameter_shift(job: Job, m: int, theta: np.ndarray, window: tuple[int, int]
         if fine.status[0] != OK or not sigma > 0:
             continue
         delta = np.asarray(fine.values)[0, a:b] - y[0]
-        shift = np.linalg.lstsq(jac, delta, rcond=None)[0]
-        found.append({"field": field, "sd": float(np.linalg.norm(jac @ shift) / sigma),
+        shift, sd = projected_shift(jac, delta, sigma)
+        found.append({"field": field, "sd": sd,
                       "own_error_sd": float(np.linalg.norm(delta) / sigma),
                       "shift": {name: float(v) for name, v in zip(model.priors, shift, strict=True)}})
     return found
