@@ -10,6 +10,8 @@ and finer versions of its simulator, and words the result.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from abcns import OK, Result
@@ -35,9 +37,14 @@ def best_fit(result: Result) -> tuple[int, np.ndarray] | None:
 
 #: the relative step of the finite differences of :func:`parameter_shift` (of each prior's width)
 STEP = 1e-4
-#: the simulator's own error warns when it would move the fit by more than this many standard
-#: deviations of the fit (jointly: sqrt(delta' P delta) / sigma; docs/design.md)
-SHIFT_SD = 1.0
+
+
+def shift_level(p: int) -> float:
+    """The move (in the fit's standard deviations, jointly) past which the simulator's own
+    error warns: sqrt(p + sqrt(2 p)), the radius of the region the run accepts at its decision
+    tolerance around the best fit, in whitened units (abcns.noise: eps_dec - d_min = (p +
+    sqrt(2 p)) v). A larger move puts the finer simulator's best fit outside the answer."""
+    return math.sqrt(p + math.sqrt(2.0 * p))
 
 
 def references(sim: Simulator, interpolation: str) -> list[tuple[str, Simulator]]:
@@ -115,11 +122,11 @@ def residual_check(job: Job, result: Result) -> dict | None:
     test = whiteness(job.observed[start:stop] - np.asarray(out.values)[0, start:stop])
     if test is None:
         return None
-    own = parameter_shift(job, m, theta, (start, stop))
+    own, level = parameter_shift(job, m, theta, (start, stop)), shift_level(job.models[m].n_dim)
     return {**test.describe(), "model": job.models[m].name, "window": [int(start), int(stop)],
             "input_interpolation": job.spec.data.input_interpolation,
-            "noise_stated": job.spec.data.noise_std is not None, "own_error": own, "shift_level_sd": SHIFT_SD,
-            "warn": test.correlated or any(o["sd"] > SHIFT_SD for o in own)}
+            "noise_stated": job.spec.data.noise_std is not None, "own_error": own, "shift_level_sd": level,
+            "warn": test.correlated or any(o["sd"] > level for o in own)}
 
 
 _FINER = {"integrator.substeps": "twice the integrator.substeps",
@@ -128,9 +135,11 @@ _FINER = {"integrator.substeps": "twice the integrator.substeps",
 
 def _own_words(own: list[dict]) -> str:
     """What the simulator's own error would do to the fit, per finer simulation."""
+    def moves(o: dict) -> str:
+        return ", ".join(f"{k} {v:+.3g}" for k, v in o["shift"].items())
+
     return "; ".join(f"with {_FINER.get(o['field'], o['field'])} the best fit would move by {o['sd']:.2g} of its "
-                     "standard deviations (" + ", ".join(f"{k} {v:+.3g}" for k, v in o["shift"].items()) + ")"
-                     for o in own)
+                     f"standard deviations, past the answer's region ({moves(o)})" for o in own)
 
 
 def model_error_warning(check: dict | None) -> str | None:
@@ -143,7 +152,7 @@ def model_error_warning(check: dict | None) -> str | None:
         found.append(f"the best fit's residuals ({check['model']}) are correlated (Ljung-Box over lags 1-{check['lags']}: "
                      f"p = {check['p_value']:.2g}; lag-1 autocorrelation {check['autocorrelation'][0]:.2f}), which "
                      "independent noise would not give")
-    own = [o for o in check.get("own_error") or [] if o["sd"] > check.get("shift_level_sd", SHIFT_SD)]
+    own = [o for o in check.get("own_error") or [] if o["sd"] > check["shift_level_sd"]]
     if own:
         found.append(f"the simulator's own error matters: {_own_words(own)}")
     tries = ["finer integrator.substeps"]
