@@ -216,3 +216,71 @@ class Tracker:
         if self.noise is None:
             return None
         return estimate(self.noise, self.models, self.best, np.bincount(which, minlength=len(self.models)) > 0)
+
+
+#: the lags of the residuals' autocorrelation that :func:`whiteness` tests (1..WHITENESS_LAGS)
+WHITENESS_LAGS = 10
+#: the false-alarm probability of :func:`whiteness` on independent noise (its p-value threshold)
+WHITENESS_LEVEL = 0.01
+
+
+@dataclass(frozen=True)
+class Whiteness:
+    """The Ljung-Box test of a best fit's residuals (:func:`whiteness`): ``statistic`` Q,
+    chi^2 with ``lags`` degrees of freedom when the residuals are independent noise;
+    ``p_value`` its upper tail; ``autocorrelation`` at lags 1..``lags``; ``correlated`` when
+    ``p_value`` < :data:`WHITENESS_LEVEL` (the noise floor is then likely optimistic);
+    ``correlated_share``: lag 1's autocorrelation, clipped to [0, 1], about the share of the
+    residuals' power that a smooth model error holds (docs/design.md, "Model error")."""
+
+    statistic: float
+    lags: int
+    p_value: float
+    autocorrelation: tuple[float, ...]
+    n_samples: int
+
+    @property
+    def correlated(self) -> bool:
+        return self.p_value < WHITENESS_LEVEL
+
+    @property
+    def correlated_share(self) -> float:
+        return min(1.0, max(0.0, self.autocorrelation[0])) if self.autocorrelation else 0.0
+
+    def describe(self) -> dict:
+        """JSON for the summary."""
+        return {"test": "ljung-box", "statistic": self.statistic, "lags": self.lags, "p_value": self.p_value,
+                "level": WHITENESS_LEVEL, "correlated": self.correlated, "correlated_share": self.correlated_share,
+                "autocorrelation": list(self.autocorrelation), "n_samples": self.n_samples}
+
+
+def whiteness(residuals: np.ndarray, lags: int = WHITENESS_LAGS) -> Whiteness | None:
+    """Whether ``residuals`` (a best fit's, in time order) look like independent noise: the
+    Ljung-Box statistic ``Q = n (n + 2) sum_k r_k^2 / (n - k)`` over lags 1..``lags`` of
+    their autocorrelation ``r_k`` (mean removed), against chi^2_lags (docs/design.md, "Model
+    error made visible", derives it and its false-alarm rate with a fitted model). None when
+    the record is too short (fewer than 5 ``lags`` samples) or the residuals are all equal."""
+    from scipy.stats import chi2
+
+    r = np.asarray(residuals, dtype=float).ravel()
+    n = r.size
+    lags = min(int(lags), n // 5)
+    if lags < 1 or not np.all(np.isfinite(r)):
+        return None
+    r = r - r.mean()
+    c0 = float(r @ r)
+    if not c0 > 0:
+        return None
+    rho = np.array([float(r[:-k] @ r[k:]) / c0 for k in range(1, lags + 1)])
+    q = float(n * (n + 2) * np.sum(rho**2 / (n - np.arange(1, lags + 1))))
+    return Whiteness(q, lags, float(chi2.sf(q, lags)), tuple(float(v) for v in rho), n)
+
+
+def projected_shift(jacobian: np.ndarray, delta: np.ndarray, sigma: float) -> tuple[np.ndarray, float]:
+    """How far a change ``delta`` (n,) of a simulated record moves a least-squares fit whose
+    Jacobian is ``jacobian`` (n, p): the parameter move ``J^+ delta`` and its length in the
+    fit's standard deviations, ``||J J^+ delta|| / sigma`` (the Mahalanobis length of the move
+    under the linearised Gaussian posterior with noise sd ``sigma``; docs/design.md, "Model
+    error made visible")."""
+    shift = np.linalg.lstsq(jacobian, delta, rcond=None)[0]
+    return shift, float(np.linalg.norm(jacobian @ shift) / sigma)

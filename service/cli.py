@@ -553,10 +553,20 @@ def serve(
         _fail("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors()))
     if settings.scheduler:
         reach_scheduler(settings.scheduler)
-    typer.echo(f"abcns: serving http://{host}:{port}/ (API docs at /docs), jobs in {settings.store_dir.resolve()}, "
+    typer.echo(f"abcns: serving {page_link(f'http://{host}:{port}/', settings.token)} (API docs at /docs), jobs in "
+               f"{settings.store_dir.resolve()}, "
                f"{'scheduler ' + settings.scheduler if settings.scheduler else 'an embedded cluster'}"
                f"{', token required' if settings.token else ''}; limits at /limits", err=True)
     run_server(settings, host, port, access_log)
+
+
+def page_link(address: str, token: str | None) -> str:
+    """A live page's address as a browser opens it: with ``#token=TOKEN`` when the service has
+    a token (the page keeps it for the tab and strips it from the address bar; without it the
+    page's calls get 401 and its charts stay empty)."""
+    from urllib.parse import quote
+
+    return f"{address}#token={quote(token, safe='')}" if token else address
 
 
 def _service_error(answer) -> tuple[str, int]:
@@ -659,7 +669,8 @@ def submit(
         if answer.status_code != 201:
             _fail(*_service_error(answer))
         job_id = answer.json()["id"]
-        typer.echo(f"job {job_id}: {url}/jobs/{job_id}/view", err=True)
+        view = page_link(f"{url}/jobs/{job_id}/view", token)
+        typer.echo(f"job {job_id}: {view}", err=True)
 
         def workers() -> int:
             return int(http.get("/health", timeout=5).json()["workers"])
@@ -677,7 +688,7 @@ def submit(
                     end, error = event, info.get("error")
         except KeyboardInterrupt:
             line.end()
-            typer.echo(f"the job goes on: {url}/jobs/{job_id}/view", err=True)
+            typer.echo(f"the job goes on: {view}", err=True)
             raise typer.Exit(130) from None
         line.end()
         result = http.get(f"/jobs/{job_id}/result")
@@ -716,6 +727,9 @@ def plot_cmd(
     from service.run.runner import result_from_store
     from service.run.store import Store, StoreError
 
+    stray = [str(p) for p in stores if "=" in p.name and not p.exists()]
+    if stray:  # `--truth m=1 c=2`: c=2 was read as a store
+        _fail(f"{stray[0]!r} is not a store: give each known value its own --truth (--truth m=1 --truth c=2)")
     known: dict[str, float] = {}
     for item in truth or []:
         key, sep, value = item.partition("=")

@@ -77,9 +77,10 @@ class DataSpec(_Strict):
     # the measurement noise's standard deviation in the observed record's units (after decimation),
     # when known: it sets the noise floor (abcns.noise) instead of the estimate from the best fit
     noise_std: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
-    # the input between samples: held (zero-order hold, as the paper's data were made) or
-    # linearly interpolated (first-order hold, for a measured continuous input); docs/design.md
-    input_interpolation: Literal["hold", "linear"] = "hold"
+    # the input between samples: held (zero-order hold, as the paper's data were made),
+    # linearly interpolated (first-order hold) or band-limited (the signal through the samples,
+    # for a measured continuous input; Duffing and Bouc-Wen); docs/design.md, "A continuous input"
+    input_interpolation: Literal["hold", "linear", "bandlimited"] = "hold"
 
     @model_validator(mode="after")
     def _one_rate(self) -> DataSpec:
@@ -286,6 +287,47 @@ REMOVED = {("sampler", "carry_over"): "removed (issue X): carry-over measured no
            "by default; delete the field"}
 
 
+def _closest(name: str, allowed: list[str]) -> str | None:
+    """The allowed field name closest to a misspelt one: difflib's at 0.6, or, for a name of
+    one or two letters (``fz``), one of as many letters that differs in one of them."""
+    close = difflib.get_close_matches(name, allowed, n=1, cutoff=0.6)
+    if close:
+        return close[0]
+    near = [a for a in allowed if len(name) <= 2 and len(a) == len(name)
+            and sum(x != y for x, y in zip(a, name, strict=True)) == 1]
+    return near[0] if near else None
+
+
+def _rate_hint(raw: dict, loc: tuple) -> str:
+    """For an unknown field of ``data`` while neither rate is given: that one is required."""
+    data = raw.get("data") if isinstance(raw, dict) else None
+    if loc[:-1] != ("data",) or not isinstance(data, dict) or "dt" in data or "fs" in data or "input" not in data:
+        return ""
+    return " (data needs its sampling rate: fs, in Hz, or dt, in s)"
+
+
+_LIST_BRANCH = "list[float]"  # pydantic's tag of the inline branch of a record (``str | list[float]``)
+
+
+def branch_errors(errors: list) -> list:
+    """pydantic's errors of a record field (``data.input``/``data.observed``: a file name or
+    the values inline) without the branch its input did not take: values given inline get
+    their own errors, not "Input should be a valid string", located at the sample
+    (``data.observed[5]``, 0-based) without the union's tag, a null named as such."""
+    inline = {tuple(e["loc"][:i]) for e in errors for i, part in enumerate(e["loc"]) if part == _LIST_BRANCH}
+    out = []
+    for e in errors:
+        loc = tuple(e["loc"])
+        if len(loc) > 1 and loc[-1] == "str" and loc[:-1] in inline:
+            continue
+        if _LIST_BRANCH in loc:
+            e = {**e, "loc": tuple(part for part in loc if part != _LIST_BRANCH)}
+            if e.get("input", 0) is None and isinstance(loc[-1], int):
+                e["msg"] = f"sample {loc[-1]} (counting from 0) is null: every sample must be a number"
+        out.append(e)
+    return out
+
+
 def parse(raw: dict) -> JobSpec:
     """Validate the structure; pydantic errors become one SpecError naming every field (the
     first as its ``field``, each once). An unknown field gets the closest allowed name
@@ -294,7 +336,7 @@ def parse(raw: dict) -> JobSpec:
     try:
         return JobSpec.model_validate(raw)
     except ValidationError as err:
-        errors = err.errors()
+        errors = branch_errors(err.errors())
 
     def allowed(loc: tuple) -> list[str]:  # the field names of the section at ``loc``
         kind: Any = JobSpec
@@ -317,11 +359,12 @@ def parse(raw: dict) -> JobSpec:
     for e in errors:
         loc, message = tuple(e["loc"]), e["msg"]
         if e["type"] == "extra_forbidden" and isinstance(loc[-1], str):
-            close = difflib.get_close_matches(loc[-1], allowed(loc[:-1]), n=1, cutoff=0.6)
+            close = _closest(loc[-1], allowed(loc[:-1]))
             if close:
-                message += f"; did you mean `{close[0]}`?"
-                explained.add((*loc[:-1], close[0]))
+                message += f"; did you mean `{close}`?"
+                explained.add((*loc[:-1], close))
             message += "".join(f"; {why}" for at, why in REMOVED.items() if loc[:1] + loc[-1:] == at)
+            message += _rate_hint(raw, loc)
         problems.append((loc, _field(loc), message))
     problems = [p for p in problems if p[0] not in explained or p[0] not in missing] or problems
     first, *rest = problems
@@ -483,9 +526,23 @@ def check_records(force: np.ndarray | None, observed: np.ndarray, voltage: np.nd
         if record is not None and record.size and not (-MAX_MAGNITUDE <= record.min() and record.max() <= MAX_MAGNITUDE):
             big = np.flatnonzero(~(np.abs(record) <= MAX_MAGNITUDE))  # (min and max: no copy of a long record)
             if big.size:
-                raise SpecError(field, f"sample {big[0]} is {record[big[0]]:.6g}: samples must be finite and at most "
-                                       f"{MAX_MAGNITUDE:.0e} in magnitude (so no squared error or variance overflows); "
-                                       "rescale the record (its units)")
+                raise SpecError(field, _bad_sample(field, big[0], float(record[big[0]])))
+
+
+#: why a gap (NaN, inf) anywhere in a record is refused, the test window included
+_GAP = {"data.input": "the input drives the simulation over the whole record",
+        "data.observed": "the simulation is scored over data.fit and compared over data.test (abcns analyse, "
+                         "the figures), so a gap in the test window alone is refused too"}
+
+
+def _bad_sample(field: str, i: int, value: float) -> str:
+    """Why sample ``i`` of a record is refused: not finite (a gap), or too large."""
+    where = f"sample {i} (counting from 0) is {value:.6g}"
+    if not math.isfinite(value):
+        return (f"{where}: every sample must be a finite number; {_GAP[field]}: fill the gap, or end the record "
+                "(and its windows) before it")
+    return (f"{where}: samples must be at most {MAX_MAGNITUDE:.0e} in magnitude (so no squared error or variance "
+            "overflows); give the record in larger units")
 
 
 def check_physical(spec: JobSpec, simulators: list[Simulator], distance: object) -> None:

@@ -388,3 +388,46 @@ def test_api_docs_render_offline(browser, service):
     page.goto(f"{service.url}/docs")
     wait_until(lambda: "/jobs/{job_id}/events" in page.inner_text("body"), 60, "the routes on /docs")
     assert outside == []
+
+
+def test_labels_apart_distinct_ticks_and_the_workers_as_a_chart(browser):
+    """Issue AA, point 4: the noise floor's and the decision's labels do not overlap when the
+    two are close (here 2.80 and 2.90 %: 2 px apart on the chart); a narrow marginal
+    (1.4903-1.4919) gets tick labels that differ; the workers per population are a chart.
+    Served by Playwright's routing, as above."""
+    from service.http.page import VIEW
+
+    origin, job = "http://abcns.test", "0123456789abcdef"
+    events = [("population", {"population": t, "epsilon": 10.0 / t, "epsilon_next": 10.0 / (t + 1),
+                              "acceptance_rate": 0.5, "simulations": 1000 * t, "elapsed_s": float(t),
+                              "model_probabilities": {"linear": 1.0}, "simulations_per_s": None,
+                              "noise_floor": 2.8, "decision_tolerance": 2.9, "workers": [1, 2, 2, 3][t - 1],
+                              "efficiency": 0.5}) for t in (1, 2, 3, 4)] + [("finished", {})]
+    stream = "".join(f"id: {i}\nevent: {e}\ndata: {json.dumps(d)}\n\n" for i, (e, d) in enumerate(events, 1))
+    m = [1.4903 + 0.0016 * i / 39 for i in range(40)]
+    pop = {"offset": 0, "n_particles": 40, "distances": [1.0] * 40, "models": [0] * 40,
+           "theta": [[v, 10.0 + i] for i, v in enumerate(m)], "model_names": ["linear"],
+           "parameter_names": [["m", "k"]], "model_probabilities": [1.0]}
+    answers = {f"/jobs/{job}/view": ("text/html", VIEW), f"/jobs/{job}/events": ("text/event-stream", stream),
+               f"/jobs/{job}": ("application/json", json.dumps({"id": job, "name": "toy", "models": ["linear"],
+                                                                "status": "running"})),
+               **{f"/jobs/{job}/populations/{t}?limit=10000": ("application/json", json.dumps(pop)) for t in (1, 2, 3, 4)},
+               f"/jobs/{job}/result": ("application/json", json.dumps({"warnings": []})),
+               "/health": ("application/json", json.dumps({"workers": 3}))}
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    page.route(f"{origin}/**", lambda route: fulfil_from(answers, route, route.request.url[len(origin):]))
+    page.goto(f"{origin}/jobs/{job}/view")
+    wait_until(lambda: page.inner_text("#status") == "finished" and "population 4" in page.inner_text("#hists"), 30,
+               "the four populations and the marginals")
+    boxes = read_all(page, "#eps text.mark-label", "e => { const b = e.getBoundingClientRect(); "
+                                                   "return [b.top, b.bottom, e.textContent]; }")
+    (_, bottom_a, text_a), (top_b, _, text_b) = boxes
+    assert text_a.startswith("decision") and text_b.startswith("noise floor")
+    assert bottom_a <= top_b, boxes  # the decision's label wholly above the floor's
+    ticks = page.evaluate("""() => Array.from(document.querySelectorAll("#hists .hist svg"),
+        s => Array.from(s.querySelectorAll("text.lbl"), t => t.textContent))""")
+    assert len(ticks) == 2 and all(len(set(t)) == 3 for t in ticks), ticks
+    assert ticks[0] == ["1.49", "1.491", "1.492"], ticks  # 4 digits (1.490, trailing zero dropped), not 1.49 1.49 1.49
+    assert page.locator("#workers-chart path").count() == 1
+    assert read_all(page, "#workers-chart text.axis-title", "t => t.textContent") == ["population", "workers"]
+    assert {"0", "1", "2", "3"} <= set(read_all(page, "#workers-chart text.lbl", "t => t.textContent"))

@@ -121,6 +121,8 @@ def test_tokens_ids_and_bad_specs(service):
     assert httpx.get(f"{service.url}/jobs").status_code == 401
     assert httpx.get(f"{service.url}/jobs", headers={"Authorization": "Bearer wrong"}).status_code == 403
     assert httpx.get(f"{service.url}/health").status_code == 200
+    icon = httpx.get(f"{service.url}/favicon.ico")  # the browser's own request, without the token (AA, point 4)
+    assert icon.status_code == 200 and icon.headers["content-type"].startswith("image/svg+xml")
     assert httpx.get(f"{service.url}/jobs/..%2F..%2Fetc", headers=AUTH).status_code in (404, 422)
     assert httpx.get(f"{service.url}/jobs/{'0' * 32}", headers=AUTH).status_code == 404
     bad = duffing_spec()
@@ -131,6 +133,11 @@ def test_tokens_ids_and_bad_specs(service):
     bad["data"]["observed"] = "/etc/passwd"  # no files over HTTP
     r = httpx.post(f"{service.url}/jobs", json=bad, headers=AUTH, timeout=60)
     assert r.status_code == 422 and r.json()["detail"][0]["field"] == "data.observed"
+    bad = duffing_spec()
+    bad["data"]["observed"][7] = None  # a null inline (AA, point 8): its sample first, not pydantic's str branch
+    r = httpx.post(f"{service.url}/jobs", json=bad, headers=AUTH, timeout=60)
+    first = r.json()["detail"][0]
+    assert r.status_code == 422 and first["field"] == "data.observed[7]" and "sample 7 (counting from 0)" in first["msg"]
     huge = {"x": "a" * (40 * 1024 * 1024)}
     assert httpx.post(f"{service.url}/jobs", json=huge, headers=AUTH, timeout=60).status_code == 413
 

@@ -188,7 +188,7 @@ def test_a_displacement_with_nan_is_refused_naming_the_field(records, tmp_path):
     raw["data"].update(input="x.npy", observed="f.npy")
     with pytest.raises(SpecError) as err:
         build(parse(raw), tmp_path)
-    assert err.value.field == "data.input" and "sample 7 is nan" in err.value.message
+    assert err.value.field == "data.input" and "sample 7 (counting from 0) is nan" in err.value.message
     for cls in (BoucWenRestoring, BWBNRestoring):
         with pytest.raises(SpecError) as err:
             cls(bad, 0.01)

@@ -83,7 +83,7 @@ def test_observed_with_nan_and_length_mismatch(raw, tmp_path):
     np.save(tmp_path / "short.npy", d["displacement"][:400])
     np.save(tmp_path / "force.npy", d["force"])
     raw["data"].update(input="force.npy", observed="obs.npy")
-    refuse(raw, tmp_path, "data.observed", match="sample 7 is nan")
+    refuse(raw, tmp_path, "data.observed", match=r"sample 7 \(counting from 0\) is nan")
     raw["data"].update(observed="short.npy")
     refuse(raw, tmp_path, "data.observed", match="same length")
 

@@ -70,6 +70,8 @@ def test_submit_uploads_the_spec_and_its_files_and_follows_the_job_to_run_s_resu
     assert lines[len(pops)] == "" and lines[len(pops) + 1].startswith("status finished  stop max_populations")
     job_id = done.stderr.split("job ", 1)[1].split(":", 1)[0]
     assert lines[-1].startswith(f"job: {svc.url}/jobs/{job_id}")
+    # the job link opens the live page with the token (AA, point 3): without it, empty charts and 401s
+    assert f"job {job_id}: {svc.url}/jobs/{job_id}/view#token={TOKEN}\n" in done.stderr
     # the data the service ran on are the files' (the result is abcns run's, bit for bit)
     submitted = httpx.get(f"{svc.url}/jobs/{job_id}/result", headers=AUTH, timeout=60).json()
     ran = json.loads(abcns("run", spec, "--out", tmp_path / "run.zarr", "--scheduler", scheduler, "--json",

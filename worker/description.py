@@ -140,7 +140,7 @@ def job_parts(description: dict, arrays: dict,
 
     ``description``: ``{"models": [{name, simulator, priors, fixed, integrator}], "distance":
     {name: nmse | summary_euclidean, summaries}, "data": {"dt": float | None, "fit": [a, b] | None,
-    "input_interpolation": "hold" | "linear" (default hold)}}``;
+    "input_interpolation": "hold" | "linear" | "bandlimited" (default hold)}}``;
     ``arrays``: ``{"force": array | None, "observed": array, "voltage": array (optional: the
     second input channel of the simulators that read it; refused when none does)}``.
     ``allow_import`` lets a model name a ``package.module:factory`` simulator (the CLI; never HTTP). Without

@@ -6,7 +6,9 @@ NMSE accumulator, then the per-particle coefficients (already divided by the mas
 loop has the particles innermost, so each RK4 step is one loop over the batch that LLVM
 vectorises; the force is one array shared by the batch. Between samples it is held
 (``hold`` 0, zero-order: ``force[i]`` over step i) or interpolated linearly (``hold`` 1,
-first-order: ``force[i] + (force[i+1] - force[i]) tau``, tau the fraction of step i gone):
+first-order: ``force[i] + (force[i+1] - force[i]) tau``, tau the fraction of step i gone)
+or band-limited (``hold`` 2, RK4 kernels only: read from ``fine``, the force at every stage
+time, made once per simulator by :func:`worker.simulators.band_limited`):
 the RK4 stages of a substep then see the force at the substep's start, middle and end, and
 the linear model's exact recursion takes the ramp's own coefficients
 (:func:`hold_coefficients`). With ``hold`` 0 every loop is the zero-order-hold loop it
@@ -220,10 +222,22 @@ def _duffing_rk4(x0, v0, fa, fm, fb, c, a, b, d, e, h):
     return xh + h26 * (a1 + a23), v0 + h6 * ((a1 + a4) + 2.0 * a23)
 
 
+@njit(inline="always", **_JIT)
+def _stage(f0, f1, s, substeps, hold, fine, base):
+    """The force at the start, middle and end of substep ``s`` of a sample step from ``f0``
+    to ``f1``: ramped (``hold`` 1) or read from ``fine``, the band-limited force at every
+    stage time, from ``base`` = 2 substeps i on (``hold`` 2)."""
+    if hold == 1:
+        return _ramp(f0, f1, s, substeps)
+    b = base + 2 * s
+    return fine[b], fine[b + 1], fine[b + 2]
+
+
 @njit(**_JIT)
-def _duffing_steps(w, n_act, f0, f1, h, substeps, hold):
+def _duffing_steps(w, n_act, f0, f1, h, substeps, hold, fine, base):
     """Advance over one sample step: ``substeps`` RK4 steps, the force held at ``f0``
-    (``hold`` 0) or ramped from ``f0`` to ``f1`` (``hold`` 1)."""
+    (``hold`` 0), ramped from ``f0`` to ``f1`` (``hold`` 1) or band-limited (``hold`` 2,
+    from ``fine[base:]``; :func:`_stage`)."""
     x = w[0]
     v = w[1]
     im = w[3]
@@ -238,7 +252,7 @@ def _duffing_steps(w, n_act, f0, f1, h, substeps, hold):
                 fj = f0 * im[j]
                 x[j], v[j] = _duffing_rk4(x[j], v[j], fj, fj, fj, cm[j], k1m[j], k2m[j], k3m[j], k5m[j], h)
         else:
-            fa, fm, fb = _ramp(f0, f1, s, substeps)
+            fa, fm, fb = _stage(f0, f1, s, substeps, hold, fine, base)
             for j in range(n_act):
                 x[j], v[j] = _duffing_rk4(x[j], v[j], fa * im[j], fm * im[j], fb * im[j], cm[j], k1m[j], k2m[j],
                                           k3m[j], k5m[j], h)
@@ -267,9 +281,10 @@ def _duffing_output(w, n_act, f, kind, y):
 
 
 @njit(**_JIT)
-def duffing_run(w, force, h, substeps, hold, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist,
+def duffing_run(w, force, fine, h, substeps, hold, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj, dist,
                 status):
-    """Run a Duffing batch in place; see the module docstring. ``w`` is ``(DUFFING_ROWS, n)``."""
+    """Run a Duffing batch in place; see the module docstring. ``w`` is ``(DUFFING_ROWS, n)``;
+    ``fine``: the band-limited force at every RK4 stage time (``hold`` 2; else unread)."""
     n = w.shape[1]
     idx = cols.copy()
     y = np.empty(n)
@@ -284,7 +299,7 @@ def duffing_run(w, force, h, substeps, hold, kind, bound, obs, start, stop, scal
             if n_act == 0:
                 return
         if i + 1 < ns:
-            _duffing_steps(w, n_act, force[i], force[i + 1], h, substeps, hold)
+            _duffing_steps(w, n_act, force[i], force[i + 1], h, substeps, hold, fine, 2 * substeps * i)
     _finish(w, 2, n_act, scale, idx, dist, status)
 
 
@@ -351,7 +366,7 @@ def _bouc_wen_rk4(y0, v0, z0, fa, fm, fb, c, k, mi, alpha, beta, A, h, n_exp):
 
 
 @njit(**_JIT)
-def _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, n_exp):
+def _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, fine, base, n_exp):
     """Advance over one sample step (as :func:`_duffing_steps`)."""
     y = w[0]
     v = w[1]
@@ -369,7 +384,7 @@ def _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, n_exp):
                 y[j], v[j], z[j] = _bouc_wen_rk4(y[j], v[j], z[j], fj, fj, fj, cm[j], km[j], im[j], al[j], be[j],
                                                  Am[j], h, n_exp)
         else:
-            fa, fm, fb = _ramp(f0, f1, s, substeps)
+            fa, fm, fb = _stage(f0, f1, s, substeps, hold, fine, base)
             for j in range(n_act):
                 mi = im[j]
                 y[j], v[j], z[j] = _bouc_wen_rk4(y[j], v[j], z[j], fa * mi, fm * mi, fb * mi, cm[j], km[j], mi,
@@ -379,23 +394,23 @@ def _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, n_exp):
 # one specialisation per exponent (BOUC_WEN_EXPONENTS in worker/simulators.py), so the
 # exponent is a compile-time constant in the loop
 @njit(**_JIT)
-def _bouc_wen_steps_1(w, n_act, f0, f1, h, substeps, hold):
-    _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, 1)
+def _bouc_wen_steps_1(w, n_act, f0, f1, h, substeps, hold, fine, base):
+    _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, fine, base, 1)
 
 
 @njit(**_JIT)
-def _bouc_wen_steps_2(w, n_act, f0, f1, h, substeps, hold):
-    _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, 2)
+def _bouc_wen_steps_2(w, n_act, f0, f1, h, substeps, hold, fine, base):
+    _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, fine, base, 2)
 
 
 @njit(**_JIT)
-def _bouc_wen_steps_3(w, n_act, f0, f1, h, substeps, hold):
-    _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, 3)
+def _bouc_wen_steps_3(w, n_act, f0, f1, h, substeps, hold, fine, base):
+    _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, fine, base, 3)
 
 
 @njit(**_JIT)
-def _bouc_wen_steps_4(w, n_act, f0, f1, h, substeps, hold):
-    _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, 4)
+def _bouc_wen_steps_4(w, n_act, f0, f1, h, substeps, hold, fine, base):
+    _bouc_wen_steps(w, n_act, f0, f1, h, substeps, hold, fine, base, 4)
 
 
 @njit(**_JIT)
@@ -418,7 +433,7 @@ def _bouc_wen_output(w, n_act, f, kind, out):
 
 
 @njit(**_JIT)
-def bouc_wen_run(w, n_exp, force, h, substeps, hold, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj,
+def bouc_wen_run(w, n_exp, force, fine, h, substeps, hold, kind, bound, obs, start, stop, scale, eps, cols, want_traj, traj,
                  dist, status):
     """Run a Bouc-Wen batch (one exponent ``n_exp`` in 1..4) in place. ``w`` is ``(BOUC_WEN_ROWS, n)``."""
     n = w.shape[1]
@@ -442,14 +457,15 @@ def bouc_wen_run(w, n_exp, force, h, substeps, hold, kind, bound, obs, start, st
         if i + 1 < ns:
             f0 = force[i]
             f1 = force[i + 1]
+            base = 2 * substeps * i
             if n_exp == 1:
-                _bouc_wen_steps_1(w, n_act, f0, f1, h, substeps, hold)
+                _bouc_wen_steps_1(w, n_act, f0, f1, h, substeps, hold, fine, base)
             elif n_exp == 2:
-                _bouc_wen_steps_2(w, n_act, f0, f1, h, substeps, hold)
+                _bouc_wen_steps_2(w, n_act, f0, f1, h, substeps, hold, fine, base)
             elif n_exp == 3:
-                _bouc_wen_steps_3(w, n_act, f0, f1, h, substeps, hold)
+                _bouc_wen_steps_3(w, n_act, f0, f1, h, substeps, hold, fine, base)
             else:
-                _bouc_wen_steps_4(w, n_act, f0, f1, h, substeps, hold)
+                _bouc_wen_steps_4(w, n_act, f0, f1, h, substeps, hold, fine, base)
     _finish(w, 3, n_act, scale, idx, dist, status)
 
 

@@ -51,7 +51,7 @@ from pydantic import ValidationError
 
 from service.http.jobs import DATA_FILE, clean_text
 from service.http.schemas import NAME_MAX_CHARS
-from service.spec import JobSpec, _field, spec_loc
+from service.spec import JobSpec, _field, branch_errors, spec_loc
 
 MAX_DEPTH = 32  # nesting of a spec: the deepest field is 5 levels down (models[0].priors.k[1])
 MAX_YAML_BYTES = 1 << 20  # a YAML spec refers to its data in the upload; 1 MiB of YAML parses in ~0.1 s
@@ -103,7 +103,7 @@ def as_text(value: Any) -> str:
 def validation_errors(errors: Any) -> list[dict]:
     """pydantic's errors with ``field`` (the dotted path) and the input as text."""
     out = []
-    for e in errors:
+    for e in branch_errors(list(errors)):  # a null inline: its sample, not the file-name branch
         loc = [p if isinstance(p, int | str) else str(p) for p in e.get("loc", ())]
         where = loc[:1] if loc and loc[0] in ("body", "query", "path", "header", "cookie") else []
         path = list(spec_loc(tuple(loc[len(where):])))  # sampler.alpha, not sampler.abc-ns.alpha

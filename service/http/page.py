@@ -106,7 +106,16 @@ function logTicks(y0, y1) {
   return out;
 }
 
-function tickText(x) { const a = Math.abs(x); return (a === 0 || (a >= 1e-3 && a < 1e5)) ? String(Number(x.toPrecision(3))) : x.toExponential(1); }
+function tickText(x, digits) {
+  const a = Math.abs(x), d = digits || 3;
+  return (a === 0 || (a >= 1e-3 && a < 1e5)) ? String(Number(x.toPrecision(d))) : x.toExponential(d - 2);
+}
+
+// the labels of distinct tick values, with as many digits as tell them apart (a narrow marginal: 1.4903 1.4911 1.4919)
+function tickTexts(values) {
+  for (let d = 3; d < 15; d++) { const t = values.map(v => tickText(v, d)); if (new Set(t).size === values.length) return t; }
+  return values.map(v => tickText(v, 15));
+}
 
 // a line chart of the populations: ticks and their values along both axes, and the axes' titles
 function line(svg, series, opts) {
@@ -130,7 +139,7 @@ function line(svg, series, opts) {
     out.push(sv("line", {class: "axis", x1: X(v), y1: H - B, x2: X(v), y2: H - B + 4}),
              sv("text", {class: "lbl", x: X(v), y: H - B + 15, "text-anchor": "middle"}, v));
   }
-  for (const v of (opts.yticks ? opts.yticks(y0, y1) : ticks(y0, y1, 5, false))) {
+  for (const v of (opts.yticks ? opts.yticks(y0, y1) : ticks(y0, y1, 5, !!opts.integer))) {
     out.push(sv("line", {class: "grid", x1: L, y1: Y(v), x2: W - R, y2: Y(v)}),
              sv("text", {class: "lbl", x: L - 5, y: Y(v) + 3, "text-anchor": "end"}, opts.fmt(v)));
   }
@@ -141,8 +150,9 @@ function line(svg, series, opts) {
   for (const m of marks) {
     const at = m.x !== undefined ? {x1: X(m.x), y1: T, x2: X(m.x), y2: H - B} : {x1: L, y1: Y(m.y), x2: W - R, y2: Y(m.y)};
     const left = m.x !== undefined && X(m.x) > L + (W - L - R) / 2;  // a label beside its line, inside the plot
+    // a horizontal mark's label above its line, or below it (m.below: the lower of two close marks, so they never overlap)
     const where = m.x !== undefined ? {x: X(m.x) + (left ? -3 : 3), y: T + 10, "text-anchor": left ? "end" : "start"}
-                                    : {x: W - R - 2, y: Y(m.y) - 3, "text-anchor": "end"};
+                                    : {x: W - R - 2, y: Y(m.y) + (m.below ? 11 : -3), "text-anchor": "end"};
     out.push(sv("line", Object.assign({class: "mark", "stroke-dasharray": m.dash || "5,3"}, at)),
              sv("text", Object.assign({class: "mark-label"}, where), m.label));
   }
@@ -158,9 +168,10 @@ function hist(values, label, color) {
   const bars = counts.map((c, i) => sv("rect", {x: (i * bw).toFixed(1), y: (T + h - c / m * h).toFixed(1),
     width: (bw - 1).toFixed(1), height: (c / m * h).toFixed(1), fill: color}));
   const axis = [sv("line", {class: "axis", x1: 0, y1: H - B, x2: W, y2: H - B})];
-  [[lo, 1, "start"], [(lo + hi) / 2, W / 2, "middle"], [hi, W - 1, "end"]].forEach(([v, x, anchor]) => axis.push(
+  const labels = tickTexts([lo, (lo + hi) / 2, hi]);
+  [[lo, 1, "start"], [(lo + hi) / 2, W / 2, "middle"], [hi, W - 1, "end"]].forEach(([v, x, anchor], i) => axis.push(
     sv("line", {class: "axis", x1: x, y1: H - B, x2: x, y2: H - B + 4}),
-    sv("text", {class: "lbl", x: x, y: H - B + 14, "text-anchor": anchor}, tickText(v))));
+    sv("text", {class: "lbl", x: x, y: H - B + 14, "text-anchor": anchor}, labels[i])));
   axis.push(sv("text", {class: "axis-title", x: W / 2, y: H - 2, "text-anchor": "middle"}, label));
   return el("div", {class: "hist"}, sv("svg", {viewBox: `0 0 ${W} ${H}`}, ...bars, ...axis));
 }
@@ -193,12 +204,16 @@ function render() {
                             : `population ${d.population} (the last: no noise floor yet)`);
   }
   const epsMarks = known ? [{y: Math.log10(p.decision_tolerance), label: "decision " + fmt(p.decision_tolerance) + unit},
-                            {y: Math.log10(p.noise_floor), label: "noise floor " + fmt(p.noise_floor) + unit, dash: "2,3"}] : [];
+                            {y: Math.log10(p.noise_floor), label: "noise floor " + fmt(p.noise_floor) + unit, dash: "2,3", below: true}] : [];
   line(document.getElementById("eps"), [{color: EPS_COLOR, points: pops.map(q => [q.population, Math.log10(q.epsilon)])}],
        {ylabel: "tolerance \u03b5" + (unit ? " (" + unit.trim() + ")" : ""), fmt: v => tickText(Math.pow(10, v)),
         yticks: logTicks, marks: epsMarks});  // a log axis labelled with the tolerance itself
   line(document.getElementById("acc"), [{color: ACC_COLOR, points: pops.map(q => [q.population, q.acceptance_rate])}],
        {y0: 0, y1: 1, ylabel: "acceptance rate", fmt: tickText});
+  // the cluster's worker threads during each population (none for one evaluated in the runner's process)
+  const counted = pops.filter(q => q.workers !== null && q.workers !== undefined);
+  line(document.getElementById("workers-chart"), [{color: "#555", points: counted.map(q => [q.population, q.workers])}],
+       {y0: 0, y1: Math.max(1, ...counted.map(q => q.workers)), ylabel: "workers", fmt: tickText, integer: true});
   const n = pops.length ? probsOf(pops[0], modelNames).length : modelNames.length;
   line(document.getElementById("probs"), Array.from({length: n}, (_, i) => ({color: COLORS[i % COLORS.length],
        points: pops.map(q => [q.population, probsOf(q, modelNames)[i]])})),
@@ -331,9 +346,14 @@ VIEW = ("<!doctype html><html><head><title>abcns job</title>" + _HEAD + r"""</he
  <div class="card"><h2>acceptance rate per population</h2><svg id="acc"></svg></div>
  <div class="card"><h2>model probabilities per population (dashed: where the answer is read)</h2><svg id="probs"></svg><div id="legend"></div></div>
  <div class="card"><h2>marginals of the leading model (last population; particles per bar)</h2><div id="hists"></div></div>
+ <div class="card"><h2>cluster workers per population</h2><svg id="workers-chart"></svg></div>
 </div>
 <p id="error"></p>
 """ + f"<script>{VIEW_JS}</script></body></html>")
+
+#: the pages' icon (/favicon.ico): the tolerance falling, in the charts' colour
+FAVICON = ('<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 16 16"><rect width="16" height="16" rx="3" fill="#fff"/>'
+           '<path d="M2 3 L6 8 L10 11 L14 12" fill="none" stroke="' + MODEL_COLOURS[0] + '" stroke-width="2"/></svg>')
 
 # only these scripts and this style run; fetch only to the service; no frames, forms or base
 CSP = (f"default-src 'none'; script-src {_hash(COMMON_JS)} {_hash(INDEX_JS)} {_hash(VIEW_JS)}; style-src {_hash(STYLE)}; "

@@ -36,6 +36,7 @@ from abcns.executor import SerialExecutor
 from abcns.filling import Budget
 from abcns.run import algorithm_name, consume, iterate
 from service.run.dask_executor import LOCAL_POPULATION_S, DaskExecutor
+from service.run.model_error import model_error_warning, residual_check
 from service.run.store import Store, StoreIncomplete, data_hash, result_from_store
 from service.spec import Job, JobSpec, build, description, job_arrays
 
@@ -118,6 +119,11 @@ def summary(store: Store) -> dict:
     if store.attrs.get("error"):
         out["error"] = store.attrs["error"]
     out["n_populations"] = store.n_populations
+    if run.get("residuals"):  # the best fit's residuals against independent noise (service.run.model_error)
+        out["residuals"] = run["residuals"]
+        warning = model_error_warning(run["residuals"])
+        if warning:
+            out["warnings"] = [*out.get("warnings", []), warning]
     if run.get("placement"):  # where the job ran and why (service.run.jobs)
         out["placement"] = run["placement"]
     return out
@@ -410,7 +416,9 @@ def _run_job(
             getattr(executor, "close", lambda: None)()  # the Dask executor releases the job's data
         assert writer.store is not None  # close() raised otherwise
         _record_end(writer.store, key, end, run_info, budget)
-        return result_from_store(writer.store)
+        result = result_from_store(writer.store)
+        _record_residuals(writer.store, job, result)
+        return result
 
 
 def _place(store: Store | None, key: str, run_info: dict, placement: dict | None) -> None:
@@ -449,6 +457,16 @@ def _new_store(path: Path, spec_json: dict, job: Job, dhash: str, key: str) -> S
                         parameter_names=[list(m.parameter_names) for m in job.models],
                         n_particles=job.settings.particles, data_hash=dhash, algorithm=algorithm_name(job.settings),
                         max_ellipsoids=getattr(job.settings, "n_ellipsoids", 1), job_key=key)
+
+
+def _record_residuals(store: Store, job: Job, result: Result) -> None:
+    """The best fit's residuals against independent noise (:mod:`service.run.model_error`)
+    in the run's information, once the run has ended (a second write: a run killed in between
+    is finished without them)."""
+    check = residual_check(job, result)
+    if check is not None:
+        store.set_status(store.attrs["status"], store.attrs.get("stop_reason"),
+                         run={**store.attrs.get("run", {}), "residuals": check})
 
 
 def _record_end(store: Store, key: str, end: RunEnd, run_info: dict, budget: Budget) -> None:
