@@ -179,9 +179,7 @@ def prepare(spec: JobSpec, base: Path | None, request: StudyRequest, out: Path,
     record = study_record(spec, request, sets)
     path = out / STUDY_FILE
     if path.exists():
-        held = json.loads(path.read_text())
-        if {k: held.get(k) for k in ("spec", "request")} != {k: record[k] for k in ("spec", "request")}:
-            raise SpecError("out", f"{out} holds another study (another spec or request); give a new folder")
+        check_same_study(json.loads(path.read_text()), record, out)
     (out / "data").mkdir(parents=True, exist_ok=True)
     (out / "jobs").mkdir(exist_ok=True)
     jobs = []
@@ -193,9 +191,23 @@ def prepare(spec: JobSpec, base: Path | None, request: StudyRequest, out: Path,
         if ds.index == 0:
             build(job_spec, out / "data", allow_import)  # the data sets' jobs are valid too
         jobs.append(JobRun.of(job_spec, out / "data", out / "jobs" / f"{ds.label}.zarr", ds.label))
-    if not path.exists():
-        path.write_text(json.dumps(record, indent=1))
+    path.write_text(json.dumps(record, indent=1))
     return jobs
+
+
+def _but_datasets(record: Mapping[str, Any]) -> dict:
+    return {k: v for k, v in record["request"].items() if k != "datasets"}
+
+
+def check_same_study(held: Mapping[str, Any], record: Mapping[str, Any], out: Path) -> None:
+    """A folder's study is resumed, or extended by a larger ``datasets`` (the first data sets
+    are the same: ``SeedSequence.spawn`` gives child ``i`` whatever their number); another
+    spec or request is refused (SpecError at ``out``)."""
+    if held.get("spec") != record["spec"] or _but_datasets(held) != _but_datasets(record):
+        raise SpecError("out", f"{out} holds another study (another spec or request); give a new folder")
+    n = min(len(held["datasets"]), len(record["datasets"]))
+    if held["datasets"][:n] != record["datasets"][:n]:
+        raise SpecError("out", f"{out} holds data sets this version of abcns makes otherwise; give a new folder")
 
 
 def run_study(client, spec: JobSpec, base: Path | None, request: StudyRequest, out: Path, *,
