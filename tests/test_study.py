@@ -263,6 +263,9 @@ def test_a_study_over_http_queues_its_jobs_and_reports_as_in_process(client, tmp
             deadline = time.monotonic() + 300
             while not (out := http.get(f"/studies/{study_id}").json())["done"] and time.monotonic() < deadline:
                 time.sleep(0.5)
+            page = http.get(f"/studies/{study_id}/view")
+            assert page.status_code == 200 and "confusion matrix" in page.text
+            assert http.get(f"/studies/{'0' * 32}").status_code == 404
         assert out["counts"] == {"finished": 4}, out["counts"]
     finally:
         service.close()

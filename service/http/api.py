@@ -534,6 +534,13 @@ def view(job_id: JOB_ID) -> HTMLResponse:
     return html(page.VIEW, page.CSP)
 
 
+@public.api_route("/studies/{study_id}/view", methods=["GET", "HEAD"], response_class=HTMLResponse,
+                  include_in_schema=False)
+def study_view(study_id: STUDY_ID) -> HTMLResponse:
+    """A study's progress and its confusion matrix filling in (polls GET /studies/{id})."""
+    return html(page.STUDY, page.STUDY_CSP)
+
+
 # ---------------------------------------------------------------------------- API docs, offline
 # Swagger UI from the swagger-ui-bundle-v2 wheel: its files served here, nothing from a CDN
 DOCS_ASSETS = {"swagger-ui.css": "text/css", "swagger-ui-bundle.js": "text/javascript", "favicon-32x32.png": "image/png"}
