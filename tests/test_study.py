@@ -174,6 +174,12 @@ def test_a_killed_study_reruns_no_finished_job_and_ends_identical(client, tmp_pa
     assert {p: _fingerprint(p) for p in done} == done
     _, reference = study_in(client, tmp_path / "reference", datasets=8)
     assert without_cost(json.loads(out)) == without_cost(json.loads(json.dumps(reference)))
+    summary = abcns("summary", folder, "--json")
+    assert json.loads(summary.communicate(timeout=120)[0]) == json.loads(out)
+    plot = abcns("plot", folder, "--out", tmp_path / "figures")
+    listed = plot.communicate(timeout=120)[0].split()
+    assert sorted(Path(p).name for p in listed) == [f"study-{k}.png" for k in ("confusion", "coverage", "reliability", "sbc")]
+    assert all(Path(p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in listed)
 
 
 @pytest.mark.parametrize(("args", "field"), [
