@@ -790,7 +790,7 @@ def study(
     seed: Annotated[int | None, typer.Option(help="The study's seed (default: the spec's).")] = None,
     scheduler: Annotated[str | None, typer.Option(help="A running Dask scheduler (tcp://HOST:PORT).")] = None,
     workers: Annotated[int | None, typer.Option(help="Worker processes of the embedded cluster.")] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", help="No line per finished job.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", help="No line per job as it starts.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="End with the JSON report.")] = False,
 ) -> None:
     from service.run.runner import local_population_s
@@ -817,9 +817,11 @@ def study(
 def run_study_jobs(jobs: list, out: Path, scheduler: str | None, workers: int | None, quiet: bool,
                    local_s: float) -> None:
     """The study's jobs on the cluster, a line per job that ends."""
-    from service.run.jobs import run_jobs
+    from service.run.jobs import placement_text, run_jobs
 
     def on_event(i: int, event: dict) -> None:
+        if not quiet and event["kind"] == "start":
+            typer.echo(f"[{jobs[i].label}] {i + 1} of {len(jobs)}: {placement_text(event.get('placement'))}", err=True)
         if not quiet and event["kind"] == "requeued":
             typer.echo(f"[{jobs[i].label}] {event.get('reason', 'requeued')}: it waits for a free worker", err=True)
 
