@@ -109,13 +109,6 @@ class DataSet:
         return f"ds-{self.index:04d}"
 
 
-def _template(spec: JobSpec, base: Path | None):
-    """The spec's data and simulators over the whole record (decimated as the job would)."""
-    from service.report.analysis import job_data
-
-    return job_data(spec, base)
-
-
 def _draw(data, request: StudyRequest, rng: np.random.Generator, names: list[str]):
     """(model, parameters, clean response) of one data set: a prior draw whose simulation runs."""
     model = request.truth or names[int(rng.integers(len(names)))]
@@ -132,8 +125,11 @@ def _draw(data, request: StudyRequest, rng: np.random.Generator, names: list[str
 
 
 def make_datasets(spec: JobSpec, base: Path | None, request: StudyRequest) -> tuple[list[DataSet], list[dict]]:
-    """The data sets (their truths) and their records ({input, observed, clean})."""
-    data = _template(spec, base)
+    """The data sets (their truths) and their records ({input, observed, clean}): the spec's
+    simulators over its whole record, decimated as the job would (``job_data``)."""
+    from service.report.analysis import job_data
+
+    data = job_data(spec, base)
     names = [m.name for m in spec.models]
     seed = spec.seed if request.seed is None else request.seed
     sets, records = [], []
