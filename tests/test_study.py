@@ -244,8 +244,8 @@ def study_body(folder: Path, **fields) -> dict:
 
 
 def test_a_study_over_http_queues_its_jobs_and_reports_as_in_process(client, tmp_path):
-    """POST /studies refuses a wrong noise, truth or truth value with 422 naming the field and
-    queues nothing; a study of 4 data sets is queued as 4 jobs of the service, and its report
+    """POST /studies refuses a wrong noise, truth or truth value with 422 naming the field, and
+    a study larger than the queue's room with 429, and queues nothing; a study of 4 data sets is queued as 4 jobs of the service, and its report
     (GET /studies/ID) gives the same model probabilities, choices and coverage as the same
     study run here (the determinism contract: the same data sets and seeds, the same answers)."""
     import httpx
@@ -262,6 +262,8 @@ def test_a_study_over_http_queues_its_jobs_and_reports_as_in_process(client, tmp
                 answer = http.post("/studies", json=study_body(tmp_path / "spec", **{"datasets": 2, **fields}))
                 assert answer.status_code == 422, answer.text
                 assert answer.json()["detail"][0]["field"] == field, answer.text
+            answer = http.post("/studies", json=study_body(tmp_path / "spec", datasets=65, noise_std=0.1))
+            assert answer.status_code == 429 and "room for 64 jobs" in answer.text, answer.text  # ABCNS_MAX_QUEUED 64
             assert http.get("/jobs").json() == []
             answer = http.post("/studies", json=study_body(tmp_path / "spec", datasets=4, noise_share=0.01, seed=5))
             assert answer.status_code == 201, answer.text

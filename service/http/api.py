@@ -464,6 +464,7 @@ async def submit_study(request: Request, response: Response, manager: Annotated[
     from service.run.study import parse_request
 
     media_type(request, "application/json")
+    retry = {"Retry-After": str(request.app.state.settings.retry_after_s)}
     async with intake.slot():
         text, rest = await asyncio.to_thread(_study_body, await read_body(request))
         try:
@@ -476,8 +477,10 @@ async def submit_study(request: Request, response: Response, manager: Annotated[
         except SpecError as err:
             raise spec_error(err) from None
         except QueueFull as err:
-            raise HTTPException(429, str(err), headers={"Retry-After": str(request.app.state.settings.retry_after_s)}) \
-                from None
+            raise HTTPException(429, str(err), headers=retry) from None
+        except (OSError, MemoryError) as err:  # a full disk: nothing was queued
+            log.warning("a study could not be stored: %r", err)
+            raise Refused(503, "the service cannot store a study now; try again later", retry) from None
     response.headers["Location"] = f"{request.scope.get('root_path', '')}/studies/{study_id}"
     return {"id": study_id, "datasets": study.datasets}
 

@@ -49,20 +49,26 @@ def _checked(manager: JobManager, spec: JobSpec, folder: Path, request: StudyReq
     return sets, specs
 
 
+def check_room(manager: JobManager, n: int) -> None:
+    """QueueFull unless the queue can take ``n`` more jobs (``ABCNS_MAX_QUEUED``)."""
+    with manager.lock:
+        room = None if manager.max_queued is None else manager.max_queued - len(manager.queue) - manager.admitting
+    if room is not None and room < n:
+        raise QueueFull(f"the queue has room for {room} jobs; this study has {n} (the limit is {manager.max_queued}, "
+                        "ABCNS_MAX_QUEUED): try again later, or with fewer data sets")
+
+
 def submit_study(manager: JobManager, spec: JobSpec, arrays: dict[str, np.ndarray], request: StudyRequest) -> str:
     """Make and check the study's data sets, then queue a job each; the study's id. SpecError
     naming the field, QueueFull when the queue cannot take them all; nothing is queued then."""
+    check_room(manager, request.datasets)  # before any data set is made
     study_id = uuid.uuid4().hex
     folder = study_folder(manager, study_id)
     folder.mkdir(parents=True)
     try:
         np.savez(folder / DATA_FILE, **arrays)  # type: ignore[arg-type]  # numpy takes the arrays as **kwds
         sets, specs = _checked(manager, spec, folder, request)
-        with manager.lock:
-            room = None if manager.max_queued is None else manager.max_queued - len(manager.queue) - manager.admitting
-        if room is not None and room < len(specs):
-            raise QueueFull(f"the queue has room for {room} jobs; this study has {len(specs)} (the limit is "
-                            f"{manager.max_queued}): try again later, or with fewer data sets")
+        check_room(manager, len(specs))
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise
