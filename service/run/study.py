@@ -120,7 +120,7 @@ def _draw(data, request: StudyRequest, rng: np.random.Generator, names: list[str
         values, status = data.simulate(model, int(rng.integers(2**31)))(theta[None, :])
         if status[0] == OK and np.all(np.isfinite(values[0])):
             return model, dict(zip(m.parameter_names, map(float, theta), strict=True)), values[0]
-    raise SpecError("truth_parameters" if request.truth_parameters else f"models.{model}.priors",
+    raise SpecError("truth_parameters" if request.truth_parameters else f"models[{names.index(model)}].priors",
                     f"{MAX_REDRAWS} truths drawn for {model} all failed to simulate (diverged)")
 
 
