@@ -97,9 +97,11 @@ def print_targets(report: dict) -> None:
           f"{cal.get('ece_if_calibrated')})")
     print(f"target 95 % coverage in 92-98 %: {100 * c95:.1f} % +- {100 * se:.1f} (binomial se) of {n} pairs; "
           f"50 %: {100 * cov['cover50']:.1f} %")
-    rejected = [k for k, s in report["sbc"].items() if s["p_value"] is not None and s["p_value"] < 0.01]
-    print(f"target rank histograms not rejected at 1 %: {len(report['sbc']) - len(rejected)} of {len(report['sbc'])} "
-          f"not rejected" + (f"; rejected: {', '.join(rejected)}" if rejected else ""))
+    for test in ("p_value", "ks_p_value"):
+        rejected = [k for k, s in report["sbc"].items() if s[test] is not None and s[test] < 0.01]
+        print(f"target rank histograms not rejected at 1 % ({'chi-square' if test == 'p_value' else 'KS'}): "
+              f"{len(report['sbc']) - len(rejected)} of {len(report['sbc'])}"
+              + (f"; rejected: {', '.join(rejected)}" if rejected else ""))
 
 
 if __name__ == "__main__":

@@ -245,7 +245,8 @@ def study_body(folder: Path, **fields) -> dict:
 
 def test_a_study_over_http_queues_its_jobs_and_reports_as_in_process(client, tmp_path):
     """POST /studies refuses a wrong noise, truth or truth value with 422 naming the field, and
-    a study larger than the queue's room with 429, and queues nothing; a study of 4 data sets is queued as 4 jobs of the service, and its report
+    a study larger than the queue's room with 429, and queues nothing; a study of 4 data sets
+    is queued as 4 jobs of the service, and its report
     (GET /studies/ID) gives the same model probabilities, choices and coverage as the same
     study run here (the determinism contract: the same data sets and seeds, the same answers)."""
     import httpx
@@ -298,4 +299,4 @@ def test_the_report_flags_miscalibration_it_is_shown():
     assert [(b["mean_p"], b["frequency"], b["n"]) for b in cal["bins"]] == [(0.1, 0.5, 40), (0.9, 0.5, 40)]
     coverage, sbc = parameter_checks(rows)
     assert coverage["a.x"]["cover95"] == coverage["b.x"]["cover50"] == 0.0
-    assert sbc["a.x"]["histogram"][0] == 20 and sbc["a.x"]["p_value"] < 0.01
+    assert sbc["a.x"]["histogram"][0] == 20 and sbc["a.x"]["p_value"] < 0.01 and sbc["a.x"]["ks_p_value"] < 0.01

@@ -16,7 +16,8 @@
 - **SBC** (simulation-based calibration, Talts et al. 2018): the truth's rank among the
   answer's draws as a fraction (the weighted share of draws below it, ties counted half),
   uniform on [0, 1] when the posteriors are calibrated; histogram in ``sbc_bins(n)`` bins
-  and a chi-square test of uniformity (its p-value); data sets with no draw of the true
+  and a chi-square test of uniformity (``p_value``), and the Kolmogorov-Smirnov test of the
+  ranks themselves (``ks_p_value``: no bins, so no binning artefact); data sets with no draw of the true
   model are left out (counted in ``without_draws``);
 - **cost**: wall time and simulations per job.
 """
@@ -152,8 +153,9 @@ def parameter_checks(rows: Sequence[dict]) -> tuple[dict, dict]:
         k = sbc_bins(len(ranks))
         hist = np.histogram(ranks, bins=k, range=(0.0, 1.0))[0]
         p_value = float(stats.chisquare(hist).pvalue) if len(ranks) >= 2 else None
+        ks = float(stats.kstest(ranks, "uniform").pvalue) if len(ranks) >= 2 else None
         sbc[f"{model}.{name}"] = {"ranks": ranks, "histogram": hist.tolist(), "bins": k, "p_value": p_value,
-                                  "without_draws": len(cells) - len(ranks)}
+                                  "ks_p_value": ks, "without_draws": len(cells) - len(ranks)}
     for c in coverage.values():
         c.update({f"cover{round(100 * lv)}": c[f"in{round(100 * lv)}"] / c["n"] for lv in LEVELS})
     pairs = sum(c["n"] for c in coverage.values())
@@ -206,7 +208,7 @@ def report_lines(report: Mapping[str, Any]) -> list[str]:
             line = f"coverage {key}: 50 % intervals {c['cover50']:.2f}, 95 % intervals {c['cover95']:.2f} of {c['n']}"
             s = report["sbc"].get(key)
             if s and s["p_value"] is not None:
-                line += f"; SBC ranks {s['histogram']} (uniform: p = {s['p_value']:.3g})"
+                line += f"; SBC ranks {s['histogram']} (uniform: chi-square p = {s['p_value']:.3g}, KS p = {s['ks_p_value']:.3g})"
             lines.append(line)
     cost = report["cost"]
     if cost["jobs"]:
