@@ -167,7 +167,7 @@ def test_a_killed_study_reruns_no_finished_job_and_ends_identical(client, tmp_pa
     proc.send_signal(signal.SIGKILL)
     proc.communicate()
     done = {p: _fingerprint(p) for p in _finished(folder)}
-    assert 2 <= len(done)
+    assert 2 <= len(done) < 8, len(done)  # killed in the middle
     again = abcns(*args, "--json")
     out, err = again.communicate(timeout=600)
     assert again.returncode == 0, err
