@@ -810,13 +810,16 @@ def study(
         _fail(str(err))
     except OSError as err:
         _fail(f"out: {err}")
-    run_study_jobs(jobs, out, scheduler, workers, quiet, local_population_s())
+    worst = run_study_jobs(jobs, out, scheduler, workers, quiet, local_population_s())
     study_summary(out, as_json)
+    if worst:
+        raise typer.Exit(worst)
 
 
 def run_study_jobs(jobs: list, out: Path, scheduler: str | None, workers: int | None, quiet: bool,
-                   local_s: float) -> None:
-    """The study's jobs on the cluster, a line per job that ends."""
+                   local_s: float) -> int:
+    """The study's jobs on the cluster, a line per job as it starts; the worst job's exit
+    code (as ``run --out-dir``: 0 when every job finished)."""
     from service.run.jobs import placement_text, run_jobs
 
     def on_event(i: int, event: dict) -> None:
@@ -837,6 +840,7 @@ def run_study_jobs(jobs: list, out: Path, scheduler: str | None, workers: int | 
         typer.echo(f"{len(jobs) - len(failed)} of {len(jobs)} jobs finished", err=True)
     for j, o in failed:
         typer.echo(f"error: job {j.label}: {o.status}: {o.error}", err=True)
+    return max((OUTCOME_CODES.get(o.status, 1) for o in outcomes), key=WORST.index, default=0)
 
 
 def study_summary(folder: Path, as_json: bool) -> None:
