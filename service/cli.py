@@ -494,10 +494,14 @@ def summary_cmd(
     store: Annotated[Path, typer.Argument(help="a job's zarr store")],
     as_json: Annotated[bool, typer.Option("--json", help="the full JSON summary")] = False,
 ) -> None:
-    """Print the summary of a job's store (finished or running)."""
+    """Print the summary of a job's store (finished or running), or the report of a study's folder."""
     from service.run.runner import summary
     from service.run.store import Store, StoreError
+    from service.run.study import is_study
 
+    if is_study(store):
+        study_summary(store, as_json)
+        return
     try:
         opened = Store.open(store)
         s = summary(opened)
@@ -721,24 +725,21 @@ def plot_cmd(
     labels: Annotated[list[str] | None, typer.Option("--label", help="data-set names for the confusion matrix")] = None,
 ) -> None:
     """Write the figures of finished stores: tolerance, acceptance, model probabilities,
-    marginals and pairs, predictive bands (with --spec) and confusion matrices."""
+    marginals and pairs, predictive bands (with --spec) and confusion matrices; of a study's
+    folder (abcns study), its confusion matrix, reliability diagram, coverage and SBC ranks."""
     from service.report.analysis import JobData, confusion_of, store_job_data
     from service.report.plots import confusion_figure, plot_result, save
     from service.run.runner import result_from_store
     from service.run.store import Store, StoreError
+    from service.run.study import is_study
 
+    if len(stores) == 1 and is_study(stores[0]):
+        study_plot(stores[0], out)
+        return
     stray = [str(p) for p in stores if "=" in p.name and not p.exists()]
     if stray:  # `--truth m=1 c=2`: c=2 was read as a store
         _fail(f"{stray[0]!r} is not a store: give each known value its own --truth (--truth m=1 --truth c=2)")
-    known: dict[str, float] = {}
-    for item in truth or []:
-        key, sep, value = item.partition("=")
-        try:
-            known[key.strip()] = float(value)
-        except ValueError:
-            sep = ""
-        if not sep:
-            _fail(f"--truth {item!r}: expected NAME=VALUE")
+    known = named_values(truth, "--truth")
     if spec and len(spec) != len(stores):
         _fail(f"{len(spec)} --spec for {len(stores)} stores: give one per store, in order")
     results, datas = [], []
@@ -764,6 +765,119 @@ def plot_cmd(
         typer.echo(str(save(confusion_figure(conf), out / "confusion.png")))
         typer.echo(f"confusion: best {conf.best}; mean NMSE " + ", ".join(f"{k} {v:.4g} %" for k, v in conf.mean.items())
                    + (f"; eliminated {', '.join(conf.eliminated)}" if conf.eliminated else ""))
+
+
+
+# ---------------------------------------------------------------------------- studies (docs/studies.md)
+
+
+def named_values(items: list[str] | None, option: str) -> dict[str, float]:
+    """NAME=VALUE options as a dict (exit 2 naming the option for a malformed one)."""
+    out: dict[str, float] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        try:
+            out[key.strip()] = float(value)
+        except ValueError:
+            sep = ""
+        if not sep or not key.strip():
+            _fail(f"{option} {item!r}: expected NAME=VALUE")
+    return out
+
+
+@app.command(help="Run a study: N data sets made with the spec's own simulators, input and windows (a true model "
+                  "drawn uniformly from the spec's models unless --truth, its parameters from their priors unless "
+                  "--truth-param, Gaussian noise of --noise-std or --noise-share of the clean response's RMS), each "
+                  "run as a job with the spec's settings on the cluster (as abcns run --out-dir). Run again on the "
+                  "same --out to resume. Then the report: confusion matrix, calibration of the model probabilities, "
+                  "coverage and SBC ranks of the truth (abcns summary DIR, abcns plot DIR). docs/studies.md.")
+def study(
+    spec: Annotated[Path, typer.Argument(metavar="SPEC", help="The job spec, YAML or JSON.")],
+    datasets: Annotated[int, typer.Option("--datasets", help="Data sets (jobs) to make and run.")],
+    out: Annotated[Path, typer.Option("--out", help="The study's folder (created, or resumed).")],
+    noise_std: Annotated[float | None, typer.Option("--noise-std", help="Gaussian noise, the data's units.")] = None,
+    noise_share: Annotated[float | None, typer.Option("--noise-share", help="Gaussian noise, a share of the clean "
+                                                                            "response's RMS (0.01: 1 %).")] = None,
+    truth: Annotated[str | None, typer.Option("--truth", help="The true model (default: drawn uniformly).")] = None,
+    truth_param: Annotated[list[str] | None, typer.Option("--truth-param", help="A fixed true value, NAME=VALUE "
+                                                                                "(repeatable).")] = None,
+    seed: Annotated[int | None, typer.Option(help="The study's seed (default: the spec's).")] = None,
+    scheduler: Annotated[str | None, typer.Option(help="A running Dask scheduler (tcp://HOST:PORT).")] = None,
+    workers: Annotated[int | None, typer.Option(help="Worker processes of the embedded cluster.")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", help="No line per job as it starts.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="End with the JSON report.")] = False,
+) -> None:
+    from service.run.runner import local_population_s
+    from service.run.study import parse_request, prepare
+    from service.spec import load
+
+    if scheduler and workers:
+        _fail("give --scheduler or --workers, not both")
+    try:
+        job_spec, base = load(spec)
+        request = parse_request({"datasets": datasets, "noise_std": noise_std, "noise_share": noise_share,
+                                 "truth": truth, "truth_parameters": named_values(truth_param, "--truth-param"),
+                                 "seed": seed})
+        out.mkdir(parents=True, exist_ok=True)
+        jobs = prepare(job_spec, base, request, out)
+    except SpecError as err:
+        _fail(str(err))
+    except OSError as err:
+        _fail(f"out: {err}")
+    worst = run_study_jobs(jobs, out, scheduler, workers, quiet, local_population_s())
+    study_summary(out, as_json)
+    if worst:
+        raise typer.Exit(worst)
+
+
+def run_study_jobs(jobs: list, out: Path, scheduler: str | None, workers: int | None, quiet: bool,
+                   local_s: float) -> int:
+    """The study's jobs on the cluster, a line per job as it starts; the worst job's exit
+    code (as ``run --out-dir``: 0 when every job finished)."""
+    from service.run.jobs import placement_text, run_jobs
+
+    def on_event(i: int, event: dict) -> None:
+        if not quiet and event["kind"] == "start":
+            typer.echo(f"[{jobs[i].label}] {i + 1} of {len(jobs)}: {placement_text(event.get('placement'))}", err=True)
+        if not quiet and event["kind"] == "requeued":
+            typer.echo(f"[{jobs[i].label}] {event.get('reason', 'requeued')}: it waits for a free worker", err=True)
+
+    with ExitStack() as stack:
+        client = open_client(stack, scheduler, workers, False)
+        try:
+            outcomes = run_jobs(client, jobs, allow_import=True, local_s=local_s, on_event=on_event)
+        except KeyboardInterrupt:
+            typer.echo(f"stopped: run the same command again to resume the study in {out}", err=True)
+            raise typer.Exit(130) from None
+    failed = [(j, o) for j, o in zip(jobs, outcomes, strict=True) if o.status != "finished"]
+    if not quiet:
+        typer.echo(f"{len(jobs) - len(failed)} of {len(jobs)} jobs finished", err=True)
+    for j, o in failed:
+        typer.echo(f"error: job {j.label}: {o.status}: {o.error}", err=True)
+    return max((OUTCOME_CODES.get(o.status, 1) for o in outcomes), key=WORST.index, default=0)
+
+
+def study_summary(folder: Path, as_json: bool) -> None:
+    """The report of a study's folder (finished jobs so far)."""
+    from service.report.study import report_lines, study_report
+    from service.run.study import read_study, store_paths
+
+    held = read_study(folder)
+    report = study_report(held, store_paths(folder, held))
+    if as_json:
+        typer.echo(json.dumps(report, indent=1))
+        return
+    for line in report_lines(report):
+        typer.echo(line)
+
+
+def study_plot(folder: Path, out: Path) -> None:
+    from service.report.study import plot_study, study_report
+    from service.run.study import read_study, store_paths
+
+    held = read_study(folder)
+    for path in plot_study(study_report(held, store_paths(folder, held)), out):
+        typer.echo(str(path))
 
 
 if __name__ == "__main__":

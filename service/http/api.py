@@ -444,6 +444,64 @@ async def job_events(
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
+# ---------------------------------------------------------------------------- studies (docs/studies.md)
+STUDY_ID = Annotated[str, Path(pattern="^[0-9a-f]{32}$", description="a study id (32 hex digits)")]
+
+
+def _study_body(body: bytes) -> tuple[bytes, dict]:
+    """(the spec as JSON bytes, the study's other fields) of a POST /studies body; 400/422."""
+    try:
+        raw = json.loads(body)
+    except (ValueError, RecursionError):
+        raise HTTPException(400, "the body is not UTF-8 JSON") from None
+    if not isinstance(raw, dict) or not isinstance(raw.get("spec"), dict):
+        raise problem(422, "spec", "missing: the job spec, an object with its data inline", "missing")
+    return json.dumps(raw.pop("spec")).encode(), raw
+
+
+@api.post("/studies", status_code=201, responses={422: {"description": "the spec or the study is invalid"},
+                                                   429: {"description": "the queue cannot take every data set"}})
+async def submit_study(request: Request, response: Response, manager: Annotated[JobManager, Depends(get_manager)],
+                       intake: Annotated[Intake, Depends(get_intake)]) -> dict:
+    """A study: ``{"spec": {...}, "datasets": N, "noise_std": X | "noise_share": F, "truth": MODEL,
+    "truth_parameters": {NAME: VALUE}, "seed": S}``; each data set queued as a job. 422 naming
+    the field (nothing queued)."""
+    from service.http.studies import submit_study as submit_it
+    from service.run.study import parse_request
+
+    media_type(request, "application/json")
+    retry = {"Retry-After": str(request.app.state.settings.retry_after_s)}
+    async with intake.slot():
+        text, rest = await asyncio.to_thread(_study_body, await read_body(request))
+        try:
+            study = parse_request(rest)
+        except SpecError as err:
+            raise spec_error(err) from None
+        spec, arrays = await intake.spec(text, "spec", "json")
+        try:
+            study_id = await asyncio.to_thread(submit_it, manager, spec, arrays, study)
+        except SpecError as err:
+            raise spec_error(err) from None
+        except QueueFull as err:
+            raise HTTPException(429, str(err), headers=retry) from None
+        except (OSError, MemoryError) as err:  # a full disk: nothing was queued
+            log.warning("a study could not be stored: %r", err)
+            raise Refused(503, "the service cannot store a study now; try again later", retry) from None
+    response.headers["Location"] = f"{request.scope.get('root_path', '')}/studies/{study_id}"
+    return {"id": study_id, "datasets": study.datasets}
+
+
+@api.get("/studies/{study_id}")
+def study_status(study_id: STUDY_ID, manager: Annotated[JobManager, Depends(get_manager)]) -> JSONResponse:
+    """The study's progress (its jobs' statuses) and its report over the jobs finished so far."""
+    from service.http.studies import study_status as status_of
+
+    out = status_of(manager, study_id)
+    if out is None:
+        raise HTTPException(404, f"no study {study_id}")
+    return JSONResponse(_finite(out))
+
+
 public = APIRouter()
 
 
@@ -490,6 +548,13 @@ def favicon() -> Response:
     """The pages' icon (a browser asks for it on every page: no 404 in its console)."""
     return Response(page.FAVICON, media_type="image/svg+xml",
                     headers={"Cache-Control": "max-age=86400", "X-Content-Type-Options": "nosniff"})
+
+
+@public.api_route("/studies/{study_id}/view", methods=["GET", "HEAD"], response_class=HTMLResponse,
+                  include_in_schema=False)
+def study_view(study_id: STUDY_ID) -> HTMLResponse:
+    """A study's progress and its confusion matrix filling in (polls GET /studies/{id})."""
+    return html(page.STUDY, page.STUDY_CSP)
 
 
 # ---------------------------------------------------------------------------- API docs, offline

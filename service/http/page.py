@@ -370,3 +370,36 @@ DOCS = ('<!doctype html><html><head><meta charset="utf-8"><title>abcns API</titl
 DOCS_CSP = (f"default-src 'none'; script-src 'self' {_hash(DOCS_INIT)}; style-src 'self' 'unsafe-inline'; "
             "img-src 'self' data:; connect-src 'self'; font-src 'self' data:; base-uri 'none'; form-action 'none'; "
             "frame-ancestors 'none'")
+
+# ---------------------------------------------------------------------------- a study (docs/studies.md)
+STUDY_JS = r"""
+const studyId = location.pathname.split("/")[2];
+text("study", studyId.slice(0, 8));
+function cell(c, r) { return el("td", {}, String(c) + " (" + (r === null ? "-" : fmt(r, 2)) + ")"); }
+async function refresh() {
+  try {
+    const s = await getJSON(`/studies/${studyId}`);
+    text("progress", `${s.finished} of ${s.datasets} finished`);
+    text("counts", Object.entries(s.counts).map(([k, v]) => `${k} ${v}`).join(", "));
+    const c = s.confusion_matrix;
+    document.getElementById("confusion-head").replaceChildren(el("tr", {}, el("th", {}, "true \\ chosen"), ...c.models.map(m => el("th", {}, m))));
+    document.getElementById("confusion").replaceChildren(...c.models.map((m, i) => el("tr", {}, el("th", {}, m), ...c.counts[i].map((n, j) => cell(n, c.rates[i][j])))));
+    const cal = s.calibration || {};
+    text("ece", cal.ece === null || cal.ece === undefined ? "-" : fmt(cal.ece, 3) + (cal.ece_interval ? ` [${fmt(cal.ece_interval[0], 3)}, ${fmt(cal.ece_interval[1], 3)}]` : ""));
+    const all = (s.coverage || {}).all || {};
+    text("cover", all.n ? `50 %: ${fmt(all.cover50, 3)}, 95 %: ${fmt(all.cover95, 3)} of ${all.n} pairs` : "-");
+    text("error", "");
+    if (!s.done) setTimeout(refresh, 2000);
+  } catch (e) { text("error", String(e)); setTimeout(refresh, 5000); }
+}
+refresh();
+"""
+
+STUDY = ("<!doctype html><html><head><title>abcns study</title>" + _HEAD + r"""</head><body>
+<h1>study <span id="study"></span></h1>
+<div class="kv card"><span>data sets <b id="progress">-</b></span><span>jobs <b id="counts">-</b></span>
+<span>ECE <b id="ece">-</b></span><span>coverage <b id="cover">-</b></span></div>
+<div class="card gap"><h2>confusion matrix: count (row rate)</h2><table><thead id="confusion-head"></thead><tbody id="confusion"></tbody></table></div>
+<p id="error"></p>
+""" + f"<script>{STUDY_JS}</script></body></html>")
+STUDY_CSP = CSP.replace(_hash(VIEW_JS), _hash(STUDY_JS))
