@@ -596,8 +596,9 @@ def main_disk() -> None:
     print("answers: " + ", ".join(f"{n} x {s}" for s, n in sorted(statuses.items())))
 
 
-def main_streams() -> None:
-    """Z.1: many event streams on one running job (``--streams``)."""
+def _on_service(title: str, attacks) -> None:
+    """Run ``attacks(statuses, service, watch)`` (its lines printed) on `abcns serve` with its
+    default settings on a stock cluster; then the answers by status and the log's errors."""
     tmp = Path(tempfile.mkdtemp())
     cluster = StockCluster(tmp / "dask")
     service = Service(tmp / "jobs", cluster.address)
@@ -605,8 +606,8 @@ def main_streams() -> None:
     watch = Watch(service.url)
     start = time.monotonic()
     try:
-        print("Z.1 event streams on one running job", flush=True)
-        for line in _streams(statuses, service, watch):
+        print(title, flush=True)
+        for line in attacks(statuses, service, watch):
             print(line, flush=True)
     finally:
         watch.close()
@@ -614,29 +615,26 @@ def main_streams() -> None:
     print(f"errors in the service's log: {errors[:2000] or 'none'}")
 
 
+def main_streams() -> None:
+    """Z.1: many event streams on one running job (``--streams``)."""
+    _on_service("Z.1 event streams on one running job", _streams)
+
+
+def _issue_z(statuses: collections.Counter, service, watch):
+    """Issue Z's attacks 2, 3, 4, 7 and 8, their lines as they end."""
+    yield "Z.2 archives: 1,000 samples, then 1 GiB of undeclared zeros"
+    yield "\n".join(_archives(statuses, service, watch))
+    yield "Z.3, Z.4, Z.8 inputs"
+    yield "\n".join(_inputs(statuses, service))
+    yield "Z.7 slow bodies"
+    yield _slow_bodies(statuses, service)
+    yield "Z.8 purges"
+    yield _purges(statuses, service)
+
+
 def main_z() -> None:
     """Issue Z's attacks (2, 3, 4, 7, 8) on `abcns serve` with its default settings."""
-    tmp = Path(tempfile.mkdtemp())
-    cluster = StockCluster(tmp / "dask")
-    service = Service(tmp / "jobs", cluster.address)
-    statuses: collections.Counter = collections.Counter()
-    watch = Watch(service.url)
-    start = time.monotonic()
-    try:
-        print("Z.2 archives: 1,000 samples, then 1 GiB of undeclared zeros", flush=True)
-        print("\n".join(_archives(statuses, service, watch)), flush=True)
-        print("Z.3, Z.4, Z.8 inputs", flush=True)
-        print("\n".join(_inputs(statuses, service)), flush=True)
-        print("Z.7 slow bodies", flush=True)
-        print(_slow_bodies(statuses, service), flush=True)
-        print("Z.8 purges", flush=True)
-        print(_purges(statuses, service), flush=True)
-    finally:
-        watch.close()
-        errors = close_and_count(service, cluster, statuses, start)
-    print(f"errors in the service's log: {errors[:2000] or 'none'}")
-
-
+    _on_service("issue Z", _issue_z)
 
 
 if __name__ == "__main__":

@@ -105,15 +105,21 @@ def main() -> None:
             cov = coverage(rec, truth)
             sel = run(truth, ["bw", "bwbn"], args.samples, args.particles, seed)
             p = sel.summary()["model_probabilities"][truth]
-            inside = sum(c[2] for c in cov.values())
-            widths = ", ".join(f"{k} {hi - lo:.3g}" for k, (lo, hi, _in) in cov.items())
-            print(f"truth {truth:4s} seed {seed}: recovery {inside}/{len(cov)} inside the 95 % intervals "
-                  f"({rec.stop_reason.value}, {rec.n_simulations} sims); p({truth}) = {p:.4f} "
-                  f"({sel.stop_reason.value}, {sel.n_simulations} sims); {time.perf_counter() - t0:.1f} s")
-            print(f"    95 % widths: {widths}")
-            for k, (lo, hi, ok) in cov.items():
-                if not ok:
-                    print(f"    OUT: {k} [{lo:.4g}, {hi:.4g}], truth {TRUTHS[truth][k]}")
+            report(f"truth {truth:4s} seed {seed}", truth, (rec, cov), (sel, p), TRUTHS[truth], t0)
+
+
+def report(label: str, truth: str, recovery: tuple, selection: tuple, truths: dict, t0: float) -> None:
+    """One seed's lines: the recovery run's intervals against ``truths``, the selection's p(truth)."""
+    (rec, cov), (sel, p) = recovery, selection
+    inside = sum(c[2] for c in cov.values())
+    widths = ", ".join(f"{k} {hi - lo:.3g}" for k, (lo, hi, _in) in cov.items())
+    print(f"{label}: recovery {inside}/{len(cov)} inside the 95 % intervals "
+          f"({rec.stop_reason.value}, {rec.n_simulations} sims); p({truth}) = {p:.4f} "
+          f"({sel.stop_reason.value}, {sel.n_simulations} sims); {time.perf_counter() - t0:.1f} s")
+    print(f"    95 % widths: {widths}")
+    for k, (lo, hi, ok) in cov.items():
+        if not ok:
+            print(f"    OUT: {k} [{lo:.4g}, {hi:.4g}], truth {truths[k]}")
 
 
 if __name__ == "__main__":

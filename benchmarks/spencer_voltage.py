@@ -29,7 +29,7 @@ import abcns
 from abcns import Model, NSSettings, StopRules
 from abcns.distances import NMSE
 from abcns.result import Result
-from benchmarks.restoring import coverage
+from benchmarks.restoring import coverage, report
 from worker.compose import evaluator
 from worker.restoring import BoucWenRestoring, SpencerMRVoltage
 
@@ -101,16 +101,7 @@ def main() -> None:
         cov = coverage(rec, "spencer", TRUTHS)
         sel = run(["bw", "spencer"], args.samples, args.particles, seed)
         p = sel.summary()["model_probabilities"]["spencer"]
-        inside = sum(c[2] for c in cov.values())
-        widths = ", ".join(f"{k} {hi - lo:.3g}" for k, (lo, hi, _in) in cov.items())
-        print(f"seed {seed}: recovery {inside}/{len(cov)} inside the 95 % intervals ({rec.stop_reason.value}, "
-              f"{rec.n_simulations} sims); p(spencer) = {p:.4f} ({sel.stop_reason.value}, {sel.n_simulations} sims); "
-              f"{time.perf_counter() - t0:.1f} s")
-        print(f"    95 % widths: {widths}")
-        for k, (lo, hi, ok) in cov.items():
-            if not ok:
-                print(f"    OUT: {k} [{lo:.4g}, {hi:.4g}], truth {SPENCER_TRUE[k]}")
-
+        report(f"seed {seed}", "spencer", (rec, cov), (sel, p), SPENCER_TRUE, t0)
 
 if __name__ == "__main__":
     main()
