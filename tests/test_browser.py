@@ -431,3 +431,52 @@ def test_labels_apart_distinct_ticks_and_the_workers_as_a_chart(browser):
     assert page.locator("#workers-chart path").count() == 1
     assert read_all(page, "#workers-chart text.axis-title", "t => t.textContent") == ["population", "workers"]
     assert {"0", "1", "2", "3"} <= set(read_all(page, "#workers-chart text.lbl", "t => t.textContent"))
+
+
+def test_a_study_page_fills_its_confusion_matrix_in(browser):
+    """Issue V: a study's page shows its progress and its confusion matrix filling in. Served
+    as the service serves it (its HTML and Content-Security-Policy) by Playwright's routing,
+    GET /studies/{id} first answers 2 of 4 data sets finished (one confusion), then all 4; the
+    page's cells, counts, ECE and coverage are read as a person sees them."""
+    from service.http.page import STUDY, STUDY_CSP
+
+    origin, study = "http://abcns.test", "fedcba9876543210"
+
+    def answer(finished: int, counts: list, ece: float | None) -> str:
+        rates = [[n / sum(row) if sum(row) else None for n in row] for row in counts]
+        return json.dumps({"id": study, "datasets": 4, "finished": finished, "done": finished == 4,
+                           "counts": {"finished": finished, "queued": 4 - finished} if finished < 4 else {"finished": 4},
+                           "confusion_matrix": {"models": ["linear", "cubic"], "counts": counts, "rates": rates},
+                           "calibration": {"ece": ece, "ece_interval": None if ece is None else [0.01, 0.2]},
+                           "coverage": {"all": {"n": 2 * finished, "cover50": 0.5, "cover95": 1.0}}})
+
+    answers = [answer(2, [[1, 0], [1, 0]], None), answer(4, [[2, 0], [1, 1]], 0.125)]
+    asked = []
+
+    def serve(route):
+        path = route.request.url[len(origin):]
+        if path == f"/studies/{study}/view":
+            route.fulfill(status=200, content_type="text/html", body=STUDY, headers={"Content-Security-Policy": STUDY_CSP})
+        elif path == f"/studies/{study}":
+            asked.append(path)
+            route.fulfill(status=200, content_type="application/json", body=answers[min(len(asked), 2) - 1])
+        else:
+            route.fulfill(status=404, body="")
+
+    page = browser.new_page(viewport={"width": 1000, "height": 700})
+    errors: list[str] = []
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.route(f"{origin}/**", serve)
+    page.goto(f"{origin}/studies/{study}/view")
+    wait_until(lambda: page.inner_text("#progress") == "2 of 4 finished", 30, "the first answer on the page")
+    rows = lambda: read_all(page, "#confusion tr", "r => Array.from(r.children).map(c => c.textContent)")
+    assert rows() == [["linear", "1 (1.00)", "0 (0.00)"], ["cubic", "1 (1.00)", "0 (0.00)"]]
+    assert page.inner_text("#ece") == "-"
+    wait_until(lambda: page.inner_text("#progress") == "4 of 4 finished", 30, "the study's end on the page")
+    assert rows() == [["linear", "2 (1.00)", "0 (0.00)"], ["cubic", "1 (0.50)", "1 (0.50)"]]
+    assert read_all(page, "#confusion-head th", "t => t.textContent") == ["true \\ chosen", "linear", "cubic"]
+    assert page.inner_text("#ece") == "0.125 [0.010, 0.200]"
+    assert page.inner_text("#cover") == "50 %: 0.500, 95 %: 1.000 of 8 pairs"
+    assert page.inner_text("#counts") == "finished 4" and page.inner_text("#error") == ""
+    assert len(asked) == 2, "the page stops asking once the study is done"
+    assert not [e for e in errors if "Content Security Policy" in e], errors

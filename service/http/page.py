@@ -375,7 +375,8 @@ DOCS_CSP = (f"default-src 'none'; script-src 'self' {_hash(DOCS_INIT)}; style-sr
 STUDY_JS = r"""
 const studyId = location.pathname.split("/")[2];
 text("study", studyId.slice(0, 8));
-function cell(c, r) { return el("td", {}, String(c) + " (" + (r === null ? "-" : fmt(r, 2)) + ")"); }
+const fixed = (x, d) => (x === null || x === undefined) ? "-" : x.toFixed(d);
+function cell(c, r) { return el("td", {}, String(c) + " (" + fixed(r, 2) + ")"); }
 async function refresh() {
   try {
     const s = await getJSON(`/studies/${studyId}`);
@@ -385,9 +386,9 @@ async function refresh() {
     document.getElementById("confusion-head").replaceChildren(el("tr", {}, el("th", {}, "true \\ chosen"), ...c.models.map(m => el("th", {}, m))));
     document.getElementById("confusion").replaceChildren(...c.models.map((m, i) => el("tr", {}, el("th", {}, m), ...c.counts[i].map((n, j) => cell(n, c.rates[i][j])))));
     const cal = s.calibration || {};
-    text("ece", cal.ece === null || cal.ece === undefined ? "-" : fmt(cal.ece, 3) + (cal.ece_interval ? ` [${fmt(cal.ece_interval[0], 3)}, ${fmt(cal.ece_interval[1], 3)}]` : ""));
+    text("ece", cal.ece === null || cal.ece === undefined ? "-" : fixed(cal.ece, 3) + (cal.ece_interval ? ` [${fixed(cal.ece_interval[0], 3)}, ${fixed(cal.ece_interval[1], 3)}]` : ""));
     const all = (s.coverage || {}).all || {};
-    text("cover", all.n ? `50 %: ${fmt(all.cover50, 3)}, 95 %: ${fmt(all.cover95, 3)} of ${all.n} pairs` : "-");
+    text("cover", all.n ? `50 %: ${fixed(all.cover50, 3)}, 95 %: ${fixed(all.cover95, 3)} of ${all.n} pairs` : "-");
     text("error", "");
     if (!s.done) setTimeout(refresh, 2000);
   } catch (e) { text("error", String(e)); setTimeout(refresh, 5000); }
