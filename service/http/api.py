@@ -448,17 +448,6 @@ async def job_events(
 STUDY_ID = Annotated[str, Path(pattern="^[0-9a-f]{32}$", description="a study id (32 hex digits)")]
 
 
-def _study_body(body: bytes) -> tuple[bytes, dict]:
-    """(the spec as JSON bytes, the study's other fields) of a POST /studies body; 400/422."""
-    try:
-        raw = json.loads(body)
-    except (ValueError, RecursionError):
-        raise HTTPException(400, "the body is not UTF-8 JSON") from None
-    if not isinstance(raw, dict) or not isinstance(raw.get("spec"), dict):
-        raise problem(422, "spec", "missing: the job spec, an object with its data inline", "missing")
-    return json.dumps(raw.pop("spec")).encode(), raw
-
-
 @api.post("/studies", status_code=201, responses={422: {"description": "the spec or the study is invalid"},
                                                    429: {"description": "the queue cannot take every data set"}})
 async def submit_study(request: Request, response: Response, manager: Annotated[JobManager, Depends(get_manager)],
@@ -472,12 +461,11 @@ async def submit_study(request: Request, response: Response, manager: Annotated[
     media_type(request, "application/json")
     retry = {"Retry-After": str(request.app.state.settings.retry_after_s)}
     async with intake.slot():
-        text, rest = await asyncio.to_thread(_study_body, await read_body(request))
+        spec, arrays, rest = await intake.study(await read_body(request))  # in a child process
         try:
             study = parse_request(rest)
         except SpecError as err:
             raise spec_error(err) from None
-        spec, arrays = await intake.spec(text, "spec", "json")
         try:
             study_id = await asyncio.to_thread(submit_it, manager, spec, arrays, study)
         except SpecError as err:

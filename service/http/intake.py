@@ -328,6 +328,25 @@ def spec_of(text: bytes, field: str, kind: str, max_values: int,
     else:
         scan(text, field, max_values)
         raw = parse_json(text, field)
+    return spec_and_arrays(raw, field, max_values, upload)
+
+
+def study_of(text: bytes, max_values: int) -> tuple[JobSpec, dict[str, np.ndarray], dict]:
+    """(the spec, its inline arrays, the study's other fields) of a POST /studies body: JSON
+    whose ``spec`` is a job spec with its data inline (422 naming ``spec`` otherwise). Runs in
+    the child, as :func:`spec_of`: a large body's parse never holds the service's event loop."""
+    scan(text, "body", max_values)
+    raw = parse_json(text, "body")
+    if not isinstance(raw, dict) or not isinstance(raw.get("spec"), dict):
+        raise problem(422, "spec", "missing: the job spec, an object with its data inline", "missing")
+    spec, arrays = spec_and_arrays(raw.pop("spec"), "spec", max_values)
+    return spec, arrays, raw
+
+
+def spec_and_arrays(raw: Any, field: str, max_values: int,
+                    upload: bool = False) -> tuple[JobSpec, dict[str, np.ndarray]]:
+    """The spec validated, its inline records as arrays (their places in the spec renamed to
+    the job's data file); files refused unless ``upload`` names its ``npz:KEY``."""
     spec = validate_spec(raw, max_values, field)
     arrays = {}
     for key in ("input", "observed", "voltage"):
@@ -402,9 +421,16 @@ class Intake:
 
     async def spec(self, text: bytes, field: str, kind: str,
                    upload: bool = False) -> tuple[JobSpec, dict[str, np.ndarray]]:
+        return await self._in_child(spec_of, text, field, kind, self.max_values, upload)
+
+    async def study(self, text: bytes) -> tuple[JobSpec, dict[str, np.ndarray], dict]:
+        """:func:`study_of` in the child."""
+        return await self._in_child(study_of, text, self.max_values)
+
+    async def _in_child(self, fn, *args):
         loop = asyncio.get_running_loop()
         try:
-            return await loop.run_in_executor(self.pool(), spec_of, text, field, kind, self.max_values, upload)
+            return await loop.run_in_executor(self.pool(), fn, *args)
         except BrokenExecutor:  # a child died (killed, out of memory): a new pool for the next one
             self._pool = None
             raise Refused(503, "the process that reads job specs stopped; try again", {"Retry-After": "5"}) from None
