@@ -90,13 +90,15 @@ class NoSpace(Exception):
     """The job store's disk has no room for a job's first populations (HTTP 507)."""
 
 
-def space_needed(spec: JobSpec, data_bytes: int = 0) -> int:
+def space_needed(spec: JobSpec, data_bytes: int = 0, max_particles: int | None = None) -> int:
     """Bytes a job needs: its data, its files and its first :data:`FIRST_POPULATIONS`
     populations at 8 bytes a value, uncompressed (particles x (parameters + 4): theta, the
     distance, the weight, the model, the survivor flag; §4.1 measured 41 bytes a particle,
-    compressed, against this bound's 64)."""
+    compressed, against this bound's 64). Particles count up to ``max_particles``: a job
+    with more is refused by the service's limits, naming the field (a 422, not a 507)."""
     dims = max(len(m.priors) for m in spec.models)
     particles = int(getattr(spec.sampler, "particles", None) or DEFAULT_PARTICLES)
+    particles = particles if max_particles is None else min(particles, max_particles)
     return STORE_FIXED_BYTES + data_bytes + FIRST_POPULATIONS * particles * (dims + 4) * 8
 
 
@@ -443,7 +445,8 @@ class JobManager:
         job_id = uuid.uuid4().hex
         folder = self.store_dir / job_id
         try:
-            self.check_space(space_needed(spec, sum(int(a.nbytes) for a in arrays.values())), "this job")
+            self.check_space(space_needed(spec, sum(int(a.nbytes) for a in arrays.values()), self.limits.max_particles),
+                             "this job")
             folder.mkdir()
             stored = dict(cut_to_read(spec, arrays))  # a new dict: cut_to_read may return arrays itself
             arrays.clear()
