@@ -7,8 +7,8 @@
 Needs the first command's store (``out/boucwen/seed<N>.zarr``). Fits the linear model alone
 (the joint run kills it early, so it has no posterior there) into
 ``out/boucwen/linear_seed<N>.zarr``, then simulates the posterior mean and the best particle
-of both on the benchmark's official test records (inputs advanced by half a sample as in
-``prepare.py``; the multisine is one steady-state period, so two periods are simulated from
+of both on the benchmark's official test records (inputs read as the spec's ``data.input_interpolation`` says:
+band-limited; the multisine is one steady-state period, so two periods are simulated from
 rest and the second is scored) and writes ``figures/seed<N>/test_rmse.md`` and
 ``figures/seed<N>/test_*.png``.
 """
@@ -31,11 +31,12 @@ ROOT = HERE.parents[1]
 
 
 def on_record(data: JobData, force: np.ndarray, observed: np.ndarray) -> JobData:
-    """The same models with simulators driven by another input record."""
+    """The same models with simulators driven by another input record (read as the spec's
+    ``data.input_interpolation`` says)."""
     sims = {}
     for i, desc in enumerate(data.spec.models):
         sims[desc.name] = simulator_for(desc.model_dump(), force, data.dt, np.resize(observed, force.size),
-                                        f"models[{i}]")
+                                        f"models[{i}]", input_interpolation=data.spec.data.input_interpolation)
     return JobData(data.spec, force, observed, data.dt, (0, observed.size), None, data.models, sims)
 
 

@@ -7,8 +7,7 @@ the benchmark committed in ``data/silverbox/silverbox_subset.npz`` (source, lice
 
 ``--source`` names the benchmark's ``SNLS80mV`` record converted to one npz (``SNLS80mV_V1``,
 ``SNLS80mV_V2``, ``fs_hz``; see the data README); only that regeneration needs it. The
-subset holds the segments below already processed (offsets removed, input advanced): the
-advance is computed over the whole record, so it cannot be redone on a segment alone.
+subset holds the segments below with the offsets removed, values otherwise as measured.
 
 The multisine part of the ``SNLS80mV`` record holds 10 realisations of an odd random-phase
 multisine, each preceded by a short zero-input gap (the circuit is then at rest, which is
@@ -18,12 +17,12 @@ as the end of the gap: 50-sample moving RMS of the input above 3 mV). A segment 
 
 - offsets: the input and output offsets measured on the zero-input tail of the record
   (samples 127,500 on) are subtracted (the archive README suggests removing them);
-- the input is **advanced by half a sample** (FFT, zero-padded), as for the Bouc-Wen example:
-  our simulators hold ``u[i]`` over a sample, which lags the circuit's continuous input by
-  dt/2 (20 degrees at the 69 Hz resonance). Least-squares check on the fit window (scipy,
-  not ABC): linear NMSE 8.85 -> 2.57 and cubic 6.45 -> 0.034 with the advance. For this
-  band-limited input the advance is more exact than the spec's ``input_interpolation:
-  linear`` (see ``examples/boucwen/prepare.py``), so the spec keeps the hold.
+- the input is **not shifted**: the spec reads it with ``data.input_interpolation:
+  bandlimited`` (``worker.simulators.band_limited``), as for the Bouc-Wen example: a held
+  input lags the circuit's continuous one by dt/2 (20 degrees at the 69 Hz resonance). Until
+  issue AA the input was advanced here by half a sample with the FFT over the whole record and
+  held (least-squares check on the fit window then: linear NMSE 8.85 -> 2.57, cubic 6.45 ->
+  0.034); both are measured in ``README.md``.
 
 Writes ``force.npy``, ``displacement.npy`` (realisation 1: fit [0, 1500), test [1500,
 3000) in the spec); :func:`segments` gives the held-out realisations 2..9 the same way
@@ -48,19 +47,12 @@ ARROW = {"low": 6000, "mid": 20000, "high": 34000}  # starts of the excitation-l
 ARROW_LENGTH = 3200
 
 
-def advance(x: np.ndarray, samples: float, pad: int = 8192) -> np.ndarray:
-    n = x.size + pad
-    spectrum = np.fft.rfft(np.concatenate([x, np.zeros(pad)]))
-    return np.fft.irfft(spectrum * np.exp(2j * np.pi * np.fft.rfftfreq(n) * samples), n)[: x.size]
-
-
 def subset(source: Path) -> dict[str, np.ndarray]:
-    """The segments the examples use, from the full record: offsets removed, the input
-    advanced by half a sample over the whole record."""
+    """The segments the examples use, from the full record: offsets removed."""
     with np.load(source) as z:
         u, y, fs = z["SNLS80mV_V1"], z["SNLS80mV_V2"], z["fs_hz"]
     u_offset, y_offset = u[TAIL:].mean(), y[TAIL:].mean()
-    u = advance(u - u_offset, 0.5)
+    u = u - u_offset
     y = y - y_offset
     multisine = [s - LEAD for s in START]
     arrow = list(ARROW.values())
