@@ -1,7 +1,7 @@
 """The cyclic tests with the exact Gaussian likelihood (dynesty) beside abcns.
 
     python -m examples.cyclic_tests.exact --data DIR [--specimen daniel ...] [--seed 1]
-                                          [--nlive 300] [--abcns OUT] [--out OUT]
+                                          [--nlive 300] [--abcns OUT] [--out OUT] [--stored OUT]
 
 Per specimen: the records, scaling, models, priors and simulators of ``run.py`` (the same
 job, built from ``models.yaml``), and per model ``dynesty.NestedSampler`` with the Gaussian
@@ -19,8 +19,10 @@ error scale.
 
 abcns's side is ``run.py``'s summary ``OUT/<name>-seed<N>.json`` (``--abcns``, default
 ``out/cyclic_tests``): read when it exists, else made (``run.run_specimen``). Printed per
-specimen: log Z ± err per model, p(model) exact (delta-method se) and abcns's, and per
-parameter the exact posterior mean and 95 % interval beside abcns's; ``--out`` gets the JSON.
+specimen: log Z ± err per model, p(model) exact (delta-method se) and abcns's, the NMSE and
+the residuals' whiteness (``abcns.noise.whiteness``) at the exact posterior mean, and per
+parameter the exact posterior mean and 95 % interval beside abcns's; ``--out`` gets the JSON,
+``--stored`` prints such a JSON's answers again (specimens not in it are run).
 """
 
 from __future__ import annotations
@@ -62,11 +64,30 @@ class GaussianRestoring:
         sigma = SIGMA_LOW * (SIGMA_HIGH / SIGMA_LOW) ** u[-1]
         return np.append(self.low + u[:-1] * self.width, sigma)
 
-    def loglike(self, theta: np.ndarray) -> float:
-        out = self.simulator.simulate(self.expand(theta[:-1]))
+    def residual(self, params: np.ndarray) -> np.ndarray | None:
+        """simulated - observed on the window at the model's parameters ``params`` (no
+        sigma); None where the simulation fails."""
+        out = self.simulator.simulate(self.expand(params))
         if out.status[0] != self.ok:
-            return -np.inf
-        return gaussian_loglike(out.values[0, self.window[0]:self.window[1]] - self.observed, float(theta[-1]))
+            return None
+        return out.values[0, self.window[0]:self.window[1]] - self.observed
+
+    def loglike(self, theta: np.ndarray) -> float:
+        r = self.residual(theta[:-1])
+        return -np.inf if r is None else gaussian_loglike(r, float(theta[-1]))
+
+    def diagnose(self, posterior: dict[str, dict[str, float]]) -> dict[str, Any]:
+        """At the posterior mean: the NMSE (%) and the residuals' whiteness (Ljung-Box, lag-1
+        autocorrelation): whether the i.i.d. Gaussian errors the likelihood assumes are there."""
+        from abcns.noise import whiteness
+
+        r = self.residual(np.array([posterior[n]["mean"] for n in self.names[:-1]]))
+        if r is None:
+            return {}
+        test = whiteness(r)
+        return {"nmse_pct": float(100 * np.mean(r**2) / np.var(self.observed)),
+                "residual_lag1": None if test is None else test.autocorrelation[0],
+                "ljung_box_p": None if test is None else test.p_value}
 
 
 def specimen_job(folder: Path, name: str, seed: int) -> Any:
@@ -85,18 +106,37 @@ def exact_specimen(folder: Path, name: str, seed: int, nlive: int) -> dict:
     for model, simulator in zip(job.models, job.simulators, strict=True):
         exact = GaussianRestoring(model, simulator, job.observed, window)
         models[model.name] = run_dynesty(exact, nlive, seed)
+        models[model.name]["at_mean"] = exact.diagnose(models[model.name]["posterior"])
         print(f"  {name} {model.name}: log Z {models[model.name]['log_z']:.2f}, "
               f"{models[model.name]['n_evaluations']:,} evaluations, {models[model.name]['wall_s']:.0f} s", flush=True)
     return {"specimen": name, "seed": seed, "nlive": nlive, "window": list(window), "models": models,
             **model_probabilities(models)}
 
 
+def diagnosed(folder: Path, stored: dict) -> dict:
+    """A stored answer (``--out``'s JSON) with ``at_mean`` filled in where it is missing."""
+    job = specimen_job(folder, stored["specimen"], stored["seed"])
+    for model, simulator in zip(job.models, job.simulators, strict=True):
+        ans = stored["models"][model.name]
+        if not ans.get("at_mean"):
+            exact = GaussianRestoring(model, simulator, job.observed, tuple(stored["window"]))
+            ans["at_mean"] = exact.diagnose(ans["posterior"])
+    return stored
+
+
 def abcns_summary(folder: Path, name: str, seed: int, out: Path) -> dict:
-    """run.py's summary of specimen ``name``: its JSON when there, else made now."""
+    """run.py's summary of specimen ``name``: its JSON when there, else made now. A model
+    the joint run left without a posterior (p ~ 0) takes the one of its run alone
+    (``run.py --model bw``: ``<name>-bw-seed<N>.json``) when that is there, in
+    ``summary["alone"]``."""
     path = out / f"{name}-seed{seed}.json"
-    if path.is_file():
-        return json.loads(path.read_text())
-    return run_specimen(folder, name, seed, None, out)
+    summary = json.loads(path.read_text()) if path.is_file() else run_specimen(folder, name, seed, None, out)
+    summary["alone"] = {}
+    for model in summary.get("model_probabilities") or {}:
+        alone = out / f"{name}-{model}-seed{seed}.json"
+        if model not in (summary.get("posterior") or {}) and alone.is_file():
+            summary["alone"][model] = json.loads(alone.read_text())["posterior"][model]
+    return summary
 
 
 def interval(q: dict | None) -> str:
@@ -105,19 +145,32 @@ def interval(q: dict | None) -> str:
     return f"{q['mean']:.4g} [{q['q2_5']:.4g}, {q['q97_5']:.4g}]"
 
 
+def _g(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3g}"
+
+
 def report(exact: dict, abcns: dict) -> list[str]:
     """Markdown lines: per model log Z, p exact ± se, p abcns; per parameter both intervals."""
-    lines = ["| model | exact log Z ± err | p exact ± se | p abcns | dynesty evaluations |", "|---|---|---|---|---|"]
+    lines = ["| model | exact log Z ± err | p exact ± se | p abcns | dynesty evaluations | NMSE % at the exact mean | "
+             "residual lag-1 autocorrelation | Ljung-Box p |", "|---|---|---|---|---|---|---|---|"]
     for m, ans in exact["models"].items():
         p_abcns = (abcns.get("model_probabilities") or {}).get(m)
+        at = ans.get("at_mean") or {}
         lines.append(f"| {m} | {ans['log_z']:.2f} ± {ans['log_z_err']:.2f} | {exact['p'][m]:.4g} ± "
                      f"{exact['p_se'][m]:.2g} | {'-' if p_abcns is None else format(p_abcns, '.4g')} | "
-                     f"{ans['n_evaluations']:,} |")
+                     f"{ans['n_evaluations']:,} | {_g(at.get('nmse_pct'))} | {_g(at.get('residual_lag1'))} | "
+                     f"{_g(at.get('ljung_box_p'))} |")
     lines += ["", "| model | parameter | exact mean [95 %] | abcns mean [95 %] |", "|---|---|---|---|"]
     for m, ans in exact["models"].items():
-        post = (abcns.get("posterior") or {}).get(m, {})
+        post = (abcns.get("posterior") or {}).get(m)
+        alone = post is None and m in abcns.get("alone", {})
+        post = abcns["alone"][m] if alone else post or {}
         for par, q in ans["posterior"].items():
-            lines.append(f"| {m} | {par} | {interval(q)} | {interval(post.get(par))} |")
+            lines.append(f"| {m} | {par} | {interval(q)} | {interval(post.get(par))}{' (alone)' if alone else ''} |")
+    floor = abcns.get("noise_floor") or {}
+    if floor.get("noise_variance") is not None:
+        lines.append(f"| ({floor.get('model')}) | sigma | | {math.sqrt(floor['noise_variance']):.4g} "
+                     f"(abcns's noise-floor estimate, {floor.get('method')}) |")
     return lines
 
 
@@ -129,10 +182,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--nlive", type=int, default=300)
     parser.add_argument("--abcns", type=Path, default=Path("out/cyclic_tests"), help="run.py's --out")
     parser.add_argument("--out", type=Path, default=None, help="write the exact answers here (JSON)")
+    parser.add_argument("--stored", type=Path, default=None, help="print the answers of an earlier --out (no dynesty)")
     args = parser.parse_args(argv)
+    stored = {} if args.stored is None else {a["specimen"]: a for a in json.loads(args.stored.read_text())}
     answers = []
     for name in args.specimen:
-        exact = exact_specimen(args.data, name, args.seed, args.nlive)
+        if name in stored:
+            exact = diagnosed(args.data, stored[name])
+        else:
+            exact = exact_specimen(args.data, name, args.seed, args.nlive)
         answers.append(exact)
         print(f"\n### {name}, seed {args.seed}, {args.nlive} live points\n")
         print("\n".join(report(exact, abcns_summary(args.data, name, args.seed, args.abcns))), flush=True)
