@@ -1,7 +1,7 @@
 """The cyclic tests with the exact Gaussian likelihood (dynesty) beside abcns.
 
     python -m examples.cyclic_tests.exact --data DIR [--specimen daniel ...] [--seed 1]
-                                          [--nlive 300] [--abcns OUT] [--out OUT] [--stored OUT]
+                                          [--nlive 300] [--sample rwalk] [--abcns OUT] [--out OUT] [--stored OUT]
 
 Per specimen: the records, scaling, models, priors and simulators of ``run.py`` (the same
 job, built from ``models.yaml``), and per model ``dynesty.NestedSampler`` with the Gaussian
@@ -98,18 +98,18 @@ def specimen_job(folder: Path, name: str, seed: int) -> Any:
     return build(parse(spec_for(x / np.max(np.abs(x)), load / np.max(np.abs(load)), seed, None)))
 
 
-def exact_specimen(folder: Path, name: str, seed: int, nlive: int) -> dict:
+def exact_specimen(folder: Path, name: str, seed: int, nlive: int, sample: str) -> dict:
     """Every model's dynesty answer on specimen ``name`` and the exact model probabilities."""
     job = specimen_job(folder, name, seed)
     window = tuple(job.spec.data.fit) if job.spec.data.fit else (0, len(job.observed))
     models = {}
     for model, simulator in zip(job.models, job.simulators, strict=True):
         exact = GaussianRestoring(model, simulator, job.observed, window)
-        models[model.name] = run_dynesty(exact, nlive, seed)
+        models[model.name] = run_dynesty(exact, nlive, seed, sample)
         models[model.name]["at_mean"] = exact.diagnose(models[model.name]["posterior"])
         print(f"  {name} {model.name}: log Z {models[model.name]['log_z']:.2f}, "
               f"{models[model.name]['n_evaluations']:,} evaluations, {models[model.name]['wall_s']:.0f} s", flush=True)
-    return {"specimen": name, "seed": seed, "nlive": nlive, "window": list(window), "models": models,
+    return {"specimen": name, "seed": seed, "nlive": nlive, "sample": sample, "window": list(window), "models": models,
             **model_probabilities(models)}
 
 
@@ -180,6 +180,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--specimen", nargs="+", default=["daniel"], choices=SPECIMENS)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--nlive", type=int, default=300)
+    parser.add_argument("--sample", default="rwalk", choices=("unif", "rwalk", "rslice"),
+                        help="dynesty's proposal (rwalk: BWBN's 12 dimensions fill the ellipsoids badly for unif)")
     parser.add_argument("--abcns", type=Path, default=Path("out/cyclic_tests"), help="run.py's --out")
     parser.add_argument("--out", type=Path, default=None, help="write the exact answers here (JSON)")
     parser.add_argument("--stored", type=Path, default=None, help="print the answers of an earlier --out (no dynesty)")
@@ -190,12 +192,12 @@ def main(argv: list[str] | None = None) -> None:
         if name in stored:
             exact = diagnosed(args.data, stored[name])
         else:
-            exact = exact_specimen(args.data, name, args.seed, args.nlive)
+            exact = exact_specimen(args.data, name, args.seed, args.nlive, args.sample)
         answers.append(exact)
-        print(f"\n### {name}, seed {args.seed}, {args.nlive} live points\n")
+        print(f"\n### {name}, seed {args.seed}, {exact['nlive']} live points, {exact.get('sample', 'unif')}\n")
+        if args.out is not None:  # after each specimen: a long run keeps what it has
+            args.out.write_text(json.dumps(answers, indent=1))
         print("\n".join(report(exact, abcns_summary(args.data, name, args.seed, args.abcns))), flush=True)
-    if args.out is not None:
-        args.out.write_text(json.dumps(answers, indent=1, default=lambda x: None if not math.isfinite(x) else x))
 
 
 if __name__ == "__main__":
