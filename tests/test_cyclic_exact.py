@@ -50,3 +50,13 @@ def test_a_failed_simulation_has_likelihood_zero(job):
     exact = GaussianRestoring(job.models[0], job.simulators[0], job.observed, (0, 60))
     exact.ok = -12345  # no status equals it: every simulation counts as failed
     assert exact.loglike(exact.prior_transform(np.full(len(exact.names), 0.5))) == -np.inf
+
+
+def test_floor_sigma_inverts_the_nmse_units():
+    # n residuals of std sigma: NMSE d = 100 sum r^2 / (n s^2) ~ 100 sigma^2 / s^2, the floor's
+    # per-sample variance d / n (p = 0): the conversion gives sigma back exactly
+    from examples.cyclic_tests.exact import floor_sigma
+
+    n, s2, sigma = 380, 0.22, 0.05
+    d = 100 * n * sigma**2 / (n * s2)
+    assert floor_sigma({"noise_variance": d / n, "n_samples": n}, s2) == pytest.approx(sigma, rel=1e-12)

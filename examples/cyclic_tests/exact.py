@@ -109,7 +109,8 @@ def exact_specimen(folder: Path, name: str, seed: int, nlive: int, sample: str) 
         models[model.name]["at_mean"] = exact.diagnose(models[model.name]["posterior"])
         print(f"  {name} {model.name}: log Z {models[model.name]['log_z']:.2f}, "
               f"{models[model.name]['n_evaluations']:,} evaluations, {models[model.name]['wall_s']:.0f} s", flush=True)
-    return {"specimen": name, "seed": seed, "nlive": nlive, "sample": sample, "window": list(window), "models": models,
+    return {"specimen": name, "seed": seed, "nlive": nlive, "sample": sample, "observed_var": float(np.var(exact.observed)),
+            "window": list(window), "models": models,
             **model_probabilities(models)}
 
 
@@ -121,6 +122,8 @@ def diagnosed(folder: Path, stored: dict) -> dict:
         if not ans.get("at_mean"):
             exact = GaussianRestoring(model, simulator, job.observed, tuple(stored["window"]))
             ans["at_mean"] = exact.diagnose(ans["posterior"])
+    window = slice(*stored["window"])
+    stored.setdefault("observed_var", float(np.var(job.observed[window])))
     return stored
 
 
@@ -149,6 +152,13 @@ def _g(x: float | None) -> str:
     return "-" if x is None else f"{x:.3g}"
 
 
+def floor_sigma(floor: dict, observed_var: float) -> float:
+    """abcns's noise floor as a noise std in the load's units: its ``noise_variance`` is one
+    sample's noise in NMSE units (``abcns.noise``: d = 100 / (n s^2) sum r^2), so
+    sigma^2 = noise_variance n s^2 / 100."""
+    return math.sqrt(floor["noise_variance"] * floor["n_samples"] * observed_var / 100)
+
+
 def report(exact: dict, abcns: dict) -> list[str]:
     """Markdown lines: per model log Z, p exact ± se, p abcns; per parameter both intervals."""
     lines = ["| model | exact log Z ± err | p exact ± se | p abcns | dynesty evaluations | NMSE % at the exact mean | "
@@ -169,8 +179,8 @@ def report(exact: dict, abcns: dict) -> list[str]:
             lines.append(f"| {m} | {par} | {interval(q)} | {interval(post.get(par))}{' (alone)' if alone else ''} |")
     floor = abcns.get("noise_floor") or {}
     if floor.get("noise_variance") is not None:
-        lines.append(f"| ({floor.get('model')}) | sigma | | {math.sqrt(floor['noise_variance']):.4g} "
-                     f"(abcns's noise-floor estimate, {floor.get('method')}) |")
+        lines.append(f"| ({floor.get('model')}) | sigma | | {floor_sigma(floor, exact['observed_var']):.4g} "
+                     f"(abcns's noise floor, {floor.get('method')}) |")
     return lines
 
 
