@@ -87,7 +87,7 @@ import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -157,6 +157,18 @@ def case_spec(case: str, data: dict[str, Any], seed: int, particles: int | None)
 
 # -- exact Bayes: dynesty with the Gaussian likelihood ----------------------------------------
 
+class Likelihood(Protocol):
+    """What :func:`run_dynesty` runs: the parameters' names, dynesty's prior transform (the
+    unit cube onto the priors) and the log-likelihood (:class:`ExactModel`,
+    ``examples.cyclic_tests.exact.GaussianRestoring``)."""
+
+    names: list[str]
+
+    def prior_transform(self, u: np.ndarray) -> np.ndarray: ...
+
+    def loglike(self, theta: np.ndarray) -> float: ...
+
+
 class ExactModel:
     """One model's exact log-likelihood and prior transform for dynesty.
 
@@ -182,7 +194,6 @@ class ExactModel:
         self.ok = OK
         self.start, self.observed = start, np.asarray(observed[start:stop], dtype=float)
         self.sigma = float(sigma)
-        self.log_norm = -self.observed.size * math.log(self.sigma * math.sqrt(2 * math.pi))
         self.names = list(model.priors)
         self.low = np.array([p.low for p in model.priors.values()])
         self.width = np.array([p.width for p in model.priors.values()])
@@ -194,9 +205,16 @@ class ExactModel:
         out = self.sim.simulate(self.expand(theta))
         if out.status[0] != self.ok:
             return -np.inf
-        r = out.values[0, self.start:] - self.observed
-        chi2 = float(r @ r) / self.sigma**2
-        return self.log_norm - 0.5 * chi2 if math.isfinite(chi2) else -np.inf
+        return gaussian_loglike(out.values[0, self.start:] - self.observed, self.sigma)
+
+
+def gaussian_loglike(residual: np.ndarray, sigma: float) -> float:
+    """log N(residual | 0, sigma^2 I): the exact likelihood of i.i.d. Gaussian errors of std
+    ``sigma``; -inf where the residuals are not finite (a failed simulation)."""
+    chi2 = float(residual @ residual) / sigma**2
+    if not math.isfinite(chi2):
+        return -np.inf
+    return -residual.size * math.log(sigma * math.sqrt(2 * math.pi)) - 0.5 * chi2
 
 
 def weighted_summary(samples: np.ndarray, weights: np.ndarray, names: list[str]) -> dict[str, dict[str, float]]:
@@ -227,14 +245,16 @@ def width_rse(results: Any, names: list[str], rng: np.random.Generator) -> dict[
     return {n: float(w[:, j].std(ddof=1) / w[:, j].mean()) for j, n in enumerate(names)}
 
 
-def run_dynesty(exact: ExactModel, nlive: int, seed: int) -> dict[str, Any]:
+def run_dynesty(exact: Likelihood, nlive: int, seed: int, sample: str = SAMPLE) -> dict[str, Any]:
     """One model's exact answer: log Z and its error, the posterior summary, dynesty's own
-    error on the interval widths, the likelihood evaluations and the wall time."""
+    error on the interval widths, the likelihood evaluations and the wall time. ``sample``:
+    dynesty's proposal inside the bound (``unif`` here; ``rwalk`` where a posterior of ~10
+    dimensions or more fills its ellipsoids badly, as the cyclic tests' BWBN)."""
     import dynesty
 
     start = time.monotonic()
     sampler = dynesty.NestedSampler(exact.loglike, exact.prior_transform, len(exact.names), nlive=nlive,
-                                    bound=BOUND, sample=SAMPLE, rstate=np.random.default_rng(seed))
+                                    bound=BOUND, sample=sample, rstate=np.random.default_rng(seed))
     sampler.run_nested(dlogz=DLOGZ, print_progress=False)
     wall = time.monotonic() - start
     res = sampler.results
@@ -280,6 +300,12 @@ def exact_answer(case: str, seed: int, nlive: int, job: Any, data: dict[str, Any
             tmp.write_text(json.dumps({"key": key, "answer": answer}, indent=1))
             os.replace(tmp, path)
         models[model.name] = {**answer, "cached": False}
+    return {"models": models, **model_probabilities(models)}
+
+
+def model_probabilities(models: dict[str, dict]) -> dict[str, dict[str, float]]:
+    """``{"p": ..., "p_se": ...}``: p(model) = Z_m / sum Z (equal model priors) from each
+    model's ``log_z`` and ``log_z_err``, with delta-method errors."""
     log_z = np.array([m["log_z"] for m in models.values()])
     err = np.array([m["log_z_err"] for m in models.values()])
     p = np.exp(log_z - log_z.max())
@@ -288,7 +314,7 @@ def exact_answer(case: str, seed: int, nlive: int, job: Any, data: dict[str, Any
     jac = np.diag(p) - np.outer(p, p)
     se = np.sqrt((jac**2) @ err**2)
     names = list(models)
-    return {"models": models, "p": dict(zip(names, p.tolist())), "p_se": dict(zip(names, se.tolist()))}
+    return {"p": dict(zip(names, p.tolist())), "p_se": dict(zip(names, se.tolist()))}
 
 
 # -- abcns, read through its summary ----------------------------------------------------------

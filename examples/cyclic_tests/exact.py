@@ -1,0 +1,214 @@
+"""The cyclic tests with the exact Gaussian likelihood (dynesty) beside abcns.
+
+    python -m examples.cyclic_tests.exact --data DIR [--specimen daniel ...] [--seed 1]
+                                          [--nlive 300] [--sample rwalk] [--abcns OUT] [--out OUT] [--stored OUT]
+
+Per specimen: the records, scaling, models, priors and simulators of ``run.py`` (the same
+job, built from ``models.yaml``), and per model ``dynesty.NestedSampler`` with the Gaussian
+log-likelihood of the load residuals (i.i.d., std ``sigma``), through the machinery of
+:mod:`benchmarks.exact_bayes` (``run_dynesty``, ``gaussian_loglike``,
+``model_probabilities``). Needs the optional extra ``.[bench]`` (dynesty).
+
+The noise std is a **free parameter** of each model, log-uniform on
+[:data:`SIGMA_LOW`, :data:`SIGMA_HIGH`] (scaled units: the load's peak is 1), the same prior
+for both: there is no measured noise level here (the residuals are model error, NMSE 1-10 %),
+and abcns's noise floor is an estimate read from its own run (an NMSE level), so fixing
+sigma at it would import abcns's answer into the exact one; with sigma free each model's
+evidence integrates over its own misfit level, the usual exact treatment of an unknown
+error scale.
+
+abcns's side is ``run.py``'s summary ``OUT/<name>-seed<N>.json`` (``--abcns``, default
+``out/cyclic_tests``): read when it exists, else made (``run.run_specimen``). Printed per
+specimen: log Z ± err per model, p(model) exact (delta-method se) and abcns's, the NMSE and
+the residuals' whiteness (``abcns.noise.whiteness``) at the exact posterior mean, and per
+parameter the exact posterior mean and 95 % interval beside abcns's; ``--out`` gets the JSON,
+``--stored`` prints such a JSON's answers again (specimens not in it are run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmarks.exact_bayes import gaussian_loglike, model_probabilities, run_dynesty
+from examples.cyclic_tests.run import SPECIMENS, read_specimen, run_specimen, spec_for
+
+#: the noise std's log-uniform prior (scaled load units)
+SIGMA_LOW, SIGMA_HIGH = 1e-3, 0.5
+
+
+class GaussianRestoring:
+    """One model's exact log-likelihood and prior transform for dynesty, sigma free.
+
+    ``theta``: the model's free parameters (its prior order), then sigma;
+    ``loglike``: log N(observed[window] | simulated[window], sigma^2 I), -inf where the
+    simulation fails (abcns rejects those too)."""
+
+    def __init__(self, model: Any, simulator: Any, observed: np.ndarray, window: tuple[int, int]):
+        from worker.compose import full_parameters
+        from worker.simulators import OK
+
+        self.simulator, self.expand, self.ok = simulator, full_parameters(model, simulator), OK
+        self.window = window
+        self.observed = np.asarray(observed[window[0]:window[1]], dtype=float)
+        self.names = [*model.priors, "sigma"]
+        self.low = np.array([p.low for p in model.priors.values()])
+        self.width = np.array([p.width for p in model.priors.values()])
+
+    def prior_transform(self, u: np.ndarray) -> np.ndarray:
+        sigma = SIGMA_LOW * (SIGMA_HIGH / SIGMA_LOW) ** u[-1]
+        return np.append(self.low + u[:-1] * self.width, sigma)
+
+    def residual(self, params: np.ndarray) -> np.ndarray | None:
+        """simulated - observed on the window at the model's parameters ``params`` (no
+        sigma); None where the simulation fails."""
+        out = self.simulator.simulate(self.expand(params))
+        if out.status[0] != self.ok:
+            return None
+        return out.values[0, self.window[0]:self.window[1]] - self.observed
+
+    def loglike(self, theta: np.ndarray) -> float:
+        r = self.residual(theta[:-1])
+        return -np.inf if r is None else gaussian_loglike(r, float(theta[-1]))
+
+    def diagnose(self, posterior: dict[str, dict[str, float]]) -> dict[str, Any]:
+        """At the posterior mean: the NMSE (%) and the residuals' whiteness (Ljung-Box, lag-1
+        autocorrelation): whether the i.i.d. Gaussian errors the likelihood assumes are there."""
+        from abcns.noise import whiteness
+
+        r = self.residual(np.array([posterior[n]["mean"] for n in self.names[:-1]]))
+        if r is None:
+            return {}
+        test = whiteness(r)
+        return {"nmse_pct": float(100 * np.mean(r**2) / np.var(self.observed)),
+                "residual_lag1": None if test is None else test.autocorrelation[0],
+                "ljung_box_p": None if test is None else test.p_value}
+
+
+def specimen_job(folder: Path, name: str, seed: int) -> Any:
+    """run.py's job of specimen ``name`` (the scaled records, models.yaml's models)."""
+    from service.spec import build, parse
+
+    x, load = read_specimen(folder, name)
+    return build(parse(spec_for(x / np.max(np.abs(x)), load / np.max(np.abs(load)), seed, None)))
+
+
+def exact_specimen(folder: Path, name: str, seed: int, nlive: int, sample: str) -> dict:
+    """Every model's dynesty answer on specimen ``name`` and the exact model probabilities."""
+    job = specimen_job(folder, name, seed)
+    window = tuple(job.spec.data.fit) if job.spec.data.fit else (0, len(job.observed))
+    models = {}
+    for model, simulator in zip(job.models, job.simulators, strict=True):
+        exact = GaussianRestoring(model, simulator, job.observed, window)
+        models[model.name] = run_dynesty(exact, nlive, seed, sample)
+        models[model.name]["at_mean"] = exact.diagnose(models[model.name]["posterior"])
+        print(f"  {name} {model.name}: log Z {models[model.name]['log_z']:.2f}, "
+              f"{models[model.name]['n_evaluations']:,} evaluations, {models[model.name]['wall_s']:.0f} s", flush=True)
+    return {"specimen": name, "seed": seed, "nlive": nlive, "sample": sample, "observed_var": float(np.var(exact.observed)),
+            "window": list(window), "models": models,
+            **model_probabilities(models)}
+
+
+def diagnosed(folder: Path, stored: dict) -> dict:
+    """A stored answer (``--out``'s JSON) with ``at_mean`` filled in where it is missing."""
+    job = specimen_job(folder, stored["specimen"], stored["seed"])
+    for model, simulator in zip(job.models, job.simulators, strict=True):
+        ans = stored["models"][model.name]
+        if not ans.get("at_mean"):
+            exact = GaussianRestoring(model, simulator, job.observed, tuple(stored["window"]))
+            ans["at_mean"] = exact.diagnose(ans["posterior"])
+    window = slice(*stored["window"])
+    stored.setdefault("observed_var", float(np.var(job.observed[window])))
+    return stored
+
+
+def abcns_summary(folder: Path, name: str, seed: int, out: Path) -> dict:
+    """run.py's summary of specimen ``name``: its JSON when there, else made now. A model
+    the joint run left without a posterior (p ~ 0) takes the one of its run alone
+    (``run.py --model bw``: ``<name>-bw-seed<N>.json``) when that is there, in
+    ``summary["alone"]``."""
+    path = out / f"{name}-seed{seed}.json"
+    summary = json.loads(path.read_text()) if path.is_file() else run_specimen(folder, name, seed, None, out)
+    summary["alone"] = {}
+    for model in summary.get("model_probabilities") or {}:
+        alone = out / f"{name}-{model}-seed{seed}.json"
+        if model not in (summary.get("posterior") or {}) and alone.is_file():
+            summary["alone"][model] = json.loads(alone.read_text())["posterior"][model]
+    return summary
+
+
+def interval(q: dict | None) -> str:
+    if not q:
+        return "-"
+    return f"{q['mean']:.4g} [{q['q2_5']:.4g}, {q['q97_5']:.4g}]"
+
+
+def _g(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3g}"
+
+
+def floor_sigma(floor: dict, observed_var: float) -> float:
+    """abcns's noise floor as a noise std in the load's units: its ``noise_variance`` is one
+    sample's noise in NMSE units (``abcns.noise``: d = 100 / (n s^2) sum r^2), so
+    sigma^2 = noise_variance n s^2 / 100."""
+    return math.sqrt(floor["noise_variance"] * floor["n_samples"] * observed_var / 100)
+
+
+def report(exact: dict, abcns: dict) -> list[str]:
+    """Markdown lines: per model log Z, p exact ± se, p abcns; per parameter both intervals."""
+    lines = ["| model | exact log Z ± err | p exact ± se | p abcns | dynesty evaluations | NMSE % at the exact mean | "
+             "residual lag-1 autocorrelation | Ljung-Box p |", "|---|---|---|---|---|---|---|---|"]
+    for m, ans in exact["models"].items():
+        p_abcns = (abcns.get("model_probabilities") or {}).get(m)
+        at = ans.get("at_mean") or {}
+        lines.append(f"| {m} | {ans['log_z']:.2f} ± {ans['log_z_err']:.2f} | {exact['p'][m]:.4g} ± "
+                     f"{exact['p_se'][m]:.2g} | {'-' if p_abcns is None else format(p_abcns, '.4g')} | "
+                     f"{ans['n_evaluations']:,} | {_g(at.get('nmse_pct'))} | {_g(at.get('residual_lag1'))} | "
+                     f"{_g(at.get('ljung_box_p'))} |")
+    lines += ["", "| model | parameter | exact mean [95 %] | abcns mean [95 %] |", "|---|---|---|---|"]
+    for m, ans in exact["models"].items():
+        post = (abcns.get("posterior") or {}).get(m)
+        alone = post is None and m in abcns.get("alone", {})
+        post = abcns["alone"][m] if alone else post or {}
+        for par, q in ans["posterior"].items():
+            lines.append(f"| {m} | {par} | {interval(q)} | {interval(post.get(par))}{' (alone)' if alone else ''} |")
+    floor = abcns.get("noise_floor") or {}
+    if floor.get("noise_variance") is not None:
+        lines.append(f"| ({floor.get('model')}) | sigma | | {floor_sigma(floor, exact['observed_var']):.4g} "
+                     f"(abcns's noise floor, {floor.get('method')}) |")
+    return lines
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, required=True, help="your copy of the data (README.md)")
+    parser.add_argument("--specimen", nargs="+", default=["daniel"], choices=SPECIMENS)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--nlive", type=int, default=300)
+    parser.add_argument("--sample", default="rwalk", choices=("unif", "rwalk", "rslice"),
+                        help="dynesty's proposal (rwalk: BWBN's 12 dimensions fill the ellipsoids badly for unif)")
+    parser.add_argument("--abcns", type=Path, default=Path("out/cyclic_tests"), help="run.py's --out")
+    parser.add_argument("--out", type=Path, default=None, help="write the exact answers here (JSON)")
+    parser.add_argument("--stored", type=Path, default=None, help="print the answers of an earlier --out (no dynesty)")
+    args = parser.parse_args(argv)
+    stored = {} if args.stored is None else {a["specimen"]: a for a in json.loads(args.stored.read_text())}
+    answers = []
+    for name in args.specimen:
+        if name in stored:
+            exact = diagnosed(args.data, stored[name])
+        else:
+            exact = exact_specimen(args.data, name, args.seed, args.nlive, args.sample)
+        answers.append(exact)
+        print(f"\n### {name}, seed {args.seed}, {exact['nlive']} live points, {exact.get('sample', 'unif')}\n")
+        if args.out is not None:  # after each specimen: a long run keeps what it has
+            args.out.write_text(json.dumps(answers, indent=1))
+        print("\n".join(report(exact, abcns_summary(args.data, name, args.seed, args.abcns))), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,62 @@
+"""examples.cyclic_tests.exact: the exact likelihood dynesty is given is the Gaussian
+log-density of the load residuals, on a tiny synthetic record (no data files, no dynesty:
+the sampler itself is benchmarks.exact_bayes's, exercised by tests/test_exact_bayes_benchmark.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from examples.cyclic_tests.exact import SIGMA_HIGH, SIGMA_LOW, GaussianRestoring
+from examples.cyclic_tests.run import spec_for
+from service.spec import build, parse
+
+
+@pytest.fixture(scope="module")
+def job():
+    # two cycles of growing amplitude, 60 samples; the "measured" load: a straight line plus a
+    # fixed pattern (seed 3), scaled to a peak of 1 as run.py does
+    t = np.linspace(0.0, 2.0, 60)
+    x = t / 2 * np.sin(2 * np.pi * t)
+    load = 0.8 * x + 0.05 * np.random.default_rng(3).standard_normal(t.size)
+    return build(parse(spec_for(x / np.max(np.abs(x)), load / np.max(np.abs(load)), 1, None)))
+
+
+@pytest.mark.parametrize("index", [0, 1])
+def test_loglike_is_the_gaussian_log_density_of_the_residuals(job, index):
+    model, simulator = job.models[index], job.simulators[index]
+    exact = GaussianRestoring(model, simulator, job.observed, (5, 50))
+    theta = exact.prior_transform(np.full(len(exact.names), 0.3))
+    sigma = theta[-1]
+    simulated = simulator.simulate(exact.expand(theta[:-1])).values[0]
+    expected = norm.logpdf(job.observed[5:50], loc=simulated[5:50], scale=sigma).sum()
+    # float64 sums of 45 terms of size ~1e2: agreement to 1e-9 relative
+    assert exact.loglike(theta) == pytest.approx(expected, rel=1e-9)
+
+
+def test_prior_transform_maps_the_cube_onto_the_spec_priors_and_sigma_log_uniform(job):
+    model = job.models[1]
+    exact = GaussianRestoring(model, job.simulators[1], job.observed, (0, 60))
+    assert exact.names == [*model.priors, "sigma"]
+    low, high = exact.prior_transform(np.zeros(len(exact.names))), exact.prior_transform(np.ones(len(exact.names)))
+    assert np.allclose(low[:-1], [p.low for p in model.priors.values()])
+    assert np.allclose(high[:-1], [p.high for p in model.priors.values()])
+    assert (low[-1], high[-1]) == pytest.approx((SIGMA_LOW, SIGMA_HIGH))
+    assert exact.prior_transform(np.full(len(exact.names), 0.5))[-1] == pytest.approx(np.sqrt(SIGMA_LOW * SIGMA_HIGH))
+
+
+def test_a_failed_simulation_has_likelihood_zero(job):
+    exact = GaussianRestoring(job.models[0], job.simulators[0], job.observed, (0, 60))
+    exact.ok = -12345  # no status equals it: every simulation counts as failed
+    assert exact.loglike(exact.prior_transform(np.full(len(exact.names), 0.5))) == -np.inf
+
+
+def test_floor_sigma_inverts_the_nmse_units():
+    # n residuals of std sigma: NMSE d = 100 sum r^2 / (n s^2) ~ 100 sigma^2 / s^2, the floor's
+    # per-sample variance d / n (p = 0): the conversion gives sigma back exactly
+    from examples.cyclic_tests.exact import floor_sigma
+
+    n, s2, sigma = 380, 0.22, 0.05
+    d = 100 * n * sigma**2 / (n * s2)
+    assert floor_sigma({"noise_variance": d / n, "n_samples": n}, s2) == pytest.approx(sigma, rel=1e-12)
