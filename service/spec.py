@@ -531,6 +531,7 @@ def check_records(force: np.ndarray | None, observed: np.ndarray, voltage: np.nd
 
 #: why a gap (NaN, inf) anywhere in a record is refused, the test window included
 _GAP = {"data.input": "the input drives the simulation over the whole record",
+        "data.voltage": "the voltage drives the simulation over the whole record, as the input does",
         "data.observed": "the simulation is scored over data.fit and compared over data.test (abcns analyse, "
                          "the figures), so a gap in the test window alone is refused too"}
 

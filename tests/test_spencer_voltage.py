@@ -170,7 +170,7 @@ def test_a_voltage_with_nan_is_refused_naming_the_field(records, tmp_path):
     raw["data"]["voltage"] = "e.npy"
     with pytest.raises(SpecError) as err:
         build(parse(raw), tmp_path)
-    assert err.value.field == "data.voltage" and "sample 7 is nan" in err.value.message
+    assert err.value.field == "data.voltage" and "sample 7 (counting from 0) is nan" in err.value.message
     with pytest.raises(SpecError) as err:
         SpencerMRVoltage(x, 1 / problem.FS, voltage=bad)
     assert err.value.field == "data.voltage" and "sample 7 is nan" in err.value.message

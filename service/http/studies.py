@@ -86,11 +86,11 @@ def study_status(manager: JobManager, study_id: str) -> dict[str, Any] | None:
         return None
     held = json.loads(path.read_text())
     jobs = [manager.get(j) for j in held["jobs"]]
+    statuses = [job.status if job is not None else "purged" for job in jobs]  # once: counts and done agree
     counts: dict[str, int] = {}
-    for job in jobs:
-        status = job.status if job is not None else "purged"
+    for status in statuses:
         counts[status] = counts.get(status, 0) + 1
     stores = [job.store_path if job is not None else study_folder(manager, study_id) / "purged" for job in jobs]
     report = study_report(held, stores)
     return {"id": study_id, "datasets": len(jobs), "jobs": held["jobs"], "counts": counts,
-            "done": all(job is None or job.status in TERMINAL for job in jobs), **report}
+            "done": all(status in (*TERMINAL, "purged") for status in statuses), **report}
