@@ -74,7 +74,9 @@ def test_service_sigkilled_mid_job_resumes_identical_and_events_continue(fresh, 
     after = follow(service.url, job_id, after=before[-1]["id"])
     events = before + after
     assert [e["id"] for e in events] == list(range(1, len(events) + 1))  # ids continue, none lost or repeated
-    assert any(e["event"] == "started" and e["data"]["resumed"] for e in after)
+    # a start after the kill is a resume; there is none when the loop, on its worker, ended the
+    # job while the service was down (the restarted service reads it finished from its store)
+    assert all(e["data"]["resumed"] for e in after if e["event"] == "started")
     pops = [e["data"]["population"] for e in events if e["event"] == "population"]
     assert sorted(set(pops)) == list(range(1, 9)) and events[-1]["event"] == "finished"
     same_populations(service_store(service, job_id), reference)
