@@ -408,6 +408,11 @@ OUTCOME_CODES = {"finished": 0, "refused": BAD_INPUT, "failed": JOB_FAILED, "can
 WORST = (0, BAD_INPUT, JOB_FAILED, 1)
 
 
+def worst_code(outcomes: list) -> int:
+    """The exit code of a run of several jobs: its worst job's (0 when every job finished)."""
+    return max((OUTCOME_CODES.get(o.status, 1) for o in outcomes), key=WORST.index, default=0)
+
+
 def run_many(specs: list[Path], out_dir: Path, scheduler: str | None, workers: int | None, seed: int | None,
              quiet: bool, as_json: bool, dashboard: bool) -> None:
     """``abcns run SPEC... --out-dir DIR``: every spec checked here first (one wrong: exit 2,
@@ -464,7 +469,6 @@ def run_many(specs: list[Path], out_dir: Path, scheduler: str | None, workers: i
         except KeyboardInterrupt:
             typer.echo("stopped: each job stops at its next batch; run again to resume", err=True)
             raise typer.Exit(130) from None
-    codes = [OUTCOME_CODES.get(o.status, 1) for o in outcomes]
     if as_json:
         typer.echo(json.dumps([{"spec": str(path), "store": str(job.store), "outcome": o.status, "error": o.error,
                                 **(o.summary or {"status": o.status, "n_populations": 0})}
@@ -484,7 +488,7 @@ def run_many(specs: list[Path], out_dir: Path, scheduler: str | None, workers: i
         if o.status != "finished":
             where = f"; the populations before it are in {job.store}" if o.summary else ""
             typer.echo(f"error: job {job.label}: {o.error}{where}", err=True)
-    worst = max(codes, key=WORST.index) if codes else 0
+    worst = worst_code(outcomes)
     if worst:
         raise typer.Exit(worst)
 
@@ -854,16 +858,14 @@ def run_study_jobs(jobs: list, out: Path, scheduler: str | None, workers: int | 
         typer.echo(f"{len(jobs) - len(failed)} of {len(jobs)} jobs finished", err=True)
     for j, o in failed:
         typer.echo(f"error: job {j.label}: {o.status}: {o.error}", err=True)
-    return max((OUTCOME_CODES.get(o.status, 1) for o in outcomes), key=WORST.index, default=0)
+    return worst_code(outcomes)
 
 
 def study_summary(folder: Path, as_json: bool) -> None:
     """The report of a study's folder (finished jobs so far)."""
-    from service.report.study import report_lines, study_report
-    from service.run.study import read_study, store_paths
+    from service.report.study import folder_report, report_lines
 
-    held = read_study(folder)
-    report = study_report(held, store_paths(folder, held))
+    report = folder_report(folder)
     if as_json:
         typer.echo(json.dumps(report, indent=1))
         return
@@ -872,11 +874,9 @@ def study_summary(folder: Path, as_json: bool) -> None:
 
 
 def study_plot(folder: Path, out: Path) -> None:
-    from service.report.study import plot_study, study_report
-    from service.run.study import read_study, store_paths
+    from service.report.study import folder_report, plot_study
 
-    held = read_study(folder)
-    for path in plot_study(study_report(held, store_paths(folder, held)), out):
+    for path in plot_study(folder_report(folder), out):
         typer.echo(str(path))
 
 

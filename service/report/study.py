@@ -38,6 +38,7 @@ from service.run.store import Store, StoreError, result_from_store
 CALIBRATION_BINS = 10
 BOOTSTRAP = 1000
 LEVELS = (0.5, 0.95)
+PERCENTS = tuple(round(100 * lv) for lv in LEVELS)  # the keys' names: in50, cover95, ...
 
 
 def answer_draws(result: Result, model: int) -> tuple[np.ndarray, np.ndarray]:
@@ -101,12 +102,17 @@ def _pairs(rows: Sequence[dict], models: Sequence[str]) -> tuple[np.ndarray, np.
     return p, y
 
 
+def bin_of(p: np.ndarray, bins: int = CALIBRATION_BINS) -> np.ndarray:
+    """Each probability's equal-width bin (p = 1 in the last)."""
+    return np.minimum((p * bins).astype(int), bins - 1)
+
+
 def ece(p: np.ndarray, y: np.ndarray, bins: int = CALIBRATION_BINS) -> float:
     """Expected calibration error of the pairs (p, y), equal-width bins of p."""
     p, y = p.ravel(), y.ravel()
     if not p.size:
         return float("nan")
-    b = np.minimum((p * bins).astype(int), bins - 1)
+    b = bin_of(p, bins)
     n = np.bincount(b, minlength=bins)
     gap = np.abs(np.bincount(b, y, bins) - np.bincount(b, p, bins))
     return float(np.sum(gap[n > 0]) / p.size)
@@ -117,7 +123,7 @@ def calibration(rows: Sequence[dict], models: Sequence[str], seed: int = 0) -> d
     calibrated outcomes drawn from the same probabilities (module docstring)."""
     p, y = _pairs(rows, models)
     flat_p, flat_y = p.ravel(), y.ravel()
-    b = np.minimum((flat_p * CALIBRATION_BINS).astype(int), CALIBRATION_BINS - 1)
+    b = bin_of(flat_p)
     bins = [{"low": k / CALIBRATION_BINS, "high": (k + 1) / CALIBRATION_BINS, "n": int(np.sum(b == k)),
              "mean_p": float(np.mean(flat_p[b == k])), "frequency": float(np.mean(flat_y[b == k]))}
             for k in range(CALIBRATION_BINS) if np.any(b == k)]
@@ -147,8 +153,7 @@ def parameter_checks(rows: Sequence[dict]) -> tuple[dict, dict]:
     sbc: dict[str, Any] = {}
     for model, name in keys:
         cells = [r["parameters"][name] for r in rows if r["model"] == model]
-        coverage[f"{model}.{name}"] = {"n": len(cells), **{f"in{round(100 * lv)}": sum(c[f"in{round(100 * lv)}"]
-                                                                                          for c in cells) for lv in LEVELS}}
+        coverage[f"{model}.{name}"] = {"n": len(cells), **{f"in{pc}": sum(c[f"in{pc}"] for c in cells) for pc in PERCENTS}}
         ranks = [c["rank"] for c in cells if c["rank"] is not None]
         k = sbc_bins(len(ranks))
         hist = np.histogram(ranks, bins=k, range=(0.0, 1.0))[0]
@@ -157,10 +162,10 @@ def parameter_checks(rows: Sequence[dict]) -> tuple[dict, dict]:
         sbc[f"{model}.{name}"] = {"ranks": ranks, "histogram": hist.tolist(), "bins": k, "p_value": p_value,
                                   "ks_p_value": ks, "without_draws": len(cells) - len(ranks)}
     for c in coverage.values():
-        c.update({f"cover{round(100 * lv)}": c[f"in{round(100 * lv)}"] / c["n"] for lv in LEVELS})
+        c.update({f"cover{pc}": c[f"in{pc}"] / c["n"] for pc in PERCENTS})
     pairs = sum(c["n"] for c in coverage.values())
-    coverage["all"] = {"n": pairs, **{f"cover{round(100 * lv)}": (sum(c[f"in{round(100 * lv)}"] for c in coverage.values())
-                                                                  / pairs if pairs else None) for lv in LEVELS}}
+    coverage["all"] = {"n": pairs, **{f"cover{pc}": sum(c[f"in{pc}"] for c in coverage.values()) / pairs if pairs else None
+                                      for pc in PERCENTS}}
     return coverage, sbc
 
 
@@ -185,6 +190,14 @@ def study_report(study: Mapping[str, Any], stores: Sequence[Path], seed: int = 0
                  "simulations_median": float(np.median(sims)) if rows else None},
         "rows": rows,
     }
+
+
+def folder_report(folder: Path) -> dict:
+    """The report of a study's folder as ``abcns study`` lays it out (:mod:`service.run.study`)."""
+    from service.run.study import read_study, store_paths
+
+    held = read_study(folder)
+    return study_report(held, store_paths(folder, held))
 
 
 def report_lines(report: Mapping[str, Any]) -> list[str]:
