@@ -90,12 +90,17 @@ def coverage(result: Result, truth: str, truths: dict = TRUTHS) -> dict[str, tup
     return {p: (v["q2_5"], v["q97_5"], v["q2_5"] <= truths[truth][p] <= v["q97_5"]) for p, v in post.items()}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def arguments(doc: str, particles: int, samples: int) -> argparse.Namespace:
+    """The command line of a synthetic-truth benchmark: --seeds, --particles, --samples."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5])
-    parser.add_argument("--particles", type=int, default=500)
-    parser.add_argument("--samples", type=int, default=400)
-    args = parser.parse_args()
+    parser.add_argument("--particles", type=int, default=particles)
+    parser.add_argument("--samples", type=int, default=samples)
+    return parser.parse_args()
+
+
+def main() -> None:
+    args = arguments(__doc__ or "", 500, 400)
     print(f"particles {args.particles}, {args.samples} samples, noise {NOISE:.0%} of the force's std, "
           f"substeps {SUBSTEPS}")
     for truth in ("bw", "bwbn"):

@@ -20,7 +20,6 @@ For each seed it prints whether every true value lies inside the 95 % posterior 
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import numpy as np
@@ -29,7 +28,7 @@ import abcns
 from abcns import Model, NSSettings, StopRules
 from abcns.distances import NMSE
 from abcns.result import Result
-from benchmarks.restoring import coverage, report
+from benchmarks.restoring import arguments, coverage, report
 from worker.compose import evaluator
 from worker.restoring import BoucWenRestoring, SpencerMRVoltage
 
@@ -88,11 +87,7 @@ def run(names: list[str], n_samples: int, particles: int, seed: int) -> Result:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5])
-    parser.add_argument("--particles", type=int, default=400)
-    parser.add_argument("--samples", type=int, default=1000)
-    args = parser.parse_args()
+    args = arguments(__doc__ or "", 400, 1000)
     print(f"particles {args.particles}, {args.samples} samples at {FS:g} Hz, noise {NOISE:.0%} of the force's std, "
           f"substeps {SUBSTEPS}")
     for seed in args.seeds:
