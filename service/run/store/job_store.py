@@ -144,7 +144,7 @@ class Store:
             raise ValueError(f"set_status cannot set the reserved attributes {clash}")
         reason = getattr(stop_reason, "value", stop_reason)
         update = metadata.jsonable({"status": status, "stop_reason": None if reason is None else str(reason), **extra},
-                           "run information")
+                                   "run information")
         update["updated_at"] = metadata.now()
         self._update_attrs(update)
 
@@ -186,7 +186,6 @@ class Store:
     def _update_attrs(self, update: dict[str, Any], consolidate: bool = False) -> None:
         """One read-modify-write of the group attributes under the store's lock (:func:`metadata.update_attrs`)."""
         metadata.update_attrs(self.path, update, consolidate)
-
 
     # ------------------------------------------------------------------ reading
 

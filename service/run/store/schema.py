@@ -99,7 +99,7 @@ class Variable:
     distance: ``%`` for the NMSE of Eq. 7), ``description`` ``{frame}`` (:data:`FRAMES`).
     ``field`` is the :class:`abcns.Population` attribute the array holds as it is (``"floor.best"``:
     the attribute ``best`` of ``pop.floor``; fill where that is None); None: built by its own
-    code in ``_rows`` and ``_population``. ``derived``: written for readers only, not read back
+    code in :mod:`~service.run.store.rows`. ``derived``: written for readers only, not read back
     (it follows from the arrays that are)."""
 
     name: str
