@@ -1,4 +1,8 @@
-"""Result values: one record per population, and the result of a run."""
+"""Result values: one record per population, and the result of a run.
+
+What the run computed and what follows from it (the decision population, the model
+probabilities, their errors, the posterior, the JSON summary); the summary's warnings, the
+sentences a user reads of it, are :mod:`abcns.run_warnings`'s."""
 
 from __future__ import annotations
 
@@ -8,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from abcns import run_warnings
 from abcns.ellipsoid import Ellipsoid
 from abcns.evidence import DEAD_BEFORE, DEATH_RULES, Evidence, probabilities
 from abcns.likelihood import Reading, of_floor, read, records
@@ -16,8 +21,6 @@ from abcns.priors import Model
 from abcns.settings import DEATH_PROBABILITY, StopReason
 
 QUANTILES = (0.025, 0.05, 0.5, 0.95, 0.975)
-#: the share of a model's simulations that may fail or diverge before the summary warns
-FAILURE_SHARE = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -176,13 +179,14 @@ class Result:
         floor or stopped above it."""
         if self.floor is None:
             return self.final
-        for i, mark in enumerate(self._standings):
+        for i, mark in enumerate(self.standings):
             if mark is not None and mark.reached:
                 return self.populations[i if mark is Standing.AT or i == 0 else i - 1]
         return self.final
 
     @functools.cached_property
-    def _standings(self) -> list[Standing | None]:
+    def standings(self) -> list[Standing | None]:
+        """Each population's standing to the decision tolerance (:func:`abcns.noise.standings`)."""
         return standings(self.populations)
 
     @property
@@ -191,7 +195,7 @@ class Result:
         or below it: :class:`abcns.noise.Standing`); None when it knows no floor."""
         if self.floor is None:
             return None
-        mark = self._standings[-1]
+        mark = self.standings[-1]
         return mark is not None and mark.reached
 
     @property
@@ -269,77 +273,9 @@ class Result:
                 for i, m in enumerate(self.models)}
 
     def warnings(self) -> list[str]:
-        """Why the answer may not be what it looks like.
-
-        - "below the noise floor": the final population's model probabilities differ (by more
-          than 0.05) from those at the decision tolerance, which are the answer;
-        - "floor above the run": the noise floor lies above every tolerance of the run (a
-          stated noise larger than the data's misfit);
-        - "undecided": the answer holds two or more models above 0.1 while the tolerance sits
-          at one model's best fit (its best distance is above half the tolerance), so a lower
-          tolerance could still separate them but that model holds it up;
-        - "failures": more than :data:`FAILURE_SHARE` of a model's simulations failed or
-          diverged (counted as rejections: the model's probability and posterior hold only
-          where its simulator works);
-        - "failed": a model died because every one of its simulations failed (death rule
-          ``failed``): the data did not reject it, its simulator never ran.
-        """
-        if not self.populations:
-            return []
-        out = self._floor_warnings() + self._undecided()
-        for name, f in self.failures().items():
-            if f["share"] > FAILURE_SHARE:
-                out.append(f"failures: {f['failed']} of {name}'s {f['simulations']} simulations "
-                           f"({100 * f['share']:.3g} %) failed or diverged; they count as rejections, so its "
-                           "probability and posterior hold only where its simulator works")
-        died = self.died_at()
-        for name, rule in self.death_rules().items():
-            if rule == "failed":
-                out.append(f"failed: every simulation of {name} failed in population {died.get(name, '?')}, so it died "
-                           "without being compared with the data (check its fixed values and priors)")
-        return out
-
-    def _floor_warnings(self) -> list[str]:
-        out = []
-        pop = self.decision_population()
-        floor = self.floor
-        if floor is not None and not self.reached_floor and not self.floor_settled:
-            out.append(f"no noise floor: the best fit fell with the tolerance to {floor.best:.4g} (the decision tolerance "
-                       "halved within the last populations): noise-free data or a model that fits them exactly; the "
-                       "answer is the final population's")
-        if floor is not None and self.provisional:
-            out.append(f"provisional: the run stopped ({self.stop_reason.value}) at eps {self.final.epsilon:.4g}, above "
-                       f"the decision tolerance {floor.decision:.4g} (noise floor {floor.floor:.4g}); its model "
-                       "probabilities and intervals are not yet those of the data: run it on (a larger budget, or "
-                       "without the rule that stopped it)")
-        if floor is not None and self._standings[pop.t - 1] is Standing.BELOW:
-            out.append(f"floor above the run: the noise floor's decision tolerance {floor.decision:.4g} lies above every "
-                       f"tolerance of the run (the highest {pop.epsilon:.4g}); the stated noise is larger than the "
-                       "data's misfit")
-        if pop is not self.final and self.reading() is None:
-            named = lambda q: ", ".join(f"{m.name} {v:.2f}" for m, v in zip(self.models, q, strict=True))
-            if np.max(np.abs(self.final.model_probabilities - pop.model_probabilities)) > 0.05:
-                out.append(f"below the noise floor: at the final tolerance {self.final.epsilon:.4g} (population "
-                           f"{self.final.t}) the model probabilities are {named(self.final.model_probabilities)}, but "
-                           f"at the decision tolerance {pop.epsilon:.4g} (population {pop.t}, above the noise floor "
-                           f"{floor.floor if floor else float('nan'):.4g}) they are {named(pop.model_probabilities)}: "
-                           "below the floor the model that fits the noise best wins; the answer is the latter")
-        return out
-
-    def _undecided(self) -> list[str]:
-        pop = self.decision_population()
-        p = pop.model_probabilities
-        contenders = [i for i in range(len(self.models)) if p[i] > 0.1]
-        if len(contenders) < 2:
-            return []
-        for i in contenders:
-            d = pop.distances[pop.models == i]
-            if d.size and np.min(d) > 0.5 * pop.epsilon:
-                names = ", ".join(f"{self.models[j].name} (p = {p[j]:.2f})" for j in contenders)
-                return [f"undecided: {names} are all above 0.1 while the tolerance {pop.epsilon:.4g} sits at the "
-                        f"best fit of {self.models[i].name} (its best distance {np.min(d):.4g}); a tolerance below "
-                        "that would separate them"]
-        return []
+        """Why the answer may not be what it looks like: the summary's ``warnings``, each a
+        sentence a user reads (:func:`abcns.run_warnings.warnings`)."""
+        return run_warnings.warnings(self)
 
     def particles(self, model: int | str, t: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(theta (n, d_m), distances (n,), weights (n,)) of one model in population t."""

@@ -19,7 +19,7 @@ import zarr
 from zarr.core.array import AsyncArray
 
 import abcns
-import service.run.store as store_module
+import service.run.store.metadata as store_metadata
 from abcns import NSSettings, Population, SerialExecutor, StopReason, StopRules
 from abcns import ellipsoid as ell
 from abcns.evidence import Evidence
@@ -349,7 +349,7 @@ def test_a_status_change_is_one_write_so_a_kill_leaves_the_old_or_the_new(tmp_pa
     store = new_store(tmp_path / "s.zarr", models)
     store.set_status("running", None, run={"epsilon_initial_source": "given"})
     writes: list[str] = []
-    write, store_set = store_module._replace, zarr.storage.LocalStore.set
+    write, store_set = store_metadata.replace, zarr.storage.LocalStore.set
 
     def dies_at_the_second_write(file, data):
         if file.name == "zarr.json" and file.parent == store.path:
@@ -363,7 +363,7 @@ def test_a_status_change_is_one_write_so_a_kill_leaves_the_old_or_the_new(tmp_pa
         await store_set(self, key, value)
 
     with monkeypatch.context() as m, contextlib.suppress(Crash):
-        m.setattr(store_module, "_replace", dies_at_the_second_write)
+        m.setattr(store_metadata, "replace", dies_at_the_second_write)
         m.setattr(zarr.storage.LocalStore, "set", zarr_writes)
         store.set_status("finished", StopReason.MAX_POPULATIONS, run={"epsilon_initial_source": "given", "n_simulations": 12})
     a = Store.open(store.path).attrs
@@ -755,7 +755,7 @@ def test_writing_a_store_needs_no_warning_scope_and_consolidates_as_zarr_does(tm
     def no_scope(message):
         return contextlib.nullcontext()
 
-    monkeypatch.setattr(store_module, "_ignoring", no_scope)
+    monkeypatch.setattr(store_metadata, "ignoring", no_scope)
     store = line_and_disc_store(tmp_path / "w.zarr", "evidence", n_populations=2)  # create, append: warnings are errors
     store.set_status("finished", StopReason.MAX_POPULATIONS)
     ours = json.loads((store.path / "zarr.json").read_text())

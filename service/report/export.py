@@ -1,7 +1,7 @@
 """Export a run to xarray and ArviZ.
 
 ``to_dataset(result)`` gives one xarray Dataset of every population in the result store's
-schema (``service/run/store.py``, format 4: model and parameter labelled by name, units and
+schema (``service/run/store/schema.py``, format 4: model and parameter labelled by name, units and
 descriptions, ``format_version``), so a run from ``abcns.run`` and a store opened with
 ``xarray.open_zarr`` read alike; ``from_dataset`` reads either back into an
 :class:`abcns.Result` (particles, weights, counters, model probabilities, survivors,
