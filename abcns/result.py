@@ -10,7 +10,7 @@ import numpy as np
 
 from abcns.ellipsoid import Ellipsoid
 from abcns.evidence import DEAD_BEFORE, DEATH_RULES, Evidence, probabilities
-from abcns.likelihood import Reading, of_floor, read, records
+from abcns.likelihood import Reading, enough, of_floor, read, records
 from abcns.noise import Floor, Standing, standings, waited_for
 from abcns.priors import Model
 from abcns.settings import DEATH_PROBABILITY, StopReason
@@ -222,6 +222,22 @@ class Result:
         log_l = of_floor(floor)
         return None if log_l is None else read(records(self.populations), [m.n_dim for m in self.models], log_l)
 
+    def answer_draws(self, model: int) -> tuple[np.ndarray, np.ndarray, str]:
+        """(theta (n, d), weights (n,) summing to 1, how) of one model in the run's answer.
+        ``how``: ``likelihood``, the reading's weighted particles (:meth:`reading`), where it
+        rests on enough effective particles (:func:`abcns.likelihood.enough`) or the model
+        has no particle in the decision population; else ``tolerance``, the decision
+        population's particles (uniform weights for ABC-NS), as without a reading. A run
+        stopped above its floor reads its few particles nearest the best fit by the
+        likelihood, intervals narrower than the data's; its last tolerance's are wider."""
+        reading, answer = self.reading(), self.decision_population()
+        has = model in self.alive(answer.t)
+        if reading is not None and (not has or enough(reading.ess, [m.n_dim for m in self.models])[model]):
+            return reading.theta[model], reading.weights[model], "likelihood"
+        theta, _, w = self.particles(model, answer.t)
+        w = w if self.weighted_posterior else np.ones(theta.shape[0])
+        return theta, w / np.sum(w), "tolerance"
+
     def alive(self, t: int | None = None) -> list[int]:
         pop = self.final if t is None else self.populations[t - 1]
         return [i for i, p in enumerate(pop.model_probabilities) if p > 0]
@@ -316,6 +332,7 @@ class Result:
             out.append(f"floor above the run: the noise floor's decision tolerance {floor.decision:.4g} lies above every "
                        f"tolerance of the run (the highest {pop.epsilon:.4g}); the stated noise is larger than the "
                        "data's misfit")
+        out += self._thin_reading()
         if pop is not self.final and self.reading() is None:
             named = lambda q: ", ".join(f"{m.name} {v:.2f}" for m, v in zip(self.models, q, strict=True))
             if np.max(np.abs(self.final.model_probabilities - pop.model_probabilities)) > 0.05:
@@ -325,6 +342,17 @@ class Result:
                            f"{floor.floor if floor else float('nan'):.4g}) they are {named(pop.model_probabilities)}: "
                            "below the floor the model that fits the noise best wins; the answer is the latter")
         return out
+
+    def _thin_reading(self) -> list[str]:
+        """A warning per model whose posterior is not the likelihood reading's, as it rests on
+        too few effective particles (:meth:`answer_draws`)."""
+        reading, pop = self.reading(), self.decision_population()
+        if reading is None:
+            return []
+        return [f"few effective particles: {m.name}'s likelihood reading rests on {reading.ess[i]:.3g} effective "
+                f"particles (fewer than 2 (d + 1) = {2 * (m.n_dim + 1)}), so its intervals are those of population "
+                f"{pop.t}'s particles, the ABC posterior at eps {pop.epsilon:.4g}: wider than the data's"
+                for i, m in enumerate(self.models) if i in self.alive(pop.t) and self.answer_draws(i)[2] == "tolerance"]
 
     def _undecided(self) -> list[str]:
         pop = self.decision_population()
@@ -390,7 +418,9 @@ class Result:
         when the run got to its decision tolerance, else the stop reason that ended it above
         (``provisional``), ``final`` without a floor; ``reading``: ``likelihood`` (every
         population weighted by the Gaussian likelihood, :mod:`abcns.likelihood`) or
-        ``tolerance`` (the decision population's particles)."""
+        ``tolerance`` (the decision population's particles); ``posterior_reading`` (with a
+        likelihood reading): per model shown, which of the two its posterior is
+        (:meth:`answer_draws`)."""
         reached_ = self.reached_floor
         out = {**self._at(answer), "rule": "final" if reached_ is None else "noise_floor" if reached_ else
                self.stop_reason.value, "provisional": self.provisional, "reading": "tolerance"}
@@ -422,9 +452,12 @@ class Result:
         out.update(model_probabilities=self._named(reading.probabilities), model_probability_se=self._named(reading.se),
                    log_evidence={m.name: {"log_z": finite(reading.log_z[i]), "se": finite(reading.log_z_se[i])}
                                  for i, m in enumerate(self.models)},
-                   posterior={self.models[i].name: posterior_summary(reading.theta[i], reading.weights[i],
-                                                                     self.models[i].parameter_names)
-                              for i in alive if reading.theta[i].shape[0]})
+                   posterior={})
+        for i in alive:
+            theta, w, how = self.answer_draws(i)
+            if theta.shape[0]:
+                out["posterior"][self.models[i].name] = posterior_summary(theta, w, self.models[i].parameter_names)
+                out["decision"].setdefault("posterior_reading", {})[self.models[i].name] = how
         return out
 
     def summary(self) -> dict:
