@@ -30,9 +30,9 @@ the exact Gaussian likelihood of the noise the run estimates or the spec states,
 the populations' tolerances were, as long as the run reached its floor (the weights inside
 the last population's region then vary by e^-3.4 or less) and each model's earlier shells
 hold its particles. A run stopped above its floor (a budget) has a last region far wider than
-the posterior, and its weights fall on the few particles nearest the best fit: where a
-model's reading rests on fewer than 2 (d + 1) effective particles (:func:`enough`), its
-posterior is read from the answer population's particles instead
+the posterior, and its weights fall on the few particles nearest the best fit: where such a
+run's reading of a model rests on fewer than 2 (d + 1) effective particles (:func:`enough`),
+the model's posterior is read from the answer population's particles instead
 (:meth:`abcns.result.Result.answer_draws`), wider than the data's, not narrower.
 
 When the spec does not state the noise, its variance is integrated out under Jeffreys' prior
@@ -130,8 +130,9 @@ def enough(ess: np.ndarray, dims: Sequence[int]) -> np.ndarray:
     """Whether each model's reading rests on at least 2 (d + 1) effective particles. Fewer,
     and its weights sit on a handful of particles: a run stopped above its floor, whose last
     region is far wider than the posterior, weighs its few particles nearest the best fit
-    (the cyclic test gill's BWBN: 2.7 effective particles, intervals 0.35-1.24 of the exact
-    width); a model's few particles far from its best fit can hide most of its evidence."""
+    (the cyclic test gill's BWBN at 80 populations: 2.7 effective particles, intervals
+    0.35-1.24 of the exact width); a model's few particles far from its best fit can hide
+    most of its evidence."""
     return np.asarray(ess) >= 2 * (np.asarray(dims) + 1)
 
 

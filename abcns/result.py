@@ -224,15 +224,18 @@ class Result:
 
     def answer_draws(self, model: int) -> tuple[np.ndarray, np.ndarray, str]:
         """(theta (n, d), weights (n,) summing to 1, how) of one model in the run's answer.
-        ``how``: ``likelihood``, the reading's weighted particles (:meth:`reading`), where it
-        rests on enough effective particles (:func:`abcns.likelihood.enough`) or the model
-        has no particle in the decision population; else ``tolerance``, the decision
-        population's particles (uniform weights for ABC-NS), as without a reading. A run
-        stopped above its floor reads its few particles nearest the best fit by the
-        likelihood, intervals narrower than the data's; its last tolerance's are wider."""
+        ``how``: ``likelihood``, the reading's weighted particles (:meth:`reading`), unless
+        the run stopped above its floor (:attr:`provisional`) and the model's reading rests on
+        too few effective particles (:func:`abcns.likelihood.enough`) while it has particles
+        in the decision population: then ``tolerance``, those particles (uniform weights for
+        ABC-NS), as without a reading. At the floor the weights in the last region vary by a
+        few e-folds; above it by many (the cyclic test gill's BWBN at 80 populations: e^22),
+        and the reading weighs its few particles nearest the best fit, intervals narrower than
+        the data's, where its last tolerance's are wider."""
         reading, answer = self.reading(), self.decision_population()
-        has = model in self.alive(answer.t)
-        if reading is not None and (not has or enough(reading.ess, [m.n_dim for m in self.models])[model]):
+        thin = (reading is not None and self.provisional and model in self.alive(answer.t)
+                and not enough(reading.ess, [m.n_dim for m in self.models])[model])
+        if reading is not None and not thin:
             return reading.theta[model], reading.weights[model], "likelihood"
         theta, _, w = self.particles(model, answer.t)
         w = w if self.weighted_posterior else np.ones(theta.shape[0])
@@ -344,14 +347,16 @@ class Result:
         return out
 
     def _thin_reading(self) -> list[str]:
-        """A warning per model whose posterior is not the likelihood reading's, as it rests on
-        too few effective particles (:meth:`answer_draws`)."""
+        """A warning per model whose posterior is not the likelihood reading's, as the run
+        stopped above its floor and the reading rests on too few effective particles
+        (:meth:`answer_draws`)."""
         reading, pop = self.reading(), self.decision_population()
         if reading is None:
             return []
-        return [f"few effective particles: {m.name}'s likelihood reading rests on {reading.ess[i]:.3g} effective "
-                f"particles (fewer than 2 (d + 1) = {2 * (m.n_dim + 1)}), so its intervals are those of population "
-                f"{pop.t}'s particles, the ABC posterior at eps {pop.epsilon:.4g}: wider than the data's"
+        return [f"few effective particles: {m.name}'s likelihood reading of this provisional run rests on "
+                f"{reading.ess[i]:.3g} effective particles (fewer than 2 (d + 1) = {2 * (m.n_dim + 1)}), so its "
+                f"intervals are those of population {pop.t}'s particles, the ABC posterior at eps {pop.epsilon:.4g}: "
+                "wider than the data's"
                 for i, m in enumerate(self.models) if i in self.alive(pop.t) and self.answer_draws(i)[2] == "tolerance"]
 
     def _undecided(self) -> list[str]:
@@ -420,7 +425,8 @@ class Result:
         population weighted by the Gaussian likelihood, :mod:`abcns.likelihood`) or
         ``tolerance`` (the decision population's particles); ``posterior_reading`` (with a
         likelihood reading): per model shown, which of the two its posterior is
-        (:meth:`answer_draws`)."""
+        (:meth:`answer_draws`: ``tolerance`` for a provisional run's model on too few
+        effective particles)."""
         reached_ = self.reached_floor
         out = {**self._at(answer), "rule": "final" if reached_ is None else "noise_floor" if reached_ else
                self.stop_reason.value, "provisional": self.provisional, "reading": "tolerance"}
