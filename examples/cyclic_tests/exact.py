@@ -129,7 +129,8 @@ def metropolis(log_target: Any, starts: np.ndarray, steps: int, rng: np.random.G
         chol = np.linalg.cholesky(np.exp(log_s) * cov + 1e-14 * np.eye(d))
         prop = x + rng.standard_normal((k, d)) @ chol.T
         lp_prop = log_target(prop)
-        ok = np.log(rng.random(k)) < lp_prop - lp
+        with np.errstate(invalid="ignore"):  # -inf - -inf: a chain outside stays until a proposal is inside
+            ok = np.log(rng.random(k)) < lp_prop - lp
         x[ok], lp[ok] = prop[ok], lp_prop[ok]
         chain[step], acc[step] = x, np.mean(ok)
         if (step + 1) % adapt_every == 0 and step < steps // 2:
