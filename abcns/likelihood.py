@@ -29,7 +29,11 @@ they do depends on the sampler's seed). The likelihood-weighted reading is the p
 the exact Gaussian likelihood of the noise the run estimates or the spec states, whatever
 the populations' tolerances were, as long as the run reached its floor (the weights inside
 the last population's region then vary by e^-3.4 or less) and each model's earlier shells
-hold its particles.
+hold its particles. A run stopped above its floor (a budget) has a last region far wider than
+the posterior, and its weights fall on the few particles nearest the best fit: where such a
+run's reading of a model rests on fewer than 2 (d + 1) effective particles (:func:`enough`),
+the model's posterior is read from the answer population's particles instead
+(:meth:`abcns.result.Result.answer_draws`), wider than the data's, not narrower.
 
 When the spec does not state the noise, its variance is integrated out under Jeffreys' prior
 (:func:`marginal`): the likelihood of the residuals' sum of squares, ~ d^(-n / 2), is then
@@ -122,6 +126,16 @@ def of_floor(floor: Floor) -> Callable[[np.ndarray], np.ndarray] | None:
     return marginal(floor.n_samples, floor.best)
 
 
+def enough(ess: np.ndarray, dims: Sequence[int]) -> np.ndarray:
+    """Whether each model's reading rests on at least 2 (d + 1) effective particles. Fewer,
+    and its weights sit on a handful of particles: a run stopped above its floor, whose last
+    region is far wider than the posterior, weighs its few particles nearest the best fit
+    (the cyclic test gill's BWBN at 80 populations: 2.7 effective particles, intervals
+    0.35-1.24 of the exact width); a model's few particles far from its best fit can hide
+    most of its evidence."""
+    return np.asarray(ess) >= 2 * (np.asarray(dims) + 1)
+
+
 def spared(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, threshold: float) -> np.ndarray | None:
     """The models the reading of ``shells`` so far (the run read as if it stopped now) keeps
     from death by probability: those whose probability plus three standard errors is at or
@@ -132,7 +146,7 @@ def spared(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, t
     if log_l is None:
         return None
     r = read(shells, dims, log_l)
-    return (r.probabilities + 3 * r.se >= threshold) | (r.ess < 2 * (np.asarray(dims) + 1))
+    return (r.probabilities + 3 * r.se >= threshold) | ~enough(r.ess, dims)
 
 
 def read(shells: Sequence[Record], dims: Sequence[int], log_likelihood: Callable[[np.ndarray], np.ndarray]) -> Reading:

@@ -15,7 +15,7 @@ import numpy as np
 from abcns import run_warnings
 from abcns.ellipsoid import Ellipsoid
 from abcns.evidence import DEAD_BEFORE, DEATH_RULES, Evidence, probabilities
-from abcns.likelihood import Reading, of_floor, read, records
+from abcns.likelihood import Reading, enough, of_floor, read, records
 from abcns.noise import Floor, Standing, standings, waited_for
 from abcns.priors import Model
 from abcns.settings import DEATH_PROBABILITY, StopReason
@@ -226,6 +226,25 @@ class Result:
         log_l = of_floor(floor)
         return None if log_l is None else read(records(self.populations), [m.n_dim for m in self.models], log_l)
 
+    def answer_draws(self, model: int) -> tuple[np.ndarray, np.ndarray, str]:
+        """(theta (n, d), weights (n,) summing to 1, how) of one model in the run's answer.
+        ``how``: ``likelihood``, the reading's weighted particles (:meth:`reading`), unless
+        the run stopped above its floor (:attr:`provisional`) and the model's reading rests on
+        too few effective particles (:func:`abcns.likelihood.enough`) while it has particles
+        in the decision population: then ``tolerance``, those particles (uniform weights for
+        ABC-NS), as without a reading. At the floor the weights in the last region vary by a
+        few e-folds; above it by many (the cyclic test gill's BWBN at 80 populations: e^22),
+        and the reading weighs its few particles nearest the best fit, intervals narrower than
+        the data's, where its last tolerance's are wider."""
+        reading, answer = self.reading(), self.decision_population()
+        thin = (reading is not None and self.provisional and model in self.alive(answer.t)
+                and not enough(reading.ess, [m.n_dim for m in self.models])[model])
+        if reading is not None and not thin:
+            return reading.theta[model], reading.weights[model], "likelihood"
+        theta, _, w = self.particles(model, answer.t)
+        w = w if self.weighted_posterior else np.ones(theta.shape[0])
+        return theta, w / np.sum(w), "tolerance"
+
     def alive(self, t: int | None = None) -> list[int]:
         pop = self.final if t is None else self.populations[t - 1]
         return [i for i, p in enumerate(pop.model_probabilities) if p > 0]
@@ -326,7 +345,10 @@ class Result:
         when the run got to its decision tolerance, else the stop reason that ended it above
         (``provisional``), ``final`` without a floor; ``reading``: ``likelihood`` (every
         population weighted by the Gaussian likelihood, :mod:`abcns.likelihood`) or
-        ``tolerance`` (the decision population's particles)."""
+        ``tolerance`` (the decision population's particles); ``posterior_reading`` (with a
+        likelihood reading): per model shown, which of the two its posterior is
+        (:meth:`answer_draws`: ``tolerance`` for a provisional run's model on too few
+        effective particles)."""
         reached_ = self.reached_floor
         out = {**self._at(answer), "rule": "final" if reached_ is None else "noise_floor" if reached_ else
                self.stop_reason.value, "provisional": self.provisional, "reading": "tolerance"}
@@ -358,9 +380,12 @@ class Result:
         out.update(model_probabilities=self._named(reading.probabilities), model_probability_se=self._named(reading.se),
                    log_evidence={m.name: {"log_z": finite(reading.log_z[i]), "se": finite(reading.log_z_se[i])}
                                  for i, m in enumerate(self.models)},
-                   posterior={self.models[i].name: posterior_summary(reading.theta[i], reading.weights[i],
-                                                                     self.models[i].parameter_names)
-                              for i in alive if reading.theta[i].shape[0]})
+                   posterior={})
+        for i in alive:
+            theta, w, how = self.answer_draws(i)
+            if theta.shape[0]:
+                out["posterior"][self.models[i].name] = posterior_summary(theta, w, self.models[i].parameter_names)
+                out["decision"].setdefault("posterior_reading", {})[self.models[i].name] = how
         return out
 
     def summary(self) -> dict:

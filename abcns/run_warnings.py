@@ -12,6 +12,9 @@ run in a notebook, with no service, shows them too.
 - "provisional": the run stopped above its decision tolerance (:attr:`abcns.Result.provisional`);
 - "floor above the run": the noise floor lies above every tolerance of the run (a stated
   noise larger than the data's misfit);
+- "few effective particles": a provisional run's model whose likelihood reading rests on too
+  few effective particles is read from its last tolerance's particles
+  (:meth:`abcns.Result.answer_draws`), wider than the data's;
 - "below the noise floor": the final population's model probabilities differ (by more than
   :data:`BELOW_FLOOR_CHANGE`) from those at the decision tolerance, which are the answer;
 - "undecided": the answer holds two or more models above :data:`CONTENDER` while the
@@ -50,7 +53,7 @@ def warnings(r: Result) -> list[str]:
     population)."""
     if not r.populations:
         return []
-    return _floor(r) + _below_floor(r) + _undecided(r) + _failures(r)
+    return _floor(r) + _thin_reading(r) + _below_floor(r) + _undecided(r) + _failures(r)
 
 
 def _floor(r: Result) -> list[str]:
@@ -74,6 +77,19 @@ def _floor(r: Result) -> list[str]:
                    f"tolerance of the run (the highest {pop.epsilon:.4g}); the stated noise is larger than the "
                    "data's misfit")
     return out
+
+
+def _thin_reading(r: Result) -> list[str]:
+    """A warning per model whose posterior is not the likelihood reading's, as the run stopped
+    above its floor and the reading rests on too few effective particles."""
+    reading, pop = r.reading(), r.decision_population()
+    if reading is None:
+        return []
+    return [f"few effective particles: {m.name}'s likelihood reading of this provisional run rests on "
+            f"{reading.ess[i]:.3g} effective particles (fewer than 2 (d + 1) = {2 * (m.n_dim + 1)}), so its "
+            f"intervals are those of population {pop.t}'s particles, the ABC posterior at eps {pop.epsilon:.4g}: "
+            "wider than the data's"
+            for i, m in enumerate(r.models) if i in r.alive(pop.t) and r.answer_draws(i)[2] == "tolerance"]
 
 
 def _below_floor(r: Result) -> list[str]:

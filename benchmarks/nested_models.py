@@ -106,12 +106,8 @@ def one(family: str, truth: str, noise: float, seed: int, floor: bool) -> dict:
     noise_nmse = float(NMSE(data["observed"], FIT)(data["clean"][None, :])[0])
     cover: dict[str, dict[str, bool]] = {}
     i = r.model_names.index(name)
-    reading = r.reading()  # the answer's particles: every population weighted by the likelihood
-    if reading is not None:
-        theta, weights = reading.theta[i], reading.weights[i]
-    elif i in r.alive(answer.t):
-        theta, _, _ = r.particles(name, answer.t)
-        weights = np.ones(theta.shape[0])
+    if r.reading() is not None or i in r.alive(answer.t):  # the answer's particles
+        theta, weights, _ = r.answer_draws(i)
     else:
         theta, weights = np.zeros((0, r.models[i].n_dim)), np.zeros(0)
     if theta.shape[0]:

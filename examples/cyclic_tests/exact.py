@@ -2,6 +2,7 @@
 
     python -m examples.cyclic_tests.exact --data DIR [--specimen daniel ...] [--seed 1]
                                           [--nlive 300] [--sample rwalk] [--abcns OUT] [--out OUT] [--stored OUT]
+                                          [--mcmc STEPS]
 
 Per specimen: the records, scaling, models, priors and simulators of ``run.py`` (the same
 job, built from ``models.yaml``), and per model ``dynesty.NestedSampler`` with the Gaussian
@@ -23,6 +24,11 @@ specimen: log Z ± err per model, p(model) exact (delta-method se) and abcns's, 
 the residuals' whiteness (``abcns.noise.whiteness``) at the exact posterior mean, and per
 parameter the exact posterior mean and 95 % interval beside abcns's; ``--out`` gets the JSON,
 ``--stored`` prints such a JSON's answers again (specimens not in it are run).
+
+``--mcmc STEPS``: a second exact method on the same target, to check dynesty's posterior:
+per model :data:`CHAINS` adaptive random-walk Metropolis chains (numpy only) on the
+likelihood with sigma integrated out (Jeffreys), started over-dispersed around dynesty's
+answer; their second halves' intervals and split R-hat are printed beside dynesty's.
 """
 
 from __future__ import annotations
@@ -40,6 +46,8 @@ from examples.cyclic_tests.run import SPECIMENS, read_specimen, run_specimen, sp
 
 #: the noise std's log-uniform prior (scaled load units)
 SIGMA_LOW, SIGMA_HIGH = 1e-3, 0.5
+#: Metropolis chains of ``--mcmc`` (the second exact method)
+CHAINS = 16
 
 
 class GaussianRestoring:
@@ -76,6 +84,21 @@ class GaussianRestoring:
         r = self.residual(theta[:-1])
         return -np.inf if r is None else gaussian_loglike(r, float(theta[-1]))
 
+    def log_marginal(self, params: np.ndarray) -> np.ndarray:
+        """The log posterior (up to a constant) of a batch of the model's parameters (k, d),
+        sigma integrated out under Jeffreys' prior (the log-uniform one, its bounds far from
+        the posterior's sigma): -(n / 2) log(sum of squared residuals), -inf outside the
+        prior box or where the simulation fails. The target of :func:`metropolis`."""
+        params = np.atleast_2d(params)
+        out = np.full(params.shape[0], -np.inf)
+        inside = np.all((params >= self.low) & (params <= self.low + self.width), axis=1)
+        if np.any(inside):
+            sim = self.simulator.simulate(self.expand(params[inside]))
+            r = sim.values[:, self.window[0]:self.window[1]] - self.observed
+            rss = np.where(sim.status == self.ok, np.sum(r**2, axis=1), np.inf)
+            out[inside] = -0.5 * self.observed.size * np.log(rss)
+        return out
+
     def diagnose(self, posterior: dict[str, dict[str, float]]) -> dict[str, Any]:
         """At the posterior mean: the NMSE (%) and the residuals' whiteness (Ljung-Box, lag-1
         autocorrelation): whether the i.i.d. Gaussian errors the likelihood assumes are there."""
@@ -88,6 +111,70 @@ class GaussianRestoring:
         return {"nmse_pct": float(100 * np.mean(r**2) / np.var(self.observed)),
                 "residual_lag1": None if test is None else test.autocorrelation[0],
                 "ljung_box_p": None if test is None else test.p_value}
+
+
+def metropolis(log_target: Any, starts: np.ndarray, steps: int, rng: np.random.Generator,
+               adapt_every: int = 200) -> tuple[np.ndarray, float]:
+    """Parallel random-walk Metropolis chains, one per row of ``starts`` (k, d), the second
+    exact method beside dynesty: Gaussian proposals of covariance s^2 C, C the chains' pooled
+    covariance (first the starts'), s^2 = 2.38^2 / d scaled towards an acceptance of 0.234
+    (Haario et al. 2001; Roberts & Rosenthal 2001). Adapted every ``adapt_every`` steps in the
+    first half only, so the second half is a Markov chain with a fixed kernel. Returns the
+    chains (steps, k, d) and the second half's acceptance rate."""
+    k, d = starts.shape
+    x, lp = starts.copy(), log_target(starts)
+    cov, log_s = np.cov(starts.T), np.log(2.38**2 / d)
+    chain, acc = np.empty((steps, k, d)), np.zeros(steps)
+    for step in range(steps):
+        chol = np.linalg.cholesky(np.exp(log_s) * cov + 1e-14 * np.eye(d))
+        prop = x + rng.standard_normal((k, d)) @ chol.T
+        lp_prop = log_target(prop)
+        with np.errstate(invalid="ignore"):  # -inf - -inf: a chain outside stays until a proposal is inside
+            ok = np.log(rng.random(k)) < lp_prop - lp
+        x[ok], lp[ok] = prop[ok], lp_prop[ok]
+        chain[step], acc[step] = x, np.mean(ok)
+        if (step + 1) % adapt_every == 0 and step < steps // 2:
+            cov = np.cov(chain[step // 2: step + 1].reshape(-1, d).T)
+            log_s += np.mean(acc[step + 1 - adapt_every: step + 1]) - 0.234
+    return chain, float(np.mean(acc[steps // 2:]))
+
+
+def split_rhat(chain: np.ndarray) -> np.ndarray:
+    """Gelman-Rubin's R-hat per parameter over the halves of each chain ((steps, k, d))."""
+    n = chain.shape[0] // 2
+    halves = np.concatenate([chain[:n], chain[n: 2 * n]], axis=1)
+    within = np.mean(np.var(halves, axis=0, ddof=1), axis=0)
+    between = n * np.var(np.mean(halves, axis=0), axis=0, ddof=1)
+    return np.sqrt(((n - 1) / n * within + between / n) / within)
+
+
+def mcmc_check(exact: GaussianRestoring, posterior: dict, steps: int, seed: int) -> dict:
+    """The second exact method on one model: :data:`CHAINS` chains of :func:`metropolis` on
+    ``exact.log_marginal``, started over-dispersed at N(mean, (2 sd)^2) of dynesty's
+    ``posterior`` (clipped into the prior box); the second halves' posterior summary, split
+    R-hat per parameter and acceptance."""
+    from abcns.result import posterior_summary
+
+    rng = np.random.default_rng(seed)
+    names = exact.names[:-1]
+    mean, sd = (np.array([posterior[n][k] for n in names]) for k in ("mean", "std"))
+    starts = np.clip(mean + 2 * sd * rng.standard_normal((CHAINS, len(names))), exact.low, exact.low + exact.width)
+    chain, acceptance = metropolis(exact.log_marginal, starts, steps, rng)
+    second = chain[steps // 2:]
+    return {"posterior": posterior_summary(second.reshape(-1, len(names)), None, names), "steps": steps,
+            "chains": CHAINS, "rhat": dict(zip(names, split_rhat(second).tolist(), strict=True)), "acceptance": acceptance}
+
+
+def with_mcmc(folder: Path, answer: dict, steps: int) -> dict:
+    """``answer`` (one specimen's exact answers) with each model's :func:`mcmc_check` added."""
+    job = specimen_job(folder, answer["specimen"], answer["seed"])
+    for model, simulator in zip(job.models, job.simulators, strict=True):
+        exact = GaussianRestoring(model, simulator, job.observed, tuple(answer["window"]))
+        ans = answer["models"][model.name]
+        ans["mcmc"] = mcmc_check(exact, ans["posterior"], steps, answer["seed"])
+        print(f"  {answer['specimen']} {model.name}: {steps} Metropolis steps x {CHAINS} chains, acceptance "
+              f"{ans['mcmc']['acceptance']:.3f}, R-hat <= {max(ans['mcmc']['rhat'].values()):.3f}", flush=True)
+    return answer
 
 
 def specimen_job(folder: Path, name: str, seed: int) -> Any:
@@ -159,6 +246,17 @@ def floor_sigma(floor: dict, observed_var: float) -> float:
     return math.sqrt(floor["noise_variance"] * floor["n_samples"] * observed_var / 100)
 
 
+def mcmc_lines(exact: dict) -> list[str]:
+    """Markdown lines: per model with a :func:`mcmc_check`, its intervals beside dynesty's."""
+    lines = []
+    for m, ans in exact["models"].items():
+        if "mcmc" in ans:
+            lines += ["", f"| {m}: parameter | dynesty mean [95 %] | Metropolis mean [95 %] | R-hat |", "|---|---|---|---|"]
+            lines += [f"| {par} | {interval(q)} | {interval(ans['mcmc']['posterior'][par])} | "
+                      f"{ans['mcmc']['rhat'][par]:.3f} |" for par, q in ans["posterior"].items() if par != "sigma"]
+    return lines
+
+
 def report(exact: dict, abcns: dict) -> list[str]:
     """Markdown lines: per model log Z, p exact ± se, p abcns; per parameter both intervals."""
     lines = ["| model | exact log Z ± err | p exact ± se | p abcns | dynesty evaluations | NMSE % at the exact mean | "
@@ -177,6 +275,7 @@ def report(exact: dict, abcns: dict) -> list[str]:
         post = abcns["alone"][m] if alone else post or {}
         for par, q in ans["posterior"].items():
             lines.append(f"| {m} | {par} | {interval(q)} | {interval(post.get(par))}{' (alone)' if alone else ''} |")
+    lines += mcmc_lines(exact)
     floor = abcns.get("noise_floor") or {}
     if floor.get("noise_variance") is not None:
         lines.append(f"| ({floor.get('model')}) | sigma | | {floor_sigma(floor, exact['observed_var']):.4g} "
@@ -192,6 +291,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--nlive", type=int, default=300)
     parser.add_argument("--sample", default="rwalk", choices=("unif", "rwalk", "rslice"),
                         help="dynesty's proposal (rwalk: BWBN's 12 dimensions fill the ellipsoids badly for unif)")
+    parser.add_argument("--mcmc", type=int, default=0, metavar="STEPS",
+                        help="also run 16 Metropolis chains of STEPS steps per model (the second exact method)")
     parser.add_argument("--abcns", type=Path, default=Path("out/cyclic_tests"), help="run.py's --out")
     parser.add_argument("--out", type=Path, default=None, help="write the exact answers here (JSON)")
     parser.add_argument("--stored", type=Path, default=None, help="print the answers of an earlier --out (no dynesty)")
@@ -203,6 +304,8 @@ def main(argv: list[str] | None = None) -> None:
             exact = diagnosed(args.data, stored[name])
         else:
             exact = exact_specimen(args.data, name, args.seed, args.nlive, args.sample)
+        if args.mcmc:
+            exact = with_mcmc(args.data, exact, args.mcmc)
         answers.append(exact)
         print(f"\n### {name}, seed {args.seed}, {exact['nlive']} live points, {exact.get('sample', 'unif')}\n")
         if args.out is not None:  # after each specimen: a long run keeps what it has

@@ -42,14 +42,10 @@ PERCENTS = tuple(round(100 * lv) for lv in LEVELS)  # the keys' names: in50, cov
 
 
 def answer_draws(result: Result, model: int) -> tuple[np.ndarray, np.ndarray]:
-    """(theta (n, d), weights (n,)) of one model in the run's answer: the likelihood reading's
-    when it has one, else the decision population's particles (uniform weights for ABC-NS)."""
-    reading = result.reading()
-    if reading is not None:
-        return reading.theta[model], reading.weights[model]
-    answer = result.decision_population()
-    theta, _, w = result.particles(model, answer.t)
-    return theta, (w if result.weighted_posterior else np.ones(theta.shape[0]))
+    """(theta (n, d), weights (n,)) of one model in the run's answer
+    (:meth:`abcns.result.Result.answer_draws`)."""
+    theta, w, _ = result.answer_draws(model)
+    return theta, w
 
 
 def rank_fraction(x: np.ndarray, w: np.ndarray, truth: float) -> float:
