@@ -95,3 +95,9 @@ LOCAL_COSTS = {
     "worker_task": (2.041 + 2.132) / 2 * 1e-3,
     "overshoot": (0.058 + 0.068) / 2 * 1e-3,
 }
+
+#: queues of whole §4.1 jobs on this 2-core machine (``benchmarks.jobs --jobs 16 --workers 2
+#: --service --ceiling``): each job's seconds alone in one process (``alone_s``), the wall of each
+#: way of running them together, and the median idle gap on a worker between one job task's end
+#: and the next one's start in that run (the dispatch; plain processes: none measured, 0)
+QUEUE_2_CORES: dict[str, dict] = {}
