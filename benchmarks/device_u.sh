@@ -11,8 +11,7 @@
 #                  `abcns serve`, 14 plain processes (targets: >= 10x one process); CPU per
 #                  job and the workers' idle time between jobs, for run_jobs and the service
 #   u-sleepy.txt   8 (then 16) sleepy 2 ms jobs on 14 workers together: the utilization
-#   u-model.txt    the cluster model's queue mode for the same rows (predicted before measured)
-#                  and its prediction at 14, 64 and 256 workers
+#   u-model.txt    the cluster model's queue mode for the sleepy rows (predicted before measured)
 #   u-env.txt      the machine: cores, load, Python and package versions, the simulator's speed
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -64,11 +63,12 @@ run() {  # run FILE LIMIT_S COMMAND...: the command and its output into $OUT/FIL
     nproc; cat /proc/loadavg; "$PY" -V
     "$PY" -c 'import numpy, scipy, numba, dask, distributed, zarr, pydantic, fastapi; print(numpy.__version__, scipy.__version__, numba.__version__, dask.__version__, zarr.__version__, pydantic.__version__, fastapi.__version__)'
 } > "$OUT/u-env.txt" 2>&1
-# the model first: predicted before anything is measured on this machine (CPU only, ~1 min)
-run u-model.txt 150 "$PY" -m benchmarks.cluster_model queue --workers 14,64,256
+# the model first: its queue rows for what is measured below, predicted before it is (CPU only,
+# seconds; its 64- and 256-worker rows take minutes and need no device: docs/benchmarks.md)
+run u-model.txt 60 "$PY" -m benchmarks.cluster_model queue --workers 14,14 --jobs 8,16 --trace evidence-1000-warm --sleep-ms 2
 # the simulator's speed here (the model's costs are carried from the earlier 16-core sessions)
 run u-env.txt 60 "$PY" -m benchmarks.runner --populations 10 --repeats 1 --workers 1
-run u-jobs.txt 240 "$PY" -m benchmarks.jobs --jobs 32 --workers 14 --ceiling --service
-run u-sleepy.txt 60 "$PY" -m benchmarks.jobs --sleepy 2 --jobs 8 --workers 14
-run u-sleepy.txt 60 "$PY" -m benchmarks.jobs --sleepy 2 --jobs 16 --workers 14
+run u-jobs.txt 270 "$PY" -m benchmarks.jobs --jobs 32 --workers 14 --ceiling --service
+run u-sleepy.txt 75 "$PY" -m benchmarks.jobs --sleepy 2 --jobs 8 --workers 14
+run u-sleepy.txt 75 "$PY" -m benchmarks.jobs --sleepy 2 --jobs 16 --workers 14
 echo "done in $((SECONDS - START)) s" | tee -a "$OUT/u-env.txt"

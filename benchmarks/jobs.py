@@ -135,7 +135,9 @@ def worker_idle(records: list[dict], start: float, end: float) -> dict[str, floa
         runs.sort()
         before += max(0.0, runs[0][0] - start)
         after += max(0.0, end - runs[-1][1])
-        gaps += [b[0] - a[1] for a, b in itertools.pairwise(runs)]
+        # (each worker's times are put on the scheduler's clock by its estimated offset, which
+        # moves between heartbeats on a loaded machine: a gap can come out negative, read as 0)
+        gaps += [max(0.0, b[0] - a[1]) for a, b in itertools.pairwise(runs)]
     return {"before": before, "gaps": float(sum(gaps)), "n_gaps": len(gaps),
             "median_gap": float(np.median(gaps)) if gaps else 0.0, "after": after,
             "tasks": sum(len(r) for r in spans.values())}
@@ -189,6 +191,10 @@ def through_service(spec: JobSpec, base: Path, folder: Path, seeds: range, n: in
         with Client(cluster.address, timeout=30) as watcher, get_task_stream(watcher) as stream:
             cpu_0 = {name: cpu_seconds(pids) for name, pids in groups.items()}
             with httpx.Client(timeout=120, headers=AUTH) as http:
+                # the intake's child (it parses every submission) started with the service and may
+                # still be importing: a refused submission before the clock waits for it, as a
+                # service up for a while would not
+                http.post(f"{service.url}/jobs", json={})
                 start = time.time()
                 ids = {seed: http.post(f"{service.url}/jobs", json={**raw, "seed": seed, "name": f"seed-{seed}"}).json()["id"]
                        for seed in seeds}

@@ -85,20 +85,25 @@ class QueueReplay(Replay):
     started as job slots free (see the module docstring). ``whole_s``: for jobs that run
     whole, each job's populations' seconds (job i takes entry i modulo their number; None: the
     placement rule decides from the trace, and a spread job replays its trace); ``pilot_s``:
-    the placement's pilot (None: as :func:`pilot` says for the trace's batches)."""
+    the placement's pilot (None: as :func:`pilot` says for the trace's batches); ``spread``:
+    every job spreads whatever the rule says (a job alone as ``benchmarks.scale`` runs it);
+    ``contention_s``: CPU seconds per job of the processes besides the workers (the caller or
+    the service, the scheduler), added to each whole job's time: on a machine with no core
+    to spare (as many workers as cores) that CPU is taken from the workers' cores."""
 
     def __init__(self, trace: Trace, jobs: int, workers: int, sim_seconds: float, costs: Costs,
                  dispatch_s: float = 0.0, turn_s: float | None = None, whole_s: list[list[float]] | None = None,
-                 pilot_s: float | None = None):
+                 pilot_s: float | None = None, spread: bool = False, contention_s: float = 0.0):
         super().__init__(trace, workers, sim_seconds, costs, Design(scheduler="own"))
         self.generation = itertools.count()
         self.n_jobs, self.dispatch_s, self.turn_s, self.whole_s = jobs, dispatch_s, turn_s, whole_s
+        self.contention_s = contention_s
         cpu = [x for c in self.batch_cpu for x in c]
         batch_s = trace.batch_size * sim_seconds + sum(cpu) / max(len(cpu), 1)
         measured, whole = pilot(batch_s, int(trace.job.get("particles", 1000)), trace.batch_size, workers)
         self.pilot_s = measured if pilot_s is None else pilot_s
         self.whole = whole_s is not None
-        if whole and not self.whole:
+        if whole and not (self.whole or spread):
             raise ValueError("the placement rule runs these jobs whole: give each population's seconds (whole_s)")
         self.waiting: deque[tuple[int, int]] = deque((i, 1) for i in range(jobs))  # (job, first population)
         self.free = list(range(workers))  # workers whose job slot is free
@@ -175,8 +180,8 @@ class QueueReplay(Replay):
         until its last or the end of its turn; returns the last population it made."""
         self._account()
         self.idle -= 1
-        yield self.env.timeout(self.pilot_s)
-        self._add("simulating", self.pilot_s)
+        yield self.env.timeout(self.pilot_s + self.contention_s)
+        self._add("simulating", self.pilot_s + self.contention_s)
         t = first
         for t in range(first, len(seconds) + 1):
             yield self.env.timeout(seconds[t - 1])
@@ -251,7 +256,7 @@ def print_queue(workers: list[int], jobs: list[int] | None, queues: list[tuple[s
         for i, w in enumerate(workers):
             n = jobs[i] if jobs else w
             out = queue(trace, n, w, ms / 1e3, costs, dispatch_s=dispatch_s, turn_s=turn_s)
-            alone = queue(trace, 1, w, ms / 1e3, costs, pilot_s=0.0).utilization
+            alone = queue(trace, 1, w, ms / 1e3, costs, pilot_s=0.0, spread=True).utilization
             sh = {k: v / (w * out.wall) for k, v in out.time.items()}
             print(f"| {name} | {ms:g} | {w} | {n} | **{out.utilization:.2f}** | {alone:.2f} | {out.wall:.1f} | "
                   f"{out.starts} | {out.pilot_s:.2f} | {sh.get('idle', 0):.2f} | {sh.get('other work', 0):.2f} | "
@@ -261,22 +266,23 @@ def print_queue(workers: list[int], jobs: list[int] | None, queues: list[tuple[s
 def validation_rows() -> list[tuple[str, int, float, float]]:
     """(what, workers, measured, predicted) utilization: the 16-core single-job rows (a queue
     of one job, no pilot: a job alone, as benchmarks.scale ran it) and the 2-core queues of
-    whole §4.1 jobs (``measured.QUEUE_2_CORES``: each job's time alone and the dispatch
-    measured in the same run; the measured utilization is their sum over workers x wall)."""
+    whole §4.1 jobs (``measured.QUEUE_2_CORES``: the jobs' time alone, the dispatch and the
+    other processes' CPU per job; the measured utilization is the time alone over workers x
+    wall)."""
     from benchmarks.cluster_model import measured
     from benchmarks.cluster_model.study import design_costs
 
     rows = []
     for (name, ms, w), (eff, _) in measured.PREDICTED_THEN_MEASURED.items():
-        out = queue(Trace.load(name), 1, w, ms / 1e3, design_costs(), pilot_s=0.0)
+        out = queue(Trace.load(name), 1, w, ms / 1e3, design_costs(), pilot_s=0.0, spread=True)
         rows.append((f"16 cores, one job, {name}, {ms:g} ms", w, eff, out.utilization))
     stand_in = Trace.load("evidence-1000-warm")  # whole jobs replay no trace: their times are given
     for label, run in measured.QUEUE_2_CORES.items():
         each, w = run["alone_s"], run["workers"]
         for path, wall in run["walls"].items():
-            dispatch = run["gap_s"].get(path, 0.0)
+            dispatch, cpu = run["gap_s"].get(path, 0.0), run["other_cpu_s"].get(path, 0.0)
             out = queue(stand_in, len(each), w, 0.002, design_costs(), dispatch_s=dispatch,
-                        whole_s=[[d] for d in each], pilot_s=0.0)
+                        whole_s=[[d] for d in each], pilot_s=0.0, contention_s=cpu)
             rows.append((f"2 cores, {label}, {path}", w, sum(each) / (w * wall), out.utilization))
     return rows
 
