@@ -218,7 +218,7 @@ def wait_ended(http, url: str) -> None:
     def ended() -> bool:
         return all(j["status"] in ("finished", "failed", "cancelled") for j in http.get(f"{url}/jobs").json())
 
-    wait_until(ended, 3600, "every job to end", 0.5)
+    wait_until(ended, 3600, "every job to end", 2.0)  # the wall comes from the events: a slow poll, little CPU
 
 
 def service_ends(service, ids: dict[int, str]) -> tuple[float, Counter]:
