@@ -115,3 +115,9 @@ QUEUE_2_CORES: dict[str, dict] = {
     for i, (alone, run_jobs, served, plain) in enumerate([(28.3, 15.9, 19.2, 15.1), (26.3, 15.6, 17.2, None),
                                                           (32.9, 21.9, 25.2, None), (38.3, 25.3, 20.4, 18.0)], 1)
 }
+
+#: queues of sleepy jobs on this 2-core machine: ``benchmarks.jobs --sleepy 2 --jobs 4 --workers 2``
+#: (benchmarks.scale's job, evidence variant, N = 1000, batch 25: the trace evidence-1000-warm),
+#: run_jobs on a LocalCluster, two runs on 2026-11-29 at load 3.9-4.3 (other developers' work):
+#: (trace, ms a simulation, jobs, workers) -> measured utilizations
+QUEUE_SLEEPY_2_CORES = {("evidence-1000-warm", 2.0, 4, 2): (0.825, 0.810)}

@@ -235,6 +235,8 @@ def queue(trace: Trace, jobs: int, workers: int, sim_seconds: float, costs: Cost
 #: 16 §4.1 jobs on 2 workers: the median gap on a worker between one job task's end and the next
 #: one's start, 59 ms under load 7-9; run_jobs: 135 ms, before its wake-up on a job's end)
 DISPATCH_S = 0.06
+#: run_jobs's dispatch, measured the same way after its wake-up on a job's end: 34-49 ms
+RUN_JOBS_DISPATCH_S = 0.04
 #: the queues printed by ``queue``: (trace, ms a simulation)
 QUEUES = [("evidence-1000-warm", 2.0), ("evidence-1000-warm", 20.0)]
 
@@ -276,6 +278,11 @@ def validation_rows() -> list[tuple[str, int, float, float]]:
     for (name, ms, w), (eff, _) in measured.PREDICTED_THEN_MEASURED.items():
         out = queue(Trace.load(name), 1, w, ms / 1e3, design_costs(), pilot_s=0.0, spread=True)
         rows.append((f"16 cores, one job, {name}, {ms:g} ms", w, eff, out.utilization))
+    from benchmarks.cluster_model.study import local_costs
+
+    for (name, ms, jobs, w), runs in measured.QUEUE_SLEEPY_2_CORES.items():
+        out = queue(Trace.load(name), jobs, w, ms / 1e3, local_costs("evidence"), dispatch_s=RUN_JOBS_DISPATCH_S)
+        rows += [(f"2 cores, {jobs} sleepy {ms:g} ms jobs, run_jobs", w, m, out.utilization) for m in runs]
     stand_in = Trace.load("evidence-1000-warm")  # whole jobs replay no trace: their times are given
     for label, run in measured.QUEUE_2_CORES.items():
         each, w = run["alone_s"], run["workers"]
