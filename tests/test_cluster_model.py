@@ -8,6 +8,8 @@ import pytest
 
 from benchmarks.cluster_model.costs import FREE
 from benchmarks.cluster_model.model import Design, Pattern, replay
+from benchmarks.cluster_model.queue import queue
+from benchmarks.cluster_model.study import design_costs
 from benchmarks.cluster_model.trace import FORMAT, PopulationTrace, Trace, consumed
 
 CODEC = {"draws": 0.0, "unpack_draws": 0.0, "results": 0.0, "unpack_results": 0.0}
@@ -107,3 +109,41 @@ def test_the_population_sizes_the_readme_advises_keep_large_clusters_busy(trace_
 
     out = replay(Trace.load(trace_name), workers, 0.020, design_costs(), Design(scheduler="own"))
     assert out.efficiency >= least, out.efficiency
+
+
+def test_a_queue_of_one_job_is_the_job_alone():
+    """The queue's shared clock, scheduler and workers change nothing for one job (no pilot,
+    no dispatch): the same wall, to the last bit, as its replay with its own scheduler."""
+    trace = Trace.load("evidence-1000-warm")
+    alone = replay(trace, 8, 0.002, design_costs(), Design(scheduler="own"))
+    one = queue(trace, 1, 8, 0.002, design_costs(), pilot_s=0.0)
+    assert one.wall == alone.wall and one.utilization == pytest.approx(alone.efficiency, abs=1e-12)
+
+
+def test_whole_jobs_queue_as_list_scheduling():
+    """Five whole jobs of 3 s on 2 workers, 0.1 s to dispatch each: jobs 0, 2, 4 on one
+    worker, 9.3 s; the utilization is their 15 s over 2 x 9.3."""
+    out = queue(one_population(1, 1), 5, 2, 0.002, FREE, dispatch_s=0.1, whole_s=[[1.0, 1.0, 1.0]], pilot_s=0.0)
+    assert out.wall == pytest.approx(3 * 3.1, abs=1e-9)
+    assert out.utilization == pytest.approx(15 / (2 * 9.3), abs=1e-9)
+
+
+def test_turns_resume_jobs_and_lose_no_whole_population():
+    """Three whole jobs of ten 0.7 s populations on one worker, turns of 3.5 s: the
+    dispatcher (a look a second) asks the running job to give its slot back, it ends its
+    population and goes behind the others; every population is made once, the worker is
+    never idle, and jobs start more than three times."""
+    out = queue(one_population(1, 1), 3, 1, 0.002, FREE, turn_s=3.5, whole_s=[[0.7] * 10], pilot_s=0.0)
+    assert out.wall == pytest.approx(21.0, abs=1e-9) and out.utilization == pytest.approx(1.0, abs=1e-9)
+    assert out.starts > 3
+
+
+def test_spread_jobs_fill_each_other_s_barriers():
+    """Four jobs at once on 8 workers (2 ms a simulation, each spread: its pilot says so):
+    one job's population barrier is another's work, so the queue keeps the workers busier
+    than one job alone does (0.65 by the model, 0.58-0.67 measured on 16 cores)."""
+    trace = Trace.load("evidence-1000-warm")
+    alone = replay(trace, 8, 0.002, design_costs(), Design(scheduler="own"))
+    four = queue(trace, 4, 8, 0.002, design_costs())
+    assert not four.whole and four.pilot_s > 0
+    assert four.utilization > alone.efficiency + 0.05

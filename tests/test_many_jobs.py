@@ -20,7 +20,8 @@ from distributed import Client, get_task_stream
 from test_distributed import assert_same_store
 
 from service.run.dask_executor import local_cluster
-from service.run.runner import run_job
+from service.run.jobs import JobRun, run_jobs
+from service.run.runner import run_job, summary
 from service.run.store import Store
 from service.spec import load
 
@@ -131,6 +132,37 @@ def test_a_cheap_job_runs_whole_on_one_worker(cluster, tmp_path):
     (only,) = json.loads(again.stdout)
     assert only["outcome"] == "finished" and only["store"] == str(out)
     assert {k: v for k, v in only.items() if k not in ("spec", "store", "outcome", "error")} == s
+
+
+def test_a_job_s_summary_is_made_from_its_run_s_result_without_reading_the_store_again(cluster, tmp_path):
+    """At a job's end its task reads the whole result from the store once (run_job's end,
+    every population and its bounds: most of a summary's time, ~5 % of a §4.1 job's) and
+    makes the summary from it, not from a second read; that summary is the store's."""
+
+    def count(on: bool) -> int:  # on a worker: count the whole-result reads of the runner's module
+        from service.run import runner, store
+
+        if on:
+            runner.__dict__["reads"] = 0
+
+            def counted(s):
+                runner.__dict__["reads"] += 1
+                return store.result_from_store(s)
+
+            runner.result_from_store = counted
+            return 0
+        runner.result_from_store = store.result_from_store
+        return runner.__dict__.pop("reads", 0)
+
+    spec, base = load(write_spec(tmp_path / "specs", 5, name="once"))
+    cluster.run(count, True)
+    try:
+        (outcome,) = run_jobs(cluster, [JobRun.of(spec, base, tmp_path / "once.zarr", "once")], local_s=0.025)
+    finally:
+        reads = sum(cluster.run(count, False).values())
+    assert outcome.status == "finished" and outcome.placement["mode"] == "whole", outcome
+    assert reads == 1  # before: 2 (the summary read the store's result again)
+    assert outcome.summary == summary(Store.open(tmp_path / "once.zarr"))
 
 
 def test_a_failing_job_fails_alone_naming_the_job(cluster, tmp_path):

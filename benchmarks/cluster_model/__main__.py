@@ -1,4 +1,4 @@
-"""python -m benchmarks.cluster_model {validate, study, record, costs, replay}: see the package's docstring."""
+"""python -m benchmarks.cluster_model {validate, study, record, costs, replay, queue}: see the package's docstring."""
 
 from __future__ import annotations
 
@@ -41,7 +41,25 @@ def main(argv: list[str] | None = None) -> int:
     one.add_argument("--task-batches", type=int, default=None)
     one.add_argument("--step-ms", type=float, default=None)
     one.add_argument("--scheduler", choices=["runner", "own"], default="runner")
+    q = sub.add_parser("queue", help="a queue of jobs on one cluster (issue U): validation, predicted utilization")
+    q.add_argument("--workers", type=_ints, default=[14, 64, 256])
+    q.add_argument("--jobs", type=_ints, default=None, help="jobs in the queue, one count per worker count "
+                   "(default: as many as workers)")
+    q.add_argument("--trace", default=None, help="one trace (default: evidence-1000-warm at 2 and 20 ms)")
+    q.add_argument("--sleep-ms", type=float, default=2.0, help="with --trace")
+    q.add_argument("--dispatch-ms", type=float, default=None, help="from a slot freeing to the next job's start")
+    q.add_argument("--turn-s", type=float, default=30.0, help="the service's turns (0: none)")
+    q.add_argument("--skip-validation", action="store_true")
     args = parser.parse_args(argv)
+    if args.command == "queue":
+        from benchmarks.cluster_model.queue import DISPATCH_S, QUEUES, print_queue
+        from benchmarks.cluster_model.queue import print_validation as print_queue_validation
+
+        ok = True if args.skip_validation else print_queue_validation()
+        queues = QUEUES if args.trace is None else [(args.trace, args.sleep_ms)]
+        dispatch = DISPATCH_S if args.dispatch_ms is None else args.dispatch_ms / 1e3
+        print_queue(args.workers, args.jobs, queues, dispatch, args.turn_s or None)
+        return 0 if ok else 1
 
     if args.command == "validate":
         from benchmarks.cluster_model.study import print_sensitivity, print_validation

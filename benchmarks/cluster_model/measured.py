@@ -95,3 +95,29 @@ LOCAL_COSTS = {
     "worker_task": (2.041 + 2.132) / 2 * 1e-3,
     "overshoot": (0.058 + 0.068) / 2 * 1e-3,
 }
+
+#: queues of whole §4.1 jobs on this 2-core machine: docs/benchmarks.md "Many jobs at once",
+#: ``benchmarks.jobs --jobs 16 --workers 2 --service [--ceiling]``, four runs in 6 minutes
+#: (2026-11-28, before the summary's second read was cut): the 16 jobs' seconds one after
+#: another in one process, and the wall of each way of running them together. Each job's own
+#: time was not printed then: the model takes 16 equal jobs. The dispatch (``gap_s``): the
+#: median idle gap on a worker between one job task's end and the next one's start, measured
+#: on 2026-11-29 with the same code (run_jobs 135 ms, the service 59 ms; plain processes: 0);
+#: ``other_cpu_s``: the CPU per job of the processes besides the workers, measured then too
+#: (run_jobs: its process, client, scheduler and nannies, 77 ms; the service: `abcns serve` 147 ms
+#: and the scheduler 111 ms)
+QUEUE_2_CORES: dict[str, dict] = {
+    f"run {i}": {"workers": 2, "alone_s": [alone / 16] * 16,
+                 "walls": {k: v for k, v in (("run_jobs", run_jobs), ("abcns serve", served), ("plain processes", plain))
+                           if v is not None},
+                 "gap_s": {"run_jobs": 0.135, "abcns serve": 0.059},
+                 "other_cpu_s": {"run_jobs": 0.077, "abcns serve": 0.258}}
+    for i, (alone, run_jobs, served, plain) in enumerate([(28.3, 15.9, 19.2, 15.1), (26.3, 15.6, 17.2, None),
+                                                          (32.9, 21.9, 25.2, None), (38.3, 25.3, 20.4, 18.0)], 1)
+}
+
+#: queues of sleepy jobs on this 2-core machine: ``benchmarks.jobs --sleepy 2 --jobs 4 --workers 2``
+#: (benchmarks.scale's job, evidence variant, N = 1000, batch 25: the trace evidence-1000-warm),
+#: run_jobs on a LocalCluster, two runs on 2026-11-29 at load 3.9-4.3 (other developers' work):
+#: (trace, ms a simulation, jobs, workers) -> measured utilizations
+QUEUE_SLEEPY_2_CORES = {("evidence-1000-warm", 2.0, 4, 2): (0.825, 0.810)}

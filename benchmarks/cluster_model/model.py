@@ -58,6 +58,9 @@ WORKER_SLOTS = 2
 WRITE_INTERVAL_S = 1.0
 #: the executor asks the scheduler for the worker count at most this often
 NTHREADS_INTERVAL_S = 1.0
+#: from a population's message with the job's turn over to the release of its loop's task: the
+#: service's job thread looks every 0.2 s (``JobManager._on_worker``), half of it on average
+TURN_RELEASE_S = 0.1
 
 Proc = Generator[simpy.Event, object, object]
 
@@ -229,23 +232,39 @@ class Replay:
     budget = None  # DaskExecutor's run budget: the replayed runs have none (time_cap unbounded)
     busy_s, busy_batches = 0.0, 0  # DaskExecutor._measured adds to them
 
-    def __init__(self, trace: Trace, workers: int, sim_seconds: float, costs: Costs, design: Design = Design()):
+    def __init__(self, trace: Trace, workers: int, sim_seconds: float, costs: Costs, design: Design = Design(),
+                 cluster: Replay | None = None):
+        """``cluster``: another replay whose clock, scheduler and workers this one's job
+        shares (``benchmarks.cluster_model.queue``: many jobs on one cluster); its runner's
+        process and its client's streams are its own."""
         self.trace, self.W, self.sim_s, self.c, self.design = trace, workers, sim_seconds, costs, design
-        self.env = simpy.Environment()
+        self.env = simpy.Environment() if cluster is None else cluster.env
         self.runner = _Process(self.env, costs.quantum, gil=costs.convoy)
         own = design.scheduler == "own"
-        self.sched = _Process(self.env, costs.quantum, gil=False) if own else self.runner
+        self.sched = cluster.sched if cluster is not None else (
+            _Process(self.env, costs.quantum, gil=False) if own else self.runner)
         env, lat = self.env, costs.latency
         # Dask's batched streams (Costs: their intervals)
         self.to_sched = _Channel(env, costs.to_scheduler_interval, lat, self.runner)
         self.to_client = _Channel(env, costs.to_client_interval, lat, self.sched)
-        self.to_worker = [_Channel(env, costs.to_worker_interval, lat, self.sched) for _ in range(workers)]
-        self.from_worker = [_Channel(env, costs.from_worker_interval, lat) for _ in range(workers)]
-        self.ids = itertools.count()
-        self.queue: list = []  # the scheduler's queued tasks: (prio, id, task)
-        self.processing = [0] * workers  # tasks the scheduler has given each worker
-        self.ready: list[list] = [[] for _ in range(workers)]  # each worker's tasks, by priority
-        self.wake: list[simpy.Event | None] = [None] * workers
+        if cluster is not None:  # the shared scheduler's queue and the shared workers
+            self.to_worker, self.from_worker, self.ids = cluster.to_worker, cluster.from_worker, cluster.ids
+            self.queue, self.processing, self.ready, self.wake = cluster.queue, cluster.processing, cluster.ready, cluster.wake
+            self.generation = cluster.generation
+        else:
+            self.to_worker = [_Channel(env, costs.to_worker_interval, lat, self.sched) for _ in range(workers)]
+            self.from_worker = [_Channel(env, costs.from_worker_interval, lat) for _ in range(workers)]
+            self.ids = itertools.count()
+            self.queue: list = []  # the scheduler's queued tasks: (prio, id, task)
+            self.processing = [0] * workers  # tasks the scheduler has given each worker
+            self.ready: list[list] = [[] for _ in range(workers)]  # each worker's tasks, by priority
+            self.wake: list[simpy.Event | None] = [None] * workers
+            # None: one job, its tasks in (population, class, batch) order; a count: each
+            # client.map a new priority generation, first, as Dask's scheduler orders many clients' tasks
+            self.generation: itertools.count | None = None
+        # the run starts at this population (a resume) and ends early when asked to give its
+        # worker back (the service's turns: ``turn_asked``, then ``yielded_at`` the last population)
+        self.first, self.turn_asked, self.yielded_at = 1, False, None
         bs = trace.batch_size
         self.bs = bs
         # worker seconds per batch beside the sleep: evaluator CPU and the codec, scaled
@@ -347,7 +366,8 @@ class Replay:
         self.processing[w] -= 1
         self._fill_slots()
         if not task.cancel and task.stream is not None:
-            self.to_client.send(lambda: self.env.process(self._gather(task)))
+            owner = task.stream.sim  # type: ignore[attr-defined]  # the job whose client gathers it
+            owner.to_client.send(lambda: owner.env.process(owner._gather(task)))
 
     def _gather(self, task: _Task) -> Proc:
         """The client's event loop: ``as_completed(with_results=True)`` fetches the result."""
@@ -361,7 +381,7 @@ class Replay:
         queued = [t for t in tasks if t.state == "queued"]
         if queued:
             self._account()
-            self.queue = [q for q in self.queue if not q[2].cancel]
+            self.queue[:] = [q for q in self.queue if not q[2].cancel]  # in place: a cluster's queue is shared
             heapq.heapify(self.queue)
             self.undelivered -= len(queued)
         for task in tasks:
@@ -409,7 +429,8 @@ class Replay:
         pop = stream.pop
         codec = pop.codec_us
         pack = sum(len(g) for g in groups) * (codec["draws"] * 1e-6)
-        tasks = [_Task(next(self.ids), (stream.t, klass, g[0] if g else 0), stream.t, g, stream) for g in groups]
+        first = () if self.generation is None else (next(self.generation),)
+        tasks = [_Task(next(self.ids), (*first, stream.t, klass, g[0] if g else 0), stream.t, g, stream) for g in groups]
         cpu = self.batch_cpu[stream.t - 1]
         mean = float(np.mean(cpu))
         for task in tasks:
@@ -526,14 +547,15 @@ class Replay:
         pops, store = trace.populations, trace.store_s
         # run_job: the store created, marked running; the executor: the job's data and the
         # anchors (2 W + 1 no-op tasks held for the run), after asking for the worker count
-        yield from self.main_cpu(c.store_scale * (store["create"] + store["status"]))
+        # (a resume reads the stored populations back instead of creating the store)
+        yield from self.main_cpu(c.store_scale * (store["read" if self.first > 1 else "create"] + store["status"]))
         yield from self.n_workers()
         anchors = _Stream(self, pops[0], None)
         held = yield from self.submit(anchors, [[]] * (2 * self.W + 2), 0)
         for task in held:  # type: ignore[attr-defined]
             task.stream = None  # held, never gathered
-        stream = yield from self.open(1, None)
-        for t in range(1, len(pops) + 1):
+        stream = yield from self.open(self.first, None)
+        for t in range(self.first, len(pops) + 1):
             pop = pops[t - 1]
             self._set_phase("fill")
             yield from self.fill(t, stream)
@@ -547,6 +569,11 @@ class Replay:
             yield from self.main_cpu(after)
             self.recorded.append(self.env.now)  # the population's elapsed_s
             self.put(t)
+            if self.turn_asked and t < len(pops):  # the service releases the loop's task after this population
+                yield self.env.timeout(TURN_RELEASE_S)
+                yield from stream.close()  # the next population's tasks released: its rows so far are lost
+                self.yielded_at = t
+                break
         yield from self.close_writer()
         # the final status, and the result read back from the store (run_job's return)
         yield from self.main_cpu(c.store_scale * (store["status"] + store["read"]))

@@ -93,7 +93,7 @@ import numpy as np
 from distributed import Client, Future, get_worker, worker_client
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from abcns import SpecError
+from abcns import Result, SpecError
 from abcns.executor import Batch, BatchError
 from service.run.runner import Progress, local_population_s, run_job, summary, with_records
 from service.run.store import Store, StoreError
@@ -302,13 +302,13 @@ def run_one(spec_json: dict, data: dict[str, np.ndarray], store: str, *, seed: i
                       cancel=lambda: _released(worker, key), local_s=local_s, placement=placement,
                       owned_store=owned_store)
         if placement["mode"] == "whole":
-            run(None)
+            result = run(None)
         else:
             with worker_client() as client:  # secedes: the worker's thread goes to the batches
-                run(client)
+                result = run(client)
         status = Store.open(path).attrs.get("status")
         return _outcome(path, placement, "finished" if status == "finished" else "cancelled",
-                        None if status == "finished" else "the job was cancelled")
+                        None if status == "finished" else "the job was cancelled", result)
     except BatchError as err:  # a bug in a simulator: which batch, which exception
         return _outcome(path, placement, "failed", f"the job failed in {err}")
     except SpecError as err:
@@ -337,9 +337,11 @@ def _finished(path: Path) -> bool:
     return attrs.get("status") == "finished" and bool(attrs.get("stop_reason"))
 
 
-def _outcome(path: Path, placement: dict | None, status: str, error: str | None = None) -> dict:
+def _outcome(path: Path, placement: dict | None, status: str, error: str | None = None,
+             result: Result | None = None) -> dict:
+    """The task's outcome; its summary from ``result`` (the run's own) when given."""
     try:
-        s = summary(Store.open(path))
+        s = summary(Store.open(path), result)
     except Exception:  # no store (refused before it was made), or unreadable
         s = None
     return {"status": status, "error": error, "placement": placement if placement is not None
@@ -435,6 +437,7 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
                                            seed=seed, allow_import=allow_import, local_s=local_s, threads=threads,
                                            topic=topic, index=i, key=f"abcns-job-{nonce}-{i}", workers=[addr],
                                            allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)
+                    future.add_done_callback(lambda _: events.put(None))  # wakes deliver(): the slot is free
                     running[i] = (future, addr)
                     watches[i], where[i] = WorkerWatch(client, addr), addr
             deliver(poll_s)
