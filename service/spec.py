@@ -43,7 +43,7 @@ from abcns.executor import Evaluate
 from abcns.noise import Noise
 from abcns.run import check_models
 from worker.compose import evaluator
-from worker.description import JobDescription, ModelDescription, job_parts
+from worker.description import JobDescription, ModelDescription, job_parts, parameter_bounds
 from worker.simulators import Simulator
 
 Window = tuple[int, int]
@@ -662,13 +662,11 @@ def _check_meaningful_rate(spec: JobSpec, job: Job) -> None:
         return
     dt, field = spec.data.sample_interval, "data.fs" if spec.data.fs is not None else "data.dt"
     (start, stop), _ = _read_window(spec, job.observed)
-    for i, (model, sim) in enumerate(zip(spec.models, job.simulators, strict=True)):
+    for i, (model, sim) in enumerate(zip(job.description.models, job.simulators, strict=True)):
         kind: Any = type(sim)  # a simulator class, with or without the frequencies
         if not (callable(getattr(kind, "omega_min", None)) and callable(getattr(kind, "omega_max", None))):
             continue
-        bounds = {k: (float(v), float(v)) for k, v in getattr(kind, "defaults", {}).items()}
-        bounds.update({k: (float(v), float(v)) for k, v in model.fixed.items()})
-        bounds.update({k: (float(lo), float(hi)) for k, (lo, hi) in model.priors.items()})
+        bounds = parameter_bounds(model, kind)
         try:
             slowest, fastest = kind.omega_min(bounds), kind.omega_max(bounds)
         except (KeyError, ValueError, ArithmeticError):

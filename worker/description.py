@@ -70,7 +70,8 @@ def model_of(desc: ModelDescription, index: int) -> Model:
         raise err.within("models", index) from None
 
 
-def _bounds(desc: ModelDescription, factory) -> dict[str, tuple[float, float]]:
+def parameter_bounds(desc: ModelDescription, factory: Any) -> dict[str, tuple[float, float]]:
+    """Each simulator parameter's range in the model: its prior, or its fixed or default value."""
     b = {k: (float(v), float(v)) for k, v in getattr(factory, "defaults", {}).items()}
     b.update({k: (float(v), float(v)) for k, v in desc.fixed.items()})
     b.update({k: (float(lo), float(hi)) for k, (lo, hi) in desc.priors.items()})
@@ -174,7 +175,7 @@ def _substeps(desc: ModelDescription, factory: Any, dt: float | None) -> int | N
     from worker.kernels import choose_substeps
 
     try:
-        chosen = choose_substeps(factory.omega_max(_bounds(desc, factory)), dt)
+        chosen = choose_substeps(factory.omega_max(parameter_bounds(desc, factory)), dt)
     except (KeyError, ValueError, OverflowError) as err:  # Overflow: dt x omega past any int
         raise InvalidSetting(("substeps",), f"cannot be chosen from the priors ({err}); give it") from None
     if chosen > MAX_SUBSTEPS:
