@@ -1,18 +1,12 @@
-"""Invalid input, with where it is.
-
-The algorithm (``abcns``) and the worker's builders (``worker``) raise :class:`InvalidSetting`
-with a ``path`` in their own terms: the argument or field a caller gave, e.g. ``("settings",
-"particles")``, ``("models", 1, "priors", "k")``, ``("observed",)`` (the record a distance
-reads), ``("models", 0, "substeps")`` (worker.description.ModelDescription). The job spec's
-layer (``service.spec``) maps those paths to the spec's own fields in one place and raises
-:class:`SpecError`, whose path is the spec's (``data.observed``, ``models[0].integrator.substeps``).
+"""Invalid input, with where it is: :class:`InvalidSetting`, raised by ``abcns`` and ``worker``
+at a path in their own terms (the argument or field they were given: ``("settings",
+"particles")``, ``("models", 1, "priors", "k")``, ``("force",)``), and :class:`SpecError`, in the
+job spec's terms, which ``service.spec`` maps the core's paths to in one place (docs/design.md).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-
-Path = tuple[str | int, ...]
 
 
 def dotted(path: Sequence[str | int]) -> str:
@@ -26,14 +20,12 @@ def dotted(path: Sequence[str | int]) -> str:
 class InvalidSetting(ValueError):
     """Invalid input at ``path`` (a tuple of names and list positions), with ``message``."""
 
-    def __init__(self, path: Path, message: str):
-        self.path: Path = tuple(path)
-        self.message = message
+    def __init__(self, path: tuple[str | int, ...], message: str):
+        self.path, self.message = tuple(path), message
         super().__init__(f"{self.field}: {message}")
 
     @property
     def field(self) -> str:
-        """The path as text (:func:`dotted`)."""
         return dotted(self.path)
 
     def within(self, *prefix: str | int) -> InvalidSetting:
@@ -45,8 +37,7 @@ class InvalidSetting(ValueError):
 
 
 class SpecError(InvalidSetting):
-    """Invalid input in a job spec's terms: ``field`` names the spec's field, e.g.
-    ``models[1].priors.k`` (``service.spec`` raises it, and maps the core's errors to it)."""
+    """Invalid input in a job spec: ``field`` names the spec's field (``models[1].priors.k``)."""
 
-    def __init__(self, field: str | Path, message: str):
+    def __init__(self, field: str | tuple[str | int, ...], message: str):
         super().__init__((field,) if isinstance(field, str) else field, message)

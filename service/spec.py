@@ -725,32 +725,27 @@ def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = Fals
     """Everything checkable before a simulation: raise SpecError (naming the spec's field,
     the core's errors mapped by :func:`spec_errors`) or return a Job."""
     with spec_errors():
-        return _build(spec, base_dir, allow_import)
-
-
-def _build(spec: JobSpec, base_dir: Path | None, allow_import: bool) -> Job:
-    """:func:`build`'s body."""
-    check_applicable(spec)
-    data = spec.data
-    force, observed = load_data(spec, base_dir)
-    voltage = load_voltage(spec, base_dir)
-    check_records(force, observed, voltage)  # before a distance computes anything of them
-    arrays = {"force": force, "observed": observed, **({} if voltage is None else {"voltage": voltage})}
-    job_description = description(spec)
-    models, simulators, distance = job_parts(job_description, arrays, allow_import)
-    evaluate = evaluator(models, simulators, distance)  # checks the records' lengths: before a window that misses
-    if data.test is not None:
-        check_window(data.test, observed.size, "test")
-    check_models(models)  # duplicate names
-    check_physical(spec, simulators, distance)
-    settings = spec.sampler.settings()
-    settings.check_particles(models)
-    stop = stop_rules(spec.stop)
-    if isinstance(distance, NMSE):
-        noise: Noise | None = distance.noise(data.noise_std)
-    elif data.noise_std is not None:
-        raise SpecError("data.noise_std", f"applies to distance 'nmse' only, not {spec.distance.name!r}")
-    else:
-        noise = None
-    return Job(spec, models, evaluate, settings, stop, spec.seed, force, observed, simulators, job_description, noise,
-               voltage)
+        check_applicable(spec)
+        data = spec.data
+        force, observed = load_data(spec, base_dir)
+        voltage = load_voltage(spec, base_dir)
+        check_records(force, observed, voltage)  # before a distance computes anything of them
+        arrays = {"force": force, "observed": observed, **({} if voltage is None else {"voltage": voltage})}
+        job_description = description(spec)
+        models, simulators, distance = job_parts(job_description, arrays, allow_import)
+        evaluate = evaluator(models, simulators, distance)  # checks the records' lengths: before a window that misses
+        if data.test is not None:
+            check_window(data.test, observed.size, "test")
+        check_models(models)  # duplicate names
+        check_physical(spec, simulators, distance)
+        settings = spec.sampler.settings()
+        settings.check_particles(models)
+        stop = stop_rules(spec.stop)
+        if isinstance(distance, NMSE):
+            noise: Noise | None = distance.noise(data.noise_std)
+        elif data.noise_std is not None:
+            raise SpecError("data.noise_std", f"applies to distance 'nmse' only, not {spec.distance.name!r}")
+        else:
+            noise = None
+        return Job(spec, models, evaluate, settings, stop, spec.seed, force, observed, simulators, job_description, noise,
+                   voltage)

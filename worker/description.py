@@ -1,14 +1,9 @@
-"""A job's description: what a worker builds the job from, as plain typed data
-(:class:`JobDescription`, its models :class:`ModelDescription`: picklable, no code), and
-its data arrays, made into objects: :func:`model_of` (-> :class:`abcns.Model`),
-:func:`simulator_for` (-> the simulator the registry's factory builds over the record) and
-:func:`job_parts` (the whole description -> models, simulators and distance). The service
-builds the description once from the validated spec (``service.spec.description``).
-
-Errors are :class:`abcns.errors.InvalidSetting` at a path in the description's terms: a
-model's field behind ``("models", i)`` (``("models", 0, "substeps")``), the job's own fields
-and records by their names here (``("force",)``, the input record; ``("dt",)``,
-``("input_interpolation",)``); ``service.spec`` maps them to the spec's fields.
+"""A job's description, what a worker builds the job from: :class:`JobDescription` (its
+models :class:`ModelDescription`), plain typed data that ``service.spec.build`` makes once, and
+its records, made into :func:`model_of` (-> :class:`abcns.Model`), :func:`simulator_for` (the
+registry's factory over the record) and :func:`job_parts` (models, simulators, distance).
+Errors: :class:`abcns.errors.InvalidSetting` at the description's paths (``("models", 0,
+"substeps")``, ``("force",)``: the input record), which ``service.spec`` maps to the spec's.
 """
 
 from __future__ import annotations
