@@ -710,6 +710,13 @@ def check_meaningful(spec: JobSpec, job: Job) -> None:
     _check_meaningful_tolerance(spec, job)
 
 
+def spec_text(spec: JobSpec) -> dict:
+    """The spec as JSON to be read back (an HTTP job's spec.json, ``abcns submit``'s upload):
+    the fields given, not the defaults, so that read back it means the same (:func:`stop_rules`
+    reads which rules were named); its job key is the same (the defaults fill in again)."""
+    return spec.model_dump(mode="json", exclude_unset=True)
+
+
 def stop_rules(stop: BaseModel) -> StopRules:
     """The spec's stop rules. A ``min_epsilon_decrease`` the spec names is the user's own rule:
     it may end the run above its decision tolerance (``decrease_above_floor``, unless the spec

@@ -6,20 +6,25 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import json
 import pickle
+from pathlib import Path
 from typing import Any, get_args, get_origin
 
 import numpy as np
 import pytest
+import yaml
 from pydantic import BaseModel
 
 from abcns import InvalidSetting, SpecError
 from abcns.errors import dotted
 from benchmarks.harness import duffing_spec
 from service.run.jobs import pilot_batch
-from service.spec import SPEC_NAMES, JobSpec, build, description, job_arrays, parse, spec_path
+from service.spec import SPEC_NAMES, JobSpec, build, description, job_arrays, parse, spec_path, spec_text
 from worker.compose import evaluator
 from worker.description import JobDescription, ModelDescription, job_parts
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -138,3 +143,24 @@ def test_an_error_crosses_the_wire_with_its_path():
     assert str(back) == "models[0].substeps: must be a positive integer"
     spec = pickle.loads(pickle.dumps(SpecError("data.input", "needs an input force")))  # noqa: S301 (its own bytes)
     assert type(spec) is SpecError and spec.field == "data.input" and str(spec) == "data.input: needs an input force"
+
+
+def test_the_spec_means_the_same_after_it_crossed():
+    """A spec that names ``stop.min_epsilon_decrease`` alone ends as the user's rule says
+    (``decrease_above_floor``: stop_rules reads which rules were named). Read back from a
+    full JSON dump it meant the other rule: the job loop on a worker (``abcns run
+    --out-dir``) and an HTTP job (its spec.json, ``abcns submit``'s upload) ran with
+    ``decrease_above_floor`` false while ``abcns run`` ran with true. The typed spec (what
+    run_one now gets) and ``spec_text`` (spec.json, the upload) keep its meaning and its job key."""
+    from service.run.runner import job_key
+    from service.spec import stop_rules
+
+    raw = yaml.safe_load((ROOT / "examples" / "authors_demo" / "spec.yaml").read_text())
+    assert set(raw["stop"]) == {"min_epsilon_decrease"}
+    spec = parse(raw)
+    assert stop_rules(spec.stop).decrease_above_floor
+    sent = pickle.loads(pickle.dumps(spec))  # noqa: S301 (its own bytes): run_one's argument, as Dask sends it
+    stored = JobSpec.model_validate(json.loads(json.dumps(spec_text(spec))))  # spec.json, read back
+    for crossed in (sent, stored):
+        assert stop_rules(crossed.stop) == stop_rules(spec.stop)
+        assert job_key(crossed, crossed.seed, "data") == job_key(spec, spec.seed, "data")
