@@ -14,8 +14,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from abcns.errors import InvalidSetting
 from abcns.noise import Noise
-from abcns.priors import SpecError
 
 
 @runtime_checkable
@@ -27,13 +27,13 @@ class Distance(Protocol):
     def config(self) -> dict: ...
 
 
-def _finite_observed(observed: np.ndarray, field: str) -> np.ndarray:
+def _finite_observed(observed: np.ndarray) -> np.ndarray:
     observed = np.asarray(observed, dtype=float)
     if observed.ndim != 1 or observed.size == 0:
-        raise SpecError(field, f"must be a non-empty 1-d array, got shape {observed.shape}")
+        raise InvalidSetting(("observed",), f"must be a non-empty 1-d array, got shape {observed.shape}")
     bad = np.flatnonzero(~np.isfinite(observed))
     if bad.size:
-        raise SpecError(field, f"has {bad.size} non-finite values (first at index {bad[0]})")
+        raise InvalidSetting(("observed",), f"has {bad.size} non-finite values (first at index {bad[0]})")
     return observed
 
 
@@ -43,18 +43,19 @@ def _clean(d: np.ndarray) -> np.ndarray:
     return d
 
 
-def check_window(window: tuple[int, int] | None, n_samples: int, field: str) -> tuple[int, int]:
-    """Validate a half-open sample window ``[start, stop)`` against a record length."""
+def check_window(window: tuple[int, int] | None, n_samples: int, name: str) -> tuple[int, int]:
+    """Validate a half-open sample window ``[start, stop)`` against a record length (errors
+    at ``(name,)``: ``fit``, the NMSE's window, or the caller's)."""
     if window is None:
         return 0, n_samples
     try:
         start, stop = (int(v) for v in window)
     except (TypeError, ValueError):
-        raise SpecError(field, f"must be [start, stop], got {window!r}") from None
+        raise InvalidSetting((name,), f"must be [start, stop], got {window!r}") from None
     if not 0 <= start < stop <= n_samples:
-        raise SpecError(field, f"[{start}, {stop}) must satisfy 0 <= start < stop <= {n_samples}")
+        raise InvalidSetting((name,), f"[{start}, {stop}) must satisfy 0 <= start < stop <= {n_samples}")
     if stop - start < 2:
-        raise SpecError(field, "needs at least 2 samples")
+        raise InvalidSetting((name,), "needs at least 2 samples")
     return start, stop
 
 
@@ -66,13 +67,13 @@ class NMSE:
     """
 
     def __init__(self, observed: np.ndarray, window: tuple[int, int] | None = None):
-        observed = _finite_observed(observed, "data.observed")
-        self.start, self.stop = check_window(window, observed.size, "data.fit")
+        observed = _finite_observed(observed)
+        self.start, self.stop = check_window(window, observed.size, "fit")
         self.observed = observed
         segment = observed[self.start : self.stop]
         variance = float(np.var(segment, ddof=1))
         if not variance > 0.0:
-            raise SpecError("data.observed", "is constant on the fit window; the NMSE is undefined")
+            raise InvalidSetting(("observed",), "is constant on the fit window; the NMSE is undefined")
         self.scale = 100.0 / (segment.size * variance)
 
     def __call__(self, simulated: np.ndarray) -> np.ndarray:
@@ -90,14 +91,14 @@ class NMSE:
         if noise_std is None:
             return Noise(self.stop - self.start)
         if not (isinstance(noise_std, (int, float)) and math.isfinite(noise_std) and noise_std > 0):
-            raise SpecError("data.noise_std", f"must be a finite positive number, got {noise_std!r}")
+            raise InvalidSetting(("noise_std",), f"must be a finite positive number, got {noise_std!r}")
         try:
             variance = self.scale * float(noise_std) ** 2
         except OverflowError:  # the square past float64's range
             variance = math.inf
         if not math.isfinite(variance):
-            raise SpecError("data.noise_std", f"{noise_std:.6g} is too large for this record: its variance in % NMSE "
-                                              "is not a finite number")
+            raise InvalidSetting(("noise_std",), f"{noise_std:.6g} is too large for this record: its variance in % "
+                                   "NMSE is not a finite number")
         return Noise(self.stop - self.start, variance)
 
     def config(self) -> dict:
@@ -135,10 +136,10 @@ class SummaryEuclidean:
     """Euclidean distance between summary statistics, paper Eq. (9)."""
 
     def __init__(self, observed: np.ndarray, summaries: str | Callable[[np.ndarray], np.ndarray] = "gk"):
-        observed = _finite_observed(observed, "data.observed")
+        observed = _finite_observed(observed)
         if isinstance(summaries, str):
             if summaries not in SUMMARIES:
-                raise SpecError("distance.summaries", f"unknown summaries {summaries!r}; known: {sorted(SUMMARIES)}")
+                raise InvalidSetting(("summaries",), f"unknown summaries {summaries!r}; known: {sorted(SUMMARIES)}")
             self.summaries_name = summaries
             summaries = SUMMARIES[summaries]
         else:
@@ -147,7 +148,7 @@ class SummaryEuclidean:
         self.observed = observed
         self.observed_summaries = summaries(observed[None, :])[0]
         if not np.all(np.isfinite(self.observed_summaries)):
-            raise SpecError("distance.summaries", "the observed data's summaries are not finite")
+            raise InvalidSetting(("summaries",), "the observed data's summaries are not finite")
 
     def __call__(self, simulated: np.ndarray) -> np.ndarray:
         with np.errstate(over="ignore", invalid="ignore"):
@@ -162,7 +163,7 @@ class CallableDistance:
     """Any user function ``f(simulated (n, m), observed (m,)) -> (n,)``."""
 
     def __init__(self, observed: np.ndarray, function: Callable[[np.ndarray, np.ndarray], np.ndarray]):
-        self.observed = _finite_observed(observed, "data.observed")
+        self.observed = _finite_observed(observed)
         self.function = function
 
     def __call__(self, simulated: np.ndarray) -> np.ndarray:

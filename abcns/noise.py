@@ -54,7 +54,8 @@ from enum import IntEnum
 
 import numpy as np
 
-from abcns.priors import Model, SpecError
+from abcns.errors import InvalidSetting
+from abcns.priors import Model
 
 #: how a floor was estimated (``Floor.method``; stored as its index)
 METHODS = ("estimated", "stated")
@@ -72,9 +73,9 @@ class Noise:
 
     def __post_init__(self) -> None:
         if not (isinstance(self.n_samples, int) and self.n_samples >= 2):
-            raise SpecError("data.fit", f"a noise floor needs at least 2 samples, got {self.n_samples!r}")
+            raise InvalidSetting(("fit",), f"a noise floor needs at least 2 samples, got {self.n_samples!r}")
         if self.variance is not None and not (math.isfinite(self.variance) and self.variance > 0):
-            raise SpecError("data.noise_std", f"must give a finite positive noise variance, got {self.variance!r}")
+            raise InvalidSetting(("noise_std",), f"must give a finite positive noise variance, got {self.variance!r}")
 
 
 @dataclass(frozen=True)

@@ -9,14 +9,7 @@ from typing import Any
 
 import numpy as np
 
-
-class SpecError(ValueError):
-    """Invalid user input; ``field`` names where it is, e.g. ``models[1].priors.k``."""
-
-    def __init__(self, field: str, message: str):
-        self.field = field
-        self.message = message
-        super().__init__(f"{field}: {message}")
+from abcns.errors import InvalidSetting
 
 
 @dataclass(frozen=True)
@@ -31,13 +24,13 @@ class Uniform:
         for name in ("low", "high"):
             value = getattr(self, name)
             if not isinstance(value, (int, float, np.floating, np.integer)) or isinstance(value, bool):
-                raise SpecError(name, f"must be a number, got {value!r}")
+                raise InvalidSetting((name,), f"must be a number, got {value!r}")
             if not math.isfinite(value):
-                raise SpecError(name, f"must be finite, got {value!r}")
+                raise InvalidSetting((name,), f"must be finite, got {value!r}")
         if not self.low < self.high:
-            raise SpecError("low", f"must be below high, got low={self.low!r} >= high={self.high!r}")
+            raise InvalidSetting(("low",), f"must be below high, got low={self.low!r} >= high={self.high!r}")
         if not math.isfinite(float(self.high) - float(self.low)):  # [-1e308, 1e308]: sampling would give inf
-            raise SpecError("high", f"the width high - low overflows a float, got [{self.low!r}, {self.high!r}]")
+            raise InvalidSetting(("high",), f"the width high - low overflows a float, got [{self.low!r}, {self.high!r}]")
         object.__setattr__(self, "low", float(self.low))
         object.__setattr__(self, "high", float(self.high))
 
@@ -75,36 +68,36 @@ class Model:
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
-            raise SpecError("name", "a model needs a non-empty name")
+            raise InvalidSetting(("name",), "a model needs a non-empty name")
         if not self.priors:
-            raise SpecError(f"models[{self.name}].priors", "a model needs at least one free parameter")
+            raise InvalidSetting(("priors",), "a model needs at least one free parameter")
         priors: dict[str, Uniform] = {}
         # unchecked input (YAML, JSON, Python): a [low, high] pair is accepted too, validated below
         given: Mapping[str, Any] = self.priors
         for key, value in given.items():
-            where = f"models[{self.name}].priors.{key}"
+            where = ("priors", key)
             if isinstance(value, Uniform):
                 priors[key] = value
                 continue
             try:
                 low, high = value
             except (TypeError, ValueError):
-                raise SpecError(where, f"must be [low, high], got {value!r}") from None
+                raise InvalidSetting(where, f"must be [low, high], got {value!r}") from None
             try:
                 priors[key] = Uniform(low, high)
-            except SpecError as err:
-                raise SpecError(where, err.message) from None
+            except InvalidSetting as err:
+                raise InvalidSetting(where, err.message) from None
         fixed: dict[str, float] = {}
         for key, number in self.fixed.items():
-            where = f"models[{self.name}].fixed.{key}"
+            where = ("fixed", key)
             if key in priors:
-                raise SpecError(where, "is both fixed and given a prior")
+                raise InvalidSetting(where, "is both fixed and given a prior")
             try:
                 fval = float(number)
             except (TypeError, ValueError):
-                raise SpecError(where, f"must be a number, got {number!r}") from None
+                raise InvalidSetting(where, f"must be a number, got {number!r}") from None
             if not math.isfinite(fval):
-                raise SpecError(where, f"must be finite, got {number!r}")
+                raise InvalidSetting(where, f"must be finite, got {number!r}")
             fixed[key] = fval
         object.__setattr__(self, "priors", priors)
         object.__setattr__(self, "fixed", fixed)
@@ -142,7 +135,7 @@ class Model:
     def from_dict(cls, desc: Mapping[str, Any]) -> Model:
         """The model a dict describes: :meth:`config_dict`'s form (``config`` kept as it is) or
         a job spec's (``name``, ``simulator``, ``priors`` as [low, high], ``fixed``; the
-        simulator's name kept as ``config``). SpecError names the field (``models[name]...``)."""
+        simulator's name kept as ``config``). InvalidSetting names the field (``priors.k``)."""
         config = desc.get("config") or ({"simulator": desc["simulator"]} if "simulator" in desc else {})
         return cls(desc["name"], desc["priors"], desc.get("fixed") or {}, config=config)
 

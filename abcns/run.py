@@ -7,9 +7,10 @@ from collections.abc import Callable, Generator, Sequence
 from dataclasses import asdict
 
 from abcns.blas import limited
+from abcns.errors import InvalidSetting
 from abcns.executor import Evaluate, Executor, SerialExecutor
 from abcns.nested import abc_ns
-from abcns.priors import Model, SpecError
+from abcns.priors import Model
 from abcns.rejection import abc_rejection
 from abcns.result import Population, Result, RunEnd
 from abcns.settings import NSSettings, RejectionSettings, SMCSettings, StopRules, check_seed
@@ -24,11 +25,11 @@ def algorithm_name(settings: Settings) -> str:
 def check_models(models: Sequence[Model]) -> tuple[Model, ...]:
     models = tuple(models)
     if not models:
-        raise SpecError("models", "at least one model is needed")
+        raise InvalidSetting(("models",), "at least one model is needed")
     names = [m.name for m in models]
     for i, name in enumerate(names):
         if name in names[:i]:
-            raise SpecError(f"models[{i}].name", f"duplicate model name {name!r}")
+            raise InvalidSetting(("models", i, "name"), f"duplicate model name {name!r}")
     return models
 
 
@@ -53,7 +54,7 @@ def iterate(
         return limited(abc_smc(models, executor, settings, stop, seed, **kwargs))
     if isinstance(settings, RejectionSettings):
         return limited(abc_rejection(models, executor, settings, stop, seed, **kwargs))
-    raise SpecError("sampler.algorithm", f"unknown settings type {type(settings).__name__}")
+    raise InvalidSetting(("settings",), f"unknown settings type {type(settings).__name__}")
 
 
 def consume(gen: Generator[Population, None, RunEnd], on_population: Callable[[Population], None]) -> RunEnd:

@@ -9,7 +9,8 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Literal, TypeGuard
 
-from abcns.priors import Model, SpecError
+from abcns.errors import InvalidSetting
+from abcns.priors import Model
 
 
 class StopReason(enum.StrEnum):
@@ -70,9 +71,9 @@ MAX_ENLARGEMENT = 10.0  # f0 beyond 10 scales the ellipsoid past the prior box o
 NOT_IN_SPEC = {"spec": False}
 
 
-def _check(cond: bool, field: str, message: str) -> None:
+def _check(cond: bool, path: tuple[str, ...], message: str) -> None:
     if not cond:
-        raise SpecError(field, message)
+        raise InvalidSetting(path, message)
 
 
 def _is_number(x: object) -> TypeGuard[float]:
@@ -85,7 +86,7 @@ def _is_int(x: object, low: int, high: int) -> bool:
 
 def check_seed(seed: object) -> None:
     """A run's seed: an integer in [0, 2^63 - 1]."""
-    _check(_is_int(seed, 0, MAX_SEED), "seed", f"must be an integer in [0, 2^63 - 1], got {seed!r}")
+    _check(_is_int(seed, 0, MAX_SEED), ("seed",), f"must be an integer in [0, 2^63 - 1], got {seed!r}")
 
 
 #: stop rules that do not count as "a stop rule set": the safety net ends a run that cannot
@@ -134,19 +135,19 @@ class StopRules:
     def __post_init__(self) -> None:
         for name in ("min_epsilon_decrease", "epsilon_target", "max_seconds"):
             v = getattr(self, name)
-            _check(v is None or (_is_number(v) and v > 0), f"stop.{name}", f"must be a positive number or null, got {v!r}")
+            _check(v is None or (_is_number(v) and v > 0), ("stop", name), f"must be a positive number or null, got {v!r}")
         for name in ("max_populations", "max_simulations", "max_simulations_without_acceptance"):
             v = getattr(self, name)
             _check(
                 v is None or _is_int(v, 1, MAX_COUNT),
-                f"stop.{name}",
+                ("stop", name),
                 f"must be an integer in [1, 2^62] or null, got {v!r}",
             )
         for name in ("noise_floor", "decrease_above_floor"):
             v = getattr(self, name)
-            _check(isinstance(v, bool), f"stop.{name}", f"must be true or false, got {v!r}")
+            _check(isinstance(v, bool), ("stop", name), f"must be true or false, got {v!r}")
         rules = {k: v for k, v in asdict(self).items() if k not in SAFETY_NETS}
-        _check(any(v is not None for v in rules.values()), "stop", "at least one stop rule must be set")
+        _check(any(v is not None for v in rules.values()), ("stop",), "at least one stop rule must be set")
 
     def reason_after(self, epsilon: float, epsilon_next: float, t: int, decrease: bool = True,
                      decision: float | None = None) -> StopReason | None:
@@ -171,21 +172,21 @@ class StopRules:
 
 
 def _check_common(n_particles: object, batch_size: object, epsilon_initial: object, pilot_size: object) -> None:
-    _check(pilot_size is None or _is_int(pilot_size, 2, MAX_COUNT), "sampler.pilot_size",
+    _check(pilot_size is None or _is_int(pilot_size, 2, MAX_COUNT), ("settings", "pilot_size"),
            f"must be an integer in [2, 2^62] or null, got {pilot_size!r}")
     _check(
         _is_int(n_particles, 2, MAX_PARTICLES),
-        "sampler.particles",
+        ("settings", "particles"),
         f"must be an integer in [2, {MAX_PARTICLES:.0e}], got {n_particles!r}",
     )
     _check(
         _is_int(batch_size, 1, MAX_BATCH_SIZE),
-        "sampler.batch_size",
+        ("settings", "batch_size"),
         f"must be an integer in [1, {MAX_BATCH_SIZE:.0e}], got {batch_size!r}",
     )
     _check(
         epsilon_initial is None or (_is_number(epsilon_initial) and epsilon_initial > 0),
-        "sampler.epsilon_initial",
+        ("settings", "epsilon_initial"),
         f"must be a positive number or null (chosen from a pilot), got {epsilon_initial!r}",
     )
 
@@ -234,39 +235,40 @@ class NSSettings:
 
     def __post_init__(self) -> None:
         _check_common(self.particles, self.batch_size, self.epsilon_initial, self.pilot_size)
-        _check(self.variant in ("evidence", "paper"), "sampler.variant", f"must be 'evidence' or 'paper', got {self.variant!r}")
+        _check(self.variant in ("evidence", "paper"), ("settings", "variant"),
+               f"must be 'evidence' or 'paper', got {self.variant!r}")
         if self.variant == "paper":
             for name in ("max_ellipsoids", "min_model_probability", "min_proposal_share"):
-                _check(getattr(self, name) is None, f"sampler.{name}",
+                _check(getattr(self, name) is None, ("settings", name),
                        "applies to variant 'evidence' only (the paper variant has one ellipsoid, particle shares "
                        "and equal proposals)")
         _check(
             self.max_ellipsoids is None or (isinstance(self.max_ellipsoids, int) and not isinstance(self.max_ellipsoids, bool)
                                             and 1 <= self.max_ellipsoids <= 64),
-            "sampler.max_ellipsoids", f"must be an integer in [1, 64], got {self.max_ellipsoids!r}",
+            ("settings", "max_ellipsoids"), f"must be an integer in [1, 64], got {self.max_ellipsoids!r}",
         )
         for name, top in (("min_model_probability", 0.5), ("min_proposal_share", 0.5)):
             v = getattr(self, name)
-            _check(v is None or (_is_number(v) and 0 <= v <= top), f"sampler.{name}",
+            _check(v is None or (_is_number(v) and 0 <= v <= top), ("settings", name),
                    f"must lie in [0, {top}], got {v!r}")
         for name in ("alpha", "beta", "pilot_quantile"):
             v = getattr(self, name)
-            _check(_is_number(v) and 0 < v < 1, f"sampler.{name}", f"must lie in (0, 1), got {v!r}")
+            _check(_is_number(v) and 0 < v < 1, ("settings", name), f"must lie in (0, 1), got {v!r}")
         _check(
             self.beta <= 1 - self.alpha + 1e-12,
-            "sampler.beta",
+            ("settings", "beta"),
             f"beta ({self.beta}) must not exceed 1 - alpha ({1 - self.alpha:g}): survivors are drawn "
             "from the particles left after dropping alpha N",
         )
         _check(
             _is_number(self.enlargement) and 1 <= self.enlargement <= MAX_ENLARGEMENT,
-            "sampler.enlargement",
+            ("settings", "enlargement"),
             f"must lie in [1, {MAX_ENLARGEMENT:g}], got {self.enlargement!r}",
         )
-        _check(self.weights in ("paper", "kernel"), "sampler.weights", f"must be 'paper' or 'kernel', got {self.weights!r}")
-        _check(self.n_drop >= 1, "sampler.alpha", f"alpha * particles rounds to {self.n_drop}; at least 1 must drop")
-        _check(self.n_new >= 1, "sampler.beta", f"(1 - beta) * particles rounds to {self.n_new}; at least 1 must be new")
-        _check(_is_int(self.max_redraws, 1, MAX_COUNT), "sampler.max_redraws", "must be an integer in [1, 2^62]")
+        _check(self.weights in ("paper", "kernel"), ("settings", "weights"), f"must be 'paper' or 'kernel', got {self.weights!r}")
+        _check(self.n_drop >= 1, ("settings", "alpha"), f"alpha * particles rounds to {self.n_drop}; at least 1 must drop")
+        _check(self.n_new >= 1, ("settings", "beta"), f"(1 - beta) * particles rounds to {self.n_new}; at least 1 must be new")
+        _check(_is_int(self.max_redraws, 1, MAX_COUNT), ("settings", "max_redraws"), "must be an integer in [1, 2^62]")
 
     @property
     def evidence(self) -> bool:
@@ -304,7 +306,7 @@ class NSSettings:
         per_model = self.n_survivors // len(models)
         _check(
             per_model >= d_max + 1,
-            "sampler.particles",
+            ("settings", "particles"),
             f"{self.particles} particles give {per_model} survivors per model with {len(models)} models; "
             f"a {d_max}-parameter model needs at least {d_max + 1}",
         )
@@ -327,22 +329,22 @@ class SMCSettings:
 
     def __post_init__(self) -> None:
         _check_common(self.particles, self.batch_size, self.epsilon_initial, self.pilot_size)
-        _check(_is_int(self.max_redraws, 1, MAX_COUNT), "sampler.max_redraws", "must be an integer in [1, 2^62]")
+        _check(_is_int(self.max_redraws, 1, MAX_COUNT), ("settings", "max_redraws"), "must be an integer in [1, 2^62]")
         for name in ("quantile", "pilot_quantile"):
             v = getattr(self, name)
-            _check(_is_number(v) and 0 < v < 1, f"sampler.{name}", f"must lie in (0, 1), got {v!r}")
+            _check(_is_number(v) and 0 < v < 1, ("settings", name), f"must lie in (0, 1), got {v!r}")
         if self.schedule is not None:
             sched = tuple(float(e) for e in self.schedule)
-            _check(len(sched) >= 1 and all(e > 0 and math.isfinite(e) for e in sched), "sampler.schedule",
+            _check(len(sched) >= 1 and all(e > 0 and math.isfinite(e) for e in sched), ("settings", "schedule"),
                    "must hold finite positive tolerances")
-            _check(all(a >= b for a, b in itertools.pairwise(sched)), "sampler.schedule", "must not increase")
+            _check(all(a >= b for a, b in itertools.pairwise(sched)), ("settings", "schedule"), "must not increase")
             object.__setattr__(self, "schedule", sched)
 
     def check_particles(self, models: Sequence[Model]) -> None:
         d_max = max(m.n_dim for m in models)
         _check(
             self.particles // len(models) >= d_max + 1,
-            "sampler.particles",
+            ("settings", "particles"),
             f"{self.particles} particles are too few for {len(models)} models of up to {d_max} parameters",
         )
 
@@ -359,7 +361,7 @@ class RejectionSettings:
 
     def __post_init__(self) -> None:
         _check_common(self.particles, self.batch_size, self.epsilon_initial, self.pilot_size)
-        _check(_is_number(self.pilot_quantile) and 0 < self.pilot_quantile < 1, "sampler.pilot_quantile",
+        _check(_is_number(self.pilot_quantile) and 0 < self.pilot_quantile < 1, ("settings", "pilot_quantile"),
                f"must lie in (0, 1), got {self.pilot_quantile!r}")
 
     def check_particles(self, models: Sequence[Model]) -> None:

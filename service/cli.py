@@ -652,7 +652,7 @@ def submit(
     import httpx
     import numpy as np
 
-    from service.spec import build, load, load_array
+    from service.spec import build, load, load_array, spec_text
 
     try:
         job_spec, base = load(spec)
@@ -662,7 +662,7 @@ def submit(
     except SpecError as err:
         _fail(str(err))
     data = job_spec.data.model_copy(update={key: f"npz:{key}" for key in arrays})  # the arrays go in the upload
-    body = json.dumps(job_spec.model_copy(update={"data": data}).model_dump(mode="json"))
+    body = json.dumps(spec_text(job_spec.model_copy(update={"data": data})))
     npz = io.BytesIO()
     np.savez(npz, **arrays)  # type: ignore[arg-type]  # mypy checks **arrays against allow_pickle (bool) too
     names = [m.name for m in job_spec.models]

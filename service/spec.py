@@ -2,8 +2,11 @@
 
 ``load(path)`` reads YAML or JSON; ``build(spec, base_dir)`` validates everything that can
 be checked before a simulation (files, windows, lengths, simulator parameters, sampler
-settings) and returns a :class:`Job` ready for ``abcns.run``. Every error is an
-``abcns.SpecError`` whose ``field`` names the place in the spec (``models[1].priors.k``).
+settings) and returns a :class:`Job` ready for ``abcns.run``, with the typed description a
+worker builds it from (:func:`description`). Every error is an ``abcns.SpecError`` whose
+``field`` names the place in the spec (``models[1].priors.k``): the core's errors
+(``abcns.InvalidSetting``, a path in its own terms) are mapped to the spec's fields here,
+in one place (:func:`spec_path`, :func:`spec_errors`).
 """
 
 from __future__ import annotations
@@ -13,6 +16,8 @@ import difflib
 import json
 import math
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, get_args, get_type_hints
@@ -31,13 +36,14 @@ from pydantic import (
 )
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
-from abcns import Model, NSSettings, RejectionSettings, SMCSettings, SpecError, StopRules
+from abcns import InvalidSetting, Model, NSSettings, RejectionSettings, SMCSettings, SpecError, StopRules
 from abcns.distances import NMSE, check_window
+from abcns.errors import dotted
 from abcns.executor import Evaluate
 from abcns.noise import Noise
 from abcns.run import check_models
 from worker.compose import evaluator
-from worker.description import job_parts
+from worker.description import JobDescription, ModelDescription, job_parts, parameter_bounds
 from worker.simulators import Simulator
 
 Window = tuple[int, int]
@@ -263,6 +269,7 @@ class Job:
     force: np.ndarray | None
     observed: np.ndarray
     simulators: list[Simulator]  # the ones ``evaluate`` runs (their substeps as chosen)
+    description: JobDescription  # what a worker builds ``evaluate`` from (with the records)
     noise: Noise | None = None  # the distance's noise model (abcns.noise): the NMSE's; None for the others
     voltage: np.ndarray | None = None  # the second input channel (data.voltage), as the job uses it
 
@@ -276,10 +283,36 @@ def spec_loc(loc: tuple) -> tuple:
 
 def _field(loc: tuple) -> str:
     """A pydantic error location as the spec's field name (``models[1].priors.k``)."""
-    out = ""
-    for part in spec_loc(loc):
-        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
-    return out
+    return dotted(spec_loc(loc))
+
+
+#: the core's names (abcns, worker: the job description's fields and the simulators'
+#: keywords) where the spec names the field otherwise; a model's own (behind ``("models",
+#: i)``) and the job's (at the top) alike
+SPEC_NAMES: dict[str, tuple[str, ...]] = {
+    "force": ("data", "input"), "observed": ("data", "observed"), "voltage": ("data", "voltage"),
+    "dt": ("data", "dt"), "fit": ("data", "fit"), "test": ("data", "test"), "noise_std": ("data", "noise_std"),
+    "input_interpolation": ("data", "input_interpolation"), "distance": ("distance", "name"),
+    "summaries": ("distance", "summaries"), "settings": ("sampler",), "substeps": ("integrator", "substeps"),
+    "output": ("integrator", "output"), "backend": ("integrator", "backend")}
+
+
+def spec_path(path: tuple) -> tuple:
+    """The spec's path of a core error's ``path`` (``("models", 0, "substeps")`` is
+    ``models[0].integrator.substeps``, ``("force",)`` is ``data.input``)."""
+    at = 2 if path[:1] == ("models",) and len(path) > 2 else 0
+    return (*path[:at], *SPEC_NAMES.get(path[at], path[at:at + 1]), *path[at + 1:]) if len(path) > at else path
+
+
+@contextmanager
+def spec_errors() -> Iterator[None]:
+    """The core's errors raised within, as SpecErrors naming the spec's field (:func:`spec_path`)."""
+    try:
+        yield
+    except SpecError:
+        raise
+    except InvalidSetting as err:
+        raise SpecError(dotted(spec_path(err.path)), err.message) from None
 
 
 #: fields a spec may no longer name, and why (said after "Extra inputs are not permitted")
@@ -429,15 +462,18 @@ def load_array(source: str | list[float], base_dir: Path | None, field: str) -> 
     return arr
 
 
-def description(spec: JobSpec) -> dict:
-    """The JSON-able part of a job a worker needs to build its evaluator."""
-    return {
-        "models": [m.model_dump() for m in spec.models],
-        "distance": spec.distance.model_dump(),
-        "data": {"dt": spec.data.sample_interval if spec.data.input is not None else None,
-                 "fit": list(spec.data.fit) if spec.data.fit else None,
-                 "input_interpolation": spec.data.input_interpolation},
-    }
+def model_description(model: ModelSpec) -> ModelDescription:
+    """A spec's model as a worker builds it."""
+    return ModelDescription(model.name, model.simulator, dict(model.priors), dict(model.fixed),
+                            model.integrator.substeps, model.integrator.output)
+
+
+def description(spec: JobSpec) -> JobDescription:
+    """What a worker needs, besides the records, to build the job's evaluator."""
+    return JobDescription(
+        tuple(model_description(m) for m in spec.models), spec.distance.name, spec.distance.summaries,
+        spec.data.sample_interval if spec.data.input is not None else None, spec.data.fit,
+        spec.data.input_interpolation)
 
 
 def _decimate(x: np.ndarray, q: int, field: str) -> np.ndarray:
@@ -626,13 +662,11 @@ def _check_meaningful_rate(spec: JobSpec, job: Job) -> None:
         return
     dt, field = spec.data.sample_interval, "data.fs" if spec.data.fs is not None else "data.dt"
     (start, stop), _ = _read_window(spec, job.observed)
-    for i, (model, sim) in enumerate(zip(spec.models, job.simulators, strict=True)):
+    for i, (model, sim) in enumerate(zip(job.description.models, job.simulators, strict=True)):
         kind: Any = type(sim)  # a simulator class, with or without the frequencies
         if not (callable(getattr(kind, "omega_min", None)) and callable(getattr(kind, "omega_max", None))):
             continue
-        bounds = {k: (float(v), float(v)) for k, v in getattr(kind, "defaults", {}).items()}
-        bounds.update({k: (float(v), float(v)) for k, v in model.fixed.items()})
-        bounds.update({k: (float(lo), float(hi)) for k, (lo, hi) in model.priors.items()})
+        bounds = parameter_bounds(model, kind)
         try:
             slowest, fastest = kind.omega_min(bounds), kind.omega_max(bounds)
         except (KeyError, ValueError, ArithmeticError):
@@ -676,6 +710,13 @@ def check_meaningful(spec: JobSpec, job: Job) -> None:
     _check_meaningful_tolerance(spec, job)
 
 
+def spec_text(spec: JobSpec) -> dict:
+    """The spec as JSON to be read back (an HTTP job's spec.json, ``abcns submit``'s upload):
+    the fields given, not the defaults, so that read back it means the same (:func:`stop_rules`
+    reads which rules were named); its job key is the same (the defaults fill in again)."""
+    return spec.model_dump(mode="json", exclude_unset=True)
+
+
 def stop_rules(stop: BaseModel) -> StopRules:
     """The spec's stop rules. A ``min_epsilon_decrease`` the spec names is the user's own rule:
     it may end the run above its decision tolerance (``decrease_above_floor``, unless the spec
@@ -688,26 +729,30 @@ def stop_rules(stop: BaseModel) -> StopRules:
 
 
 def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = False) -> Job:
-    """Everything checkable before a simulation: raise SpecError or return a Job."""
-    check_applicable(spec)
-    data = spec.data
-    force, observed = load_data(spec, base_dir)
-    voltage = load_voltage(spec, base_dir)
-    check_records(force, observed, voltage)  # before a distance computes anything of them
-    arrays = {"force": force, "observed": observed, **({} if voltage is None else {"voltage": voltage})}
-    models, simulators, distance = job_parts(description(spec), arrays, allow_import)
-    evaluate = evaluator(models, simulators, distance)  # checks the records' lengths: before a window that misses
-    if data.test is not None:
-        check_window(data.test, observed.size, "data.test")
-    check_models(models)  # duplicate names
-    check_physical(spec, simulators, distance)
-    settings = spec.sampler.settings()
-    settings.check_particles(models)
-    stop = stop_rules(spec.stop)
-    if isinstance(distance, NMSE):
-        noise: Noise | None = distance.noise(data.noise_std)
-    elif data.noise_std is not None:
-        raise SpecError("data.noise_std", f"applies to distance 'nmse' only, not {spec.distance.name!r}")
-    else:
-        noise = None
-    return Job(spec, models, evaluate, settings, stop, spec.seed, force, observed, simulators, noise, voltage)
+    """Everything checkable before a simulation: raise SpecError (naming the spec's field,
+    the core's errors mapped by :func:`spec_errors`) or return a Job."""
+    with spec_errors():
+        check_applicable(spec)
+        data = spec.data
+        force, observed = load_data(spec, base_dir)
+        voltage = load_voltage(spec, base_dir)
+        check_records(force, observed, voltage)  # before a distance computes anything of them
+        arrays = {"force": force, "observed": observed, **({} if voltage is None else {"voltage": voltage})}
+        job_description = description(spec)
+        models, simulators, distance = job_parts(job_description, arrays, allow_import)
+        evaluate = evaluator(models, simulators, distance)  # checks the records' lengths: before a window that misses
+        if data.test is not None:
+            check_window(data.test, observed.size, "test")
+        check_models(models)  # duplicate names
+        check_physical(spec, simulators, distance)
+        settings = spec.sampler.settings()
+        settings.check_particles(models)
+        stop = stop_rules(spec.stop)
+        if isinstance(distance, NMSE):
+            noise: Noise | None = distance.noise(data.noise_std)
+        elif data.noise_std is not None:
+            raise SpecError("data.noise_std", f"applies to distance 'nmse' only, not {spec.distance.name!r}")
+        else:
+            noise = None
+        return Job(spec, models, evaluate, settings, stop, spec.seed, force, observed, simulators, job_description, noise,
+                   voltage)

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+from abcns import InvalidSetting
 from abcns.executor import OK
-from abcns.priors import SpecError
 from service.spec import build, parse
 from worker.simulators import BoucWen, Duffing, Linear, band_limited
 
@@ -96,6 +96,6 @@ def test_the_spec_takes_bandlimited_and_the_linear_simulator_refuses_it():
                        "priors": {"c": [0.1, 2], "k": [10, 100], "k3": [0, 10]}, "integrator": {"substeps": 3}}]}
     sim = build(parse(raw)).simulators[0]
     assert sim.input_interpolation == "bandlimited" and sim.fine.size == 99 * 6 + 1
-    with pytest.raises(SpecError, match="duffing with k3 = k5 = 0") as err:
+    with pytest.raises(InvalidSetting, match="duffing with k3 = k5 = 0") as err:
         Linear(x, 0.01, input_interpolation="bandlimited")
-    assert err.value.field == "data.input_interpolation"
+    assert err.value.path == ("input_interpolation",)  # data.input_interpolation in a spec (service.spec)

@@ -166,7 +166,7 @@ def test_a_stated_noise_sets_the_floor():
     y = np.sin(np.linspace(0, 6, 50))
     d = NMSE(y)
     assert d.noise(0.01) == Noise(50, d.scale * 1e-4)
-    with pytest.raises(abcns.SpecError, match=r"data\.noise_std"):
+    with pytest.raises(abcns.InvalidSetting, match=r"^noise_std: "):  # data.noise_std in a spec
         d.noise(-1.0)
 
 

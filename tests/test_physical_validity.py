@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 import abcns
-from abcns import Model, SpecError, StopReason, StopRules
+from abcns import InvalidSetting, Model, SpecError, StopReason, StopRules
 from abcns.executor import OK, Evaluated
 from benchmarks.harness import duffing_spec
 from service.spec import build, load_data, parse
@@ -74,9 +74,9 @@ def test_what_no_simulation_can_use_is_refused_naming_the_field(base, change, fi
 
 
 def test_a_wide_prior_is_refused_by_the_library_too():
-    with pytest.raises(SpecError, match="width high - low overflows") as err:
+    with pytest.raises(InvalidSetting, match="width high - low overflows") as err:
         Model("m", {"k": (-1e308, 1e308)})
-    assert err.value.field == "models[m].priors.k"
+    assert err.value.path == ("priors", "k")
     Model("m", {"k": (-1e307, 1e307)})  # wide but finite: fine
     assert np.isfinite(Model("m", {"k": (-1e307, 1e307)}).log_prior_volume())
 
@@ -109,9 +109,9 @@ def test_the_limit_is_a_safety_net_not_a_stop_rule():
     healthy run never meets it (one accepted particle resets nothing: the count is per
     population and only while nothing is kept)."""
     assert StopRules().max_simulations_without_acceptance == 1_000_000
-    with pytest.raises(SpecError, match="at least one stop rule"):
+    with pytest.raises(InvalidSetting, match="at least one stop rule"):
         StopRules(min_epsilon_decrease=None, max_simulations_without_acceptance=10)
-    with pytest.raises(SpecError) as err:
+    with pytest.raises(InvalidSetting) as err:
         StopRules(max_simulations_without_acceptance=0)
     assert err.value.field == "stop.max_simulations_without_acceptance"
     # one particle in ten accepted: no stop at a limit of 30 simulations per population

@@ -2,28 +2,26 @@
 substeps chosen from the priors, the simulator protocols and the keywords factories get."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from abcns import Model, SpecError
+from abcns import InvalidSetting, Model
 from abcns.distances import NMSE, CallableDistance, SummaryEuclidean
 from worker import description as description_module
 from worker import registry
 from worker.compose import model_function
-from worker.description import simulator_for
+from worker.description import JobDescription, ModelDescription, simulator_for
 from worker.kernels import choose_substeps
 from worker.simulators import BoucWen, Duffing, GAndK, Linear, NMSECapable, Oscillator, Simulator
 from worker.tasks import job_evaluator
 
 
-def description(simulator="duffing", integrator=None, priors=None):
-    return {
-        "models": [{"name": "m", "simulator": simulator, "fixed": {"m": 1, "k3": 0, "k5": 0},
-                    "priors": priors or {"c": [0.1, 1.0], "k": [100.0, 10000.0]}, "integrator": integrator or {}}],
-        "distance": {"name": "nmse"},
-        "data": {"dt": 0.01, "fit": None},
-    }
+def description(simulator="duffing", substeps=None, priors=None, input_interpolation="hold"):
+    model = ModelDescription("m", simulator, priors or {"c": (0.1, 1.0), "k": (100.0, 10000.0)},
+                             {"m": 1, "k3": 0, "k5": 0}, substeps)
+    return JobDescription((model,), dt=0.01, input_interpolation=input_interpolation)
 
 
 ARRAYS = {"force": np.sin(np.arange(200) * 0.1), "observed": np.cos(np.arange(200) * 0.1)}
@@ -50,17 +48,17 @@ def test_substeps_are_chosen_from_the_priors(monkeypatch):
     assert expected == math.ceil(0.01 * omega / (120 * 1e-4) ** 0.25) == 4  # ceil(1.005 / 0.331)
     assert [type(s) for s in built] == [Duffing] and built[0].substeps == expected
     # an explicit integrator.substeps wins over the choice (3, not the 4 the priors give)
-    job_evaluator(description(integrator={"substeps": 3}), ARRAYS)
+    job_evaluator(description(substeps=3), ARRAYS)
     assert len(built) == 2 and built[1].substeps == 3
 
 
 def test_module_factory_only_when_imports_are_allowed():
-    with pytest.raises(SpecError, match="only registered simulators") as err:
+    with pytest.raises(InvalidSetting, match="only registered simulators") as err:
         job_evaluator(description("worker.simulators:Duffing"), ARRAYS)
-    assert err.value.field == "models[0].simulator"
+    assert err.value.path == ("models", 0, "simulator")
     models, _ = job_evaluator(description("worker.simulators:Duffing"), ARRAYS, allow_import=True)
     assert models[0].name == "m"
-    with pytest.raises(SpecError, match="cannot load"):
+    with pytest.raises(InvalidSetting, match="cannot load"):
         job_evaluator(description("no_such_module:f"), ARRAYS, allow_import=True)
 
 
@@ -92,14 +90,14 @@ def test_builtins_follow_the_protocols():
 
 def test_factories_get_the_keywords_they_take():
     obs = ARRAYS["observed"]
-    desc = {"name": "m", "simulator": "linear", "priors": {"c": [0.1, 1.0]}, "integrator": {"substeps": 4}}
-    lin = simulator_for(desc, ARRAYS["force"], 0.01, obs, "models[0]")  # Linear takes no substeps
+    desc = ModelDescription("m", "linear", {"c": (0.1, 1.0)}, substeps=4)
+    lin = simulator_for(desc, ARRAYS["force"], 0.01, obs, 0)  # Linear takes no substeps
     assert type(lin) is Linear and lin.state_bound == 1e3 * np.max(np.abs(obs))
-    gk = simulator_for({**desc, "simulator": "gandk"}, ARRAYS["force"], 0.01, obs, "models[0]")
+    gk = simulator_for(replace(desc, simulator="gandk"), ARRAYS["force"], 0.01, obs, 0)
     assert type(gk) is GAndK and gk.n_samples == obs.size
-    with pytest.raises(SpecError, match="needs an input force") as err:
-        simulator_for({**desc, "simulator": "bouc_wen"}, None, None, obs, "models[0]")
-    assert err.value.field == "data.input"
+    with pytest.raises(InvalidSetting, match="needs an input force") as err:
+        simulator_for(replace(desc, simulator="bouc_wen"), None, None, obs, 0)
+    assert err.value.path == ("force",)  # the job's input record, not the model's
 
 
 def test_plugins_without_needs_input_are_called_as_before(monkeypatch):
@@ -118,15 +116,15 @@ def test_plugins_without_needs_input_are_called_as_before(monkeypatch):
     needs.needs_input = True
     monkeypatch.setattr(registry, "plugins", lambda: {"legacy": EPOf(legacy), "needs": EPOf(needs)})
     obs = ARRAYS["observed"]
-    desc = {"name": "m", "simulator": "legacy", "priors": {"A": [0, 1]}}
-    assert simulator_for(desc, None, None, obs, "models[0]").n_samples == obs.size
+    desc = ModelDescription("m", "legacy", {"A": (0, 1)})
+    assert simulator_for(desc, None, None, obs, 0).n_samples == obs.size
     assert calls[-1] == dict(force=None, dt=None, n_samples=obs.size, substeps=1, output="displacement",
                              state_bound=1e3 * np.max(np.abs(obs)))
-    simulator_for({**desc, "simulator": "needs"}, ARRAYS["force"], 0.01, obs, "models[0]")
+    simulator_for(replace(desc, simulator="needs"), ARRAYS["force"], 0.01, obs, 0)
     assert list(calls[-1]) == ["force", "dt", "output"]
-    with pytest.raises(SpecError) as err:
-        simulator_for({**desc, "simulator": "needs"}, None, None, obs, "models[0]")
-    assert err.value.field == "data.input"
+    with pytest.raises(InvalidSetting) as err:
+        simulator_for(replace(desc, simulator="needs"), None, None, obs, 0)
+    assert err.value.path == ("force",)
 
 
 def test_the_input_interpolation_reaches_the_simulators_that_take_it(monkeypatch):
@@ -134,15 +132,13 @@ def test_the_input_interpolation_reaches_the_simulators_that_take_it(monkeypatch
     behaviour before the option); a factory that does not take it gets ``hold`` only, and the
     option needs an input record."""
     for interpolation in ("hold", "linear"):
-        desc = description()
-        desc["data"]["input_interpolation"] = interpolation
         built = built_simulators(monkeypatch)
-        job_evaluator(desc, ARRAYS)
+        job_evaluator(description(input_interpolation=interpolation), ARRAYS)
         assert [sim.input_interpolation for sim in built] == [interpolation]
         assert built[0].config()["input_interpolation"] == interpolation
         monkeypatch.undo()
     built = built_simulators(monkeypatch)
-    job_evaluator(description(), ARRAYS)  # a description without the field: hold
+    job_evaluator(description(), ARRAYS)  # the default: hold
     assert built[0].input_interpolation == "hold"
 
     def needs(force, dt, output):  # a plugin that holds its input its own way
@@ -150,16 +146,15 @@ def test_the_input_interpolation_reaches_the_simulators_that_take_it(monkeypatch
 
     needs.needs_input = True
     monkeypatch.setattr(registry, "plugins", lambda: {"needs": EPOf(needs)})
-    desc = {"name": "m", "simulator": "needs", "priors": {"c": [0.1, 1.0]}}
-    simulator_for(desc, ARRAYS["force"], 0.01, ARRAYS["observed"], "models[0]")
-    with pytest.raises(SpecError, match="does not take input_interpolation") as err:
-        simulator_for(desc, ARRAYS["force"], 0.01, ARRAYS["observed"], "models[0]", input_interpolation="linear")
-    assert err.value.field == "data.input_interpolation"
-    gk = {"models": [{"name": "g", "simulator": "gandk", "priors": {"A": [0, 1]}}], "distance": {"name": "nmse"},
-          "data": {"input_interpolation": "linear"}}
-    with pytest.raises(SpecError, match="applies to an input record") as err:
+    desc = ModelDescription("m", "needs", {"c": (0.1, 1.0)})
+    simulator_for(desc, ARRAYS["force"], 0.01, ARRAYS["observed"], 0)
+    with pytest.raises(InvalidSetting, match="does not take input_interpolation") as err:
+        simulator_for(desc, ARRAYS["force"], 0.01, ARRAYS["observed"], 0, input_interpolation="linear")
+    assert err.value.path == ("input_interpolation",)
+    gk = JobDescription((ModelDescription("g", "gandk", {"A": (0, 1)}),), input_interpolation="linear")
+    with pytest.raises(InvalidSetting, match="applies to an input record") as err:
         job_evaluator(gk, {"force": None, "observed": ARRAYS["observed"]})
-    assert err.value.field == "data.input_interpolation"
+    assert err.value.path == ("input_interpolation",)
 
 
 class EPOf:

@@ -19,7 +19,7 @@ import os
 import numpy as np
 import pytest
 
-from abcns import SpecError
+from abcns import InvalidSetting, SpecError
 from abcns.executor import OK
 from benchmarks import restoring as problem
 from service.spec import build, parse
@@ -190,9 +190,9 @@ def test_a_displacement_with_nan_is_refused_naming_the_field(records, tmp_path):
         build(parse(raw), tmp_path)
     assert err.value.field == "data.input" and "sample 7 (counting from 0) is nan" in err.value.message
     for cls in (BoucWenRestoring, BWBNRestoring):
-        with pytest.raises(SpecError) as err:
+        with pytest.raises(InvalidSetting) as err:
             cls(bad, 0.01)
-        assert err.value.field == "data.input" and "sample 7" in err.value.message
+        assert err.value.path == ("force",) and "sample 7" in err.value.message  # the input: data.input
 
 
 # ---------------------------------------------------------------- synthetic truths

@@ -17,11 +17,12 @@
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from abcns import SpecError
+from abcns import InvalidSetting, SpecError
 from abcns.executor import OK
 from benchmarks import spencer_voltage as problem
 from service.report.analysis import job_data
@@ -171,9 +172,9 @@ def test_a_voltage_with_nan_is_refused_naming_the_field(records, tmp_path):
     with pytest.raises(SpecError) as err:
         build(parse(raw), tmp_path)
     assert err.value.field == "data.voltage" and "sample 7 (counting from 0) is nan" in err.value.message
-    with pytest.raises(SpecError) as err:
+    with pytest.raises(InvalidSetting) as err:
         SpencerMRVoltage(x, 1 / problem.FS, voltage=bad)
-    assert err.value.field == "data.voltage" and "sample 7 is nan" in err.value.message
+    assert err.value.path == ("voltage",) and "sample 7 is nan" in err.value.message
 
 
 @pytest.mark.parametrize(("field", "value", "words"), [
@@ -310,8 +311,8 @@ def test_a_factory_that_takes_only_kwargs_is_not_offered_the_voltage(records, mo
 
     monkeypatch.setitem(registry.BUILTINS, "old_plugin", old_plugin)
     x, e, f = records
-    desc = {"name": "p", "simulator": "old_plugin", "priors": {}, "fixed": {}, "integrator": {"substeps": 2}}
-    description.simulator_for(desc, x, 0.002, f, "models[0]", voltage=e)
+    desc = description.ModelDescription("p", "old_plugin", {}, substeps=2)
+    description.simulator_for(desc, x, 0.002, f, 0, voltage=e)
     assert "voltage" not in seen and set(seen) == set(description.INPUT_KEYWORDS)
-    desc["simulator"] = "spencer_mr_voltage"
-    assert description.simulator_for(desc, x, 0.002, f, "models[0]", voltage=e).voltage is e
+    desc = replace(desc, simulator="spencer_mr_voltage")
+    assert description.simulator_for(desc, x, 0.002, f, 0, voltage=e).voltage is e

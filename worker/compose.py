@@ -13,7 +13,7 @@ When the distance is an :class:`abcns.distances.NMSE` and the simulator is
 NMSE reaches epsilon stops and reports that partial NMSE (>= epsilon, so it is rejected as
 it would have been). Other distances take the generic path.
 
-The spec's JSON description becomes models and simulators in :mod:`worker.description`; the
+A job's description becomes models and simulators in :mod:`worker.description`; the
 Dask tasks that build and run an evaluator on a worker are in :mod:`worker.tasks`.
 """
 
@@ -24,42 +24,43 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from abcns.distances import NMSE, Distance
+from abcns.errors import InvalidSetting
 from abcns.executor import OK, Evaluate, SimulateDistanceEpsilon, per_model
-from abcns.priors import Model, SpecError
+from abcns.priors import Model
 from worker.simulators import NMSECapable, Range, Simulator
 
 
-def check_model(model: Model, simulator: Simulator, where: str) -> None:
+def check_model(model: Model, simulator: Simulator, where: tuple = ()) -> None:
     """Every simulator parameter is inferred, fixed or defaulted; no unknown names."""
     names = tuple(simulator.parameter_names)
     for key in model.priors:
         if key not in names:
-            raise SpecError(f"{where}.priors.{key}", f"is not a parameter of {simulator.name} {names}")
+            raise InvalidSetting((*where, "priors", key), f"is not a parameter of {simulator.name} {names}")
     for key in model.fixed:
         if key not in names:
-            raise SpecError(f"{where}.fixed.{key}", f"is not a parameter of {simulator.name} {names}")
+            raise InvalidSetting((*where, "fixed", key), f"is not a parameter of {simulator.name} {names}")
     missing = [p for p in names if p not in model.priors and p not in model.fixed and p not in simulator.defaults]
     if missing:
-        raise SpecError(f"{where}.priors", f"parameters {missing} of {simulator.name} need a prior or a fixed value")
+        raise InvalidSetting((*where, "priors"), f"parameters {missing} of {simulator.name} need a prior or a fixed value")
 
 
-def check_ranges(model: Model, simulator: Simulator, where: str) -> None:
+def check_ranges(model: Model, simulator: Simulator, where: tuple = ()) -> None:
     """The model's fixed values and priors lie in the valid ranges its simulator states
-    (``simulator.ranges``, :class:`worker.simulators.Range`); a SpecError naming the field
-    (``models[1].fixed.n``) otherwise. A simulator without ``ranges`` states none."""
+    (``simulator.ranges``, :class:`worker.simulators.Range`); an InvalidSetting at the
+    field behind ``where`` (``("models", 1, "fixed", "n")``) otherwise. A simulator without ``ranges`` states none."""
     ranges: dict[str, Range] = getattr(simulator, "ranges", None) or {}
     for key, value in model.fixed.items():
         valid = ranges.get(key)
         if valid is not None and not valid.holds(float(value)):
-            raise SpecError(f"{where}.fixed.{key}", f"must be {valid} for simulator {simulator.name}, got {value!r}")
+            raise InvalidSetting((*where, "fixed", key), f"must be {valid} for simulator {simulator.name}, got {value!r}")
     for key, prior in model.priors.items():
         valid = ranges.get(key)
         if valid is None or valid.holds_prior(prior.low, prior.high):
             continue
         if valid.integer:
-            raise SpecError(f"{where}.priors.{key}", f"{key} of simulator {simulator.name} is {valid}: fix it "
+            raise InvalidSetting((*where, "priors", key), f"{key} of simulator {simulator.name} is {valid}: fix it "
                             f"(fixed: {{{key}: ...}}), it cannot have a uniform prior")
-        raise SpecError(f"{where}.priors.{key}", f"[{prior.low:g}, {prior.high:g}] leaves the valid range of {key} "
+        raise InvalidSetting((*where, "priors", key), f"[{prior.low:g}, {prior.high:g}] leaves the valid range of {key} "
                         f"for simulator {simulator.name}: {valid}")
 
 
@@ -115,11 +116,11 @@ def evaluator(models: Sequence[Model], simulators: Sequence[Simulator], distance
         raise ValueError(f"{len(models)} models but {len(simulators)} simulators")
     n_observed = int(np.size(distance.observed))
     for i, (model, sim) in enumerate(zip(models, simulators, strict=True)):
-        check_model(model, sim, f"models[{i}]")
-        check_ranges(model, sim, f"models[{i}]")
+        check_model(model, sim, ("models", i))
+        check_ranges(model, sim, ("models", i))
         if sim.n_samples != n_observed:
-            raise SpecError(
-                "data.observed",
+            raise InvalidSetting(
+                ("observed",),
                 f"has {n_observed} samples but model {model.name!r} simulates {sim.n_samples} "
                 "(input and observed records must have the same length)",
             )

@@ -1,35 +1,75 @@
-"""A job's JSON description (the spec's models, distance and data settings) and its data
-arrays, made into objects: :func:`model_of` (a model description -> :class:`abcns.Model`),
-:func:`simulator_for` (-> the simulator the registry's factory builds over the record) and
-:func:`job_parts` (the whole description -> models, simulators and distance). Errors are
-SpecErrors naming the spec's field.
+"""A job's description, what a worker builds the job from: :class:`JobDescription` (its
+models :class:`ModelDescription`), plain typed data that ``service.spec.build`` makes once, and
+its records, made into :func:`model_of` (-> :class:`abcns.Model`), :func:`simulator_for` (the
+registry's factory over the record) and :func:`job_parts` (models, simulators, distance).
+Errors: :class:`abcns.errors.InvalidSetting` at the description's paths (``("models", 0,
+"substeps")``, ``("force",)``: the input record), which ``service.spec`` maps to the spec's.
 """
 
 from __future__ import annotations
 
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from abcns.distances import NMSE, Distance, SummaryEuclidean
-from abcns.priors import Model, SpecError
+from abcns.errors import InvalidSetting
+from abcns.priors import Model
 from worker import registry
 from worker.simulators import Simulator
 
 
-def model_of(desc: dict, where: str = "models") -> Model:
-    """The :class:`abcns.Model` of one spec model description (errors name ``where``)."""
+@dataclass(frozen=True)
+class ModelDescription:
+    """One candidate model: the registered simulator's name (or ``package.module:factory``
+    where imports are allowed), the priors ``{name: (low, high)}``, fixed values, and the
+    integrator's RK4 ``substeps`` per sample (None: chosen from the priors) and ``output``."""
+
+    name: str
+    simulator: str
+    priors: Mapping[str, tuple[float, float]]
+    fixed: Mapping[str, float] = field(default_factory=dict)
+    substeps: int | None = None
+    output: str = "displacement"
+
+
+@dataclass(frozen=True)
+class JobDescription:
+    """What a worker builds a job's evaluator from, besides its records: the models, the
+    distance (``nmse`` or ``summary_euclidean`` with its ``summaries``, None: ``gk``), the
+    sample interval ``dt`` (None without an input record), the NMSE's ``fit`` window
+    (None: the whole record) and how the input is read between samples."""
+
+    models: tuple[ModelDescription, ...]
+    distance: str = "nmse"
+    summaries: str | None = None
+    dt: float | None = None
+    fit: tuple[int, int] | None = None
+    input_interpolation: str = "hold"
+
+
+#: the paths a simulator's factory raises at that belong to its model (behind ``("models", i)``):
+#: the model's fields and the integrator's other keyword; the rest name the job's records and fields
+MODEL_FIELDS = frozenset({"name", "simulator", "priors", "fixed", "substeps", "output", "backend"})
+
+
+def model_of(desc: ModelDescription, index: int) -> Model:
+    """The :class:`abcns.Model` of the job's model ``index`` (errors at ``("models", index, ...)``)."""
+    priors: dict[str, Any] = dict(desc.priors)  # [low, high] pairs: Model checks them
     try:
-        return Model.from_dict(desc)
-    except SpecError as err:
-        raise SpecError(err.field.replace(f"models[{desc['name']}]", where), err.message) from None
+        return Model(desc.name, priors, dict(desc.fixed), config={"simulator": desc.simulator})
+    except InvalidSetting as err:
+        raise err.within("models", index) from None
 
 
-def _bounds(desc: dict, factory) -> dict[str, tuple[float, float]]:
+def parameter_bounds(desc: ModelDescription, factory: Any) -> dict[str, tuple[float, float]]:
+    """Each simulator parameter's range in the model: its prior, or its fixed or default value."""
     b = {k: (float(v), float(v)) for k, v in getattr(factory, "defaults", {}).items()}
-    b.update({k: (float(v), float(v)) for k, v in desc.get("fixed", {}).items()})
-    b.update({k: (float(lo), float(hi)) for k, (lo, hi) in desc["priors"].items()})
+    b.update({k: (float(v), float(v)) for k, v in desc.fixed.items()})
+    b.update({k: (float(lo), float(hi)) for k, (lo, hi) in desc.priors.items()})
     return b
 
 
@@ -72,116 +112,123 @@ def _names_explicitly(factory: Callable, name: str) -> bool:
                                                 inspect.Parameter.KEYWORD_ONLY)
 
 
-def simulator_for(desc: dict, force: np.ndarray | None, dt: float | None, observed: np.ndarray, where: str,
-                  allow_import: bool = False, input_interpolation: str = "hold",
+def simulator_for(desc: ModelDescription, force: np.ndarray | None, dt: float | None, observed: np.ndarray,
+                  index: int, allow_import: bool = False, input_interpolation: str = "hold",
                   voltage: np.ndarray | None = None) -> Simulator:
-    """The simulator a job builds for one model description, over the record given (the
+    """The simulator a job builds for its model ``index``, over the record given (the
     evaluator passes the record up to the fit end; the analysis the whole record).
 
     How the factory is called depends on its ``needs_input`` attribute:
 
     - False (g-and-k): ``factory(n_samples=observed.size)``;
-    - True (the oscillators): the input is required (a SpecError on ``data.input`` without
-      it) and the factory gets those of :data:`INPUT_KEYWORDS` (``force``, ``dt``,
+    - True (the oscillators): the input is required (an InvalidSetting at ``("force",)``
+      without it) and the factory gets those of :data:`INPUT_KEYWORDS` (``force``, ``dt``,
       ``n_samples``, ``substeps``, ``output``, ``state_bound``, ``input_interpolation``) its
       signature names, e.g. ``Linear`` (exact, no substeps) gets no ``substeps``, and
-      ``voltage`` (the second input channel, ``data.voltage``, or None) when its signature
-      names it explicitly (not through ``**kwargs``: plugins written before it); a factory
-      that does not take ``input_interpolation`` cannot be asked for anything but ``hold``
-      (a SpecError on ``data.input_interpolation``);
+      ``voltage`` (the second input channel, or None) when its signature names it
+      explicitly (not through ``**kwargs``: plugins written before it); a factory that does
+      not take ``input_interpolation`` cannot be asked for anything but ``hold`` (an
+      InvalidSetting at ``("input_interpolation",)``);
     - absent (a plugin written before ``needs_input``): as True, except that the input may
       be missing (``force=None``), as plugins have always been called.
+
+    Errors at a model's field (:data:`MODEL_FIELDS`) are put behind ``("models", index)``.
     """
-    factory = registry.get(desc["simulator"], f"{where}.simulator", allow_import=allow_import)
-    needs_input = getattr(factory, "needs_input", None)
-    integ = {"substeps": None, "output": "displacement", **(desc.get("integrator") or {})}
     try:
+        factory = registry.get(desc.simulator, allow_import=allow_import)
+        needs_input = getattr(factory, "needs_input", None)
         if needs_input is False:
             return factory(**_accepted(factory, {"n_samples": int(observed.size)}))
         if needs_input and force is None:
-            raise SpecError("data.input", f"simulator {desc['simulator']!r} needs an input force")
-        if integ["substeps"] is None:
-            integ["substeps"] = 1
-            if dt is not None and callable(getattr(factory, "omega_max", None)):
-                from worker.kernels import choose_substeps
-
-                try:
-                    chosen = choose_substeps(factory.omega_max(_bounds(desc, factory)), dt)
-                except (KeyError, ValueError, OverflowError) as err:  # Overflow: dt x omega past any int
-                    raise SpecError("integrator.substeps", f"cannot be chosen from the priors ({err}); give it") from None
-                if chosen > MAX_SUBSTEPS:
-                    raise SpecError("integrator.substeps", f"the priors' highest natural frequency and the sample "
-                                    f"interval {dt:.6g} s ask for {_many(chosen)} RK4 substeps per sample, more "
-                                    f"than {MAX_SUBSTEPS:.0e}, which no simulation ends: check data.fs or data.dt (and "
-                                    "decimate), and the priors")
-                integ["substeps"] = chosen
-        elif isinstance(given := integ["substeps"], int) and given > MAX_SUBSTEPS:
-            raise SpecError("integrator.substeps", f"at most {MAX_SUBSTEPS:.0e} RK4 substeps per sample (no simulation of "
-                                                   f"more ends), got {_many(given)}")
+            raise InvalidSetting(("force",), f"simulator {desc.simulator!r} needs an input force")
+        substeps = _substeps(desc, factory, dt)
         # the divergence guard: 1000 x the observed scale (for a displacement output)
-        bound = 1e3 * float(np.max(np.abs(observed))) if integ["output"] == "displacement" else np.inf
-        offered = dict(zip(INPUT_KEYWORDS, (force, dt, int(observed.size), integ["substeps"], integ["output"], bound,
+        bound = 1e3 * float(np.max(np.abs(observed))) if desc.output == "displacement" else np.inf
+        offered = dict(zip(INPUT_KEYWORDS, (force, dt, int(observed.size), substeps, desc.output, bound,
                                             input_interpolation), strict=True))
         accepted = _accepted(factory, offered)
         if _names_explicitly(factory, "voltage"):
             accepted["voltage"] = voltage
         if input_interpolation != "hold" and "input_interpolation" not in accepted:
-            raise SpecError("data.input_interpolation", f"simulator {desc['simulator']!r} does not take "
-                            f"input_interpolation; only 'hold' (the default) is possible with it")
+            raise InvalidSetting(("input_interpolation",), f"simulator {desc.simulator!r} does not take "
+                                 f"input_interpolation; only 'hold' (the default) is possible with it")
         return factory(**accepted)
-    except SpecError as err:
-        field = err.field if err.field.startswith("data") else f"{where}.{err.field}"
-        raise SpecError(field, err.message) from None
+    except InvalidSetting as err:
+        raise (err.within("models", index) if err.path[0] in MODEL_FIELDS else err) from None
 
 
-def job_parts(description: dict, arrays: dict,
+def _substeps(desc: ModelDescription, factory: Any, dt: float | None) -> int | None:
+    """The model's RK4 substeps per sample: given (at most :data:`MAX_SUBSTEPS`), or chosen
+    from the priors for a factory with ``omega_max`` (``worker.kernels.choose_substeps``), else 1."""
+    if desc.substeps is not None:
+        if isinstance(desc.substeps, int) and desc.substeps > MAX_SUBSTEPS:
+            raise InvalidSetting(("substeps",), f"at most {MAX_SUBSTEPS:.0e} RK4 substeps per sample (no simulation "
+                                                f"of more ends), got {_many(desc.substeps)}")
+        return desc.substeps
+    if dt is None or not callable(getattr(factory, "omega_max", None)):
+        return 1
+    from worker.kernels import choose_substeps
+
+    try:
+        chosen = choose_substeps(factory.omega_max(parameter_bounds(desc, factory)), dt)
+    except (KeyError, ValueError, OverflowError) as err:  # Overflow: dt x omega past any int
+        raise InvalidSetting(("substeps",), f"cannot be chosen from the priors ({err}); give it") from None
+    if chosen > MAX_SUBSTEPS:
+        raise InvalidSetting(("substeps",), f"the priors' highest natural frequency and the sample interval {dt:.6g} "
+                             f"s ask for {_many(chosen)} RK4 substeps per sample, more than {MAX_SUBSTEPS:.0e}, which "
+                             "no simulation ends: check data.fs or data.dt (and decimate), and the priors")
+    return chosen
+
+
+def _aligned(array: np.ndarray | None) -> np.ndarray | None:
+    return None if array is None else np.require(array, dtype=float, requirements=("C", "A"))
+
+
+def _distance(description: JobDescription, force: np.ndarray | None, observed: np.ndarray,
+              voltage: np.ndarray | None) -> tuple[Distance, np.ndarray | None, np.ndarray, np.ndarray | None]:
+    """The job's distance, and the records cut to the NMSE's fit window's end (nothing after
+    it is scored: only that much is simulated)."""
+    if description.distance == "summary_euclidean":
+        return SummaryEuclidean(observed, description.summaries or "gk"), force, observed, voltage
+    if description.distance != "nmse":
+        raise InvalidSetting(("distance",), f"unknown distance {description.distance!r}")
+    nmse = NMSE(observed, description.fit)
+    if force is not None and np.size(force) == observed.size and nmse.stop < observed.size:
+        if voltage is not None and voltage.size == observed.size:
+            voltage = voltage[: nmse.stop]
+        force, observed = force[: nmse.stop], observed[: nmse.stop]
+        nmse = NMSE(observed, (nmse.start, nmse.stop))
+    return nmse, force, observed, voltage
+
+
+def job_parts(description: JobDescription, arrays: Mapping[str, np.ndarray | None],
               allow_import: bool = False) -> tuple[list[Model], list[Simulator], Distance]:
     """(models, simulators, distance) of a job description and its data.
 
-    ``description``: ``{"models": [{name, simulator, priors, fixed, integrator}], "distance":
-    {name: nmse | summary_euclidean, summaries}, "data": {"dt": float | None, "fit": [a, b] | None,
-    "input_interpolation": "hold" | "linear" | "bandlimited" (default hold)}}``;
     ``arrays``: ``{"force": array | None, "observed": array, "voltage": array (optional: the
     second input channel of the simulators that read it; refused when none does)}``.
-    ``allow_import`` lets a model name a ``package.module:factory`` simulator (the CLI; never HTTP). Without
-    ``integrator.substeps`` a simulator with ``omega_max`` gets substeps from
+    ``allow_import`` lets a model name a ``package.module:factory`` simulator (the CLI; never
+    HTTP). Without ``substeps`` a simulator with ``omega_max`` gets substeps from
     ``worker.kernels.choose_substeps`` (RK4 error below 1e-4 per radian at the highest
-    natural frequency the priors allow). Raises SpecError naming the field.
+    natural frequency the priors allow). Raises InvalidSetting at the description's path.
 
     The arrays are copied into aligned memory when they are not (data that came over the
     wire can sit at any byte offset): numpy's reductions take another loop on unaligned
     data and round differently, which made a worker's distances differ from the runner's
     in the last bit.
     """
-    observed = np.require(arrays["observed"], dtype=float, requirements=("C", "A"))
-    force = arrays.get("force")
-    force = np.require(force, dtype=float, requirements=("C", "A")) if force is not None else None
-    voltage = arrays.get("voltage")
-    voltage = np.require(voltage, dtype=float, requirements=("C", "A")) if voltage is not None else None
-    data = description.get("data", {})
-    dist = description.get("distance", {"name": "nmse"})
-    if dist["name"] == "nmse":
-        nmse = NMSE(observed, data.get("fit"))
-        if force is not None and np.size(force) == observed.size and nmse.stop < observed.size:
-            # nothing after the fit window is scored: simulate only up to its end
-            if voltage is not None and voltage.size == observed.size:
-                voltage = voltage[: nmse.stop]
-            force, observed = force[: nmse.stop], observed[: nmse.stop]
-            nmse = NMSE(observed, (nmse.start, nmse.stop))
-        distance: Distance = nmse
-    elif dist["name"] == "summary_euclidean":
-        distance = SummaryEuclidean(observed, dist.get("summaries") or "gk")
-    else:
-        raise SpecError("distance.name", f"unknown distance {dist['name']!r}")
-    interpolation = data.get("input_interpolation", "hold")
+    observed = _aligned(arrays["observed"])
+    assert observed is not None
+    distance, force, observed, voltage = _distance(description, _aligned(arrays.get("force")), observed,
+                                                   _aligned(arrays.get("voltage")))
+    interpolation = description.input_interpolation
     if force is None and interpolation != "hold":
-        raise SpecError("data.input_interpolation", f"{interpolation!r} applies to an input record (data.input) only")
+        raise InvalidSetting(("input_interpolation",), f"{interpolation!r} applies to an input record (data.input) only")
     models, simulators = [], []
-    for i, desc in enumerate(description["models"]):
-        models.append(model_of(desc, f"models[{i}]"))
-        simulators.append(simulator_for(desc, force, data.get("dt"), observed, f"models[{i}]", allow_import,
-                                        interpolation, voltage))
+    for i, desc in enumerate(description.models):
+        models.append(model_of(desc, i))
+        simulators.append(simulator_for(desc, force, description.dt, observed, i, allow_import, interpolation, voltage))
     if voltage is not None and not any(getattr(sim, "voltage", None) is not None for sim in simulators):
-        raise SpecError("data.voltage", "no model's simulator reads a voltage record (spencer_mr_voltage does): "
-                                        "remove it, or use a simulator that takes it")
+        raise InvalidSetting(("voltage",), "no model's simulator reads a voltage record (spencer_mr_voltage does): "
+                                           "remove it, or use a simulator that takes it")
     return models, simulators, distance

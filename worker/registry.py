@@ -32,7 +32,7 @@ from __future__ import annotations
 import importlib
 from importlib.metadata import EntryPoint, entry_points
 
-from abcns.priors import SpecError
+from abcns.errors import InvalidSetting
 from worker.restoring import BoucWenRestoring, BWBNRestoring, SpencerMR, SpencerMRVoltage
 from worker.simulators import BoucWen, Duffing, GAndK, Linear
 
@@ -50,8 +50,10 @@ def names() -> list[str]:
     return sorted({*BUILTINS, *plugins()})
 
 
-def get(name: str, field: str = "simulator", allow_import: bool = False):
-    """The factory registered as ``name``; with ``allow_import`` also ``package.module:factory``."""
+def get(name: str, allow_import: bool = False):
+    """The factory registered as ``name``; with ``allow_import`` also ``package.module:factory``
+    (an InvalidSetting at ``("simulator",)`` otherwise)."""
+    field = ("simulator",)
     if name in BUILTINS:
         return BUILTINS[name]
     eps = plugins()
@@ -59,13 +61,13 @@ def get(name: str, field: str = "simulator", allow_import: bool = False):
         try:
             return eps[name].load()
         except (ImportError, AttributeError) as err:
-            raise SpecError(field, f"plugin simulator {name!r} cannot be loaded: {err}") from None
+            raise InvalidSetting(field, f"plugin simulator {name!r} cannot be loaded: {err}") from None
     if ":" in name:
         if not allow_import:
-            raise SpecError(field, f"{name!r} names code; only registered simulators are allowed here: {names()}")
+            raise InvalidSetting(field, f"{name!r} names code; only registered simulators are allowed here: {names()}")
         module, _, attr = name.partition(":")
         try:
             return getattr(importlib.import_module(module), attr)
         except (ImportError, AttributeError) as err:
-            raise SpecError(field, f"cannot load {name!r}: {err}") from None
-    raise SpecError(field, f"unknown simulator {name!r}; registered: {names()}")
+            raise InvalidSetting(field, f"cannot load {name!r}: {err}") from None
+    raise InvalidSetting(field, f"unknown simulator {name!r}; registered: {names()}")

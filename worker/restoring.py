@@ -42,8 +42,8 @@ import math
 
 import numpy as np
 
+from abcns.errors import InvalidSetting
 from abcns.executor import DIVERGED, OK
-from abcns.priors import SpecError
 from worker.simulators import BoucWen, Oscillator, Range, SimOutput, _substeps
 
 NONNEGATIVE = Range(0.0, math.inf)
@@ -55,13 +55,13 @@ EXPONENT = Range(0.5, 10.0)
 def _displacement(x) -> np.ndarray:
     """The displacement record, checked (non-finite samples refused naming ``data.input``)."""
     if x is None:
-        raise SpecError("data.input", "this simulator needs the displacement record as its input")
+        raise InvalidSetting(("force",), "this simulator needs the displacement record as its input")
     x = np.asarray(x, dtype=float)
     if x.ndim != 1 or x.size < 2:
-        raise SpecError("data.input", f"the displacement must be a 1-d array of at least 2 samples, got shape {x.shape}")
+        raise InvalidSetting(("force",), f"the displacement must be a 1-d array of at least 2 samples, got shape {x.shape}")
     bad = np.flatnonzero(~np.isfinite(x))
     if bad.size:
-        raise SpecError("data.input", f"the displacement has non-finite values (sample {bad[0]} is {x[bad[0]]})")
+        raise InvalidSetting(("force",), f"the displacement has non-finite values (sample {bad[0]} is {x[bad[0]]})")
     return x
 
 
@@ -299,14 +299,14 @@ def _voltage(voltage, n_samples: int) -> np.ndarray:
     """The coil voltage record, checked against the displacement's length (errors name
     ``data.voltage``)."""
     if voltage is None:
-        raise SpecError("data.voltage", "simulator 'spencer_mr_voltage' needs the coil voltage record (data.voltage, "
+        raise InvalidSetting(("voltage",), "simulator 'spencer_mr_voltage' needs the coil voltage record (data.voltage, "
                                         "one sample per displacement sample)")
     v = np.asarray(voltage, dtype=float)
     if v.ndim != 1 or v.size != n_samples:
-        raise SpecError("data.voltage", f"must have one sample per displacement sample ({n_samples}), got shape {v.shape}")
+        raise InvalidSetting(("voltage",), f"must have one sample per displacement sample ({n_samples}), got shape {v.shape}")
     bad = np.flatnonzero(~np.isfinite(v))
     if bad.size:
-        raise SpecError("data.voltage", f"has non-finite values (sample {bad[0]} is {v[bad[0]]})")
+        raise InvalidSetting(("voltage",), f"has non-finite values (sample {bad[0]} is {v[bad[0]]})")
     return v
 
 

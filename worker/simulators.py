@@ -46,8 +46,8 @@ import scipy.linalg
 from scipy.special import ndtri
 
 from abcns.distances import NMSE
+from abcns.errors import InvalidSetting
 from abcns.executor import DIVERGED, OK
-from abcns.priors import SpecError
 
 OUTPUTS = ("displacement", "velocity", "acceleration")
 BACKENDS = ("numba", "numpy")
@@ -152,14 +152,14 @@ class NMSECapable(Protocol):
 
 def _force(force: np.ndarray | None, dt: float) -> np.ndarray:
     if force is None:
-        raise SpecError("data.input", "this simulator needs an input force")
+        raise InvalidSetting(("force",), "this simulator needs an input force")
     force = np.asarray(force, dtype=float)
     if force.ndim != 1 or force.size < 2:
-        raise SpecError("data.input", f"must be a 1-d array of at least 2 samples, got shape {force.shape}")
+        raise InvalidSetting(("force",), f"must be a 1-d array of at least 2 samples, got shape {force.shape}")
     if not np.all(np.isfinite(force)):
-        raise SpecError("data.input", "has non-finite values")
+        raise InvalidSetting(("force",), "has non-finite values")
     if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
-        raise SpecError("data.dt", f"must be a positive number, got {dt!r}")
+        raise InvalidSetting(("dt",), f"must be a positive number, got {dt!r}")
     return force
 
 
@@ -201,14 +201,14 @@ def band_limited(force: np.ndarray, factor: int) -> np.ndarray:
 
 def _substeps(substeps: object) -> int:
     if not (isinstance(substeps, int) and not isinstance(substeps, bool) and substeps >= 1):
-        raise SpecError("integrator.substeps", f"must be a positive integer, got {substeps!r}")
+        raise InvalidSetting(("substeps",), f"must be a positive integer, got {substeps!r}")
     return substeps
 
 
 def _one_of(value: str, allowed: tuple[str, ...], where: str) -> str:
-    """``value`` when it is one of ``allowed``, else a SpecError at the spec's field ``where``."""
+    """``value`` when it is one of ``allowed``, else an InvalidSetting at the keyword ``where``."""
     if value not in allowed:
-        raise SpecError(where, f"must be one of {allowed}, got {value!r}")
+        raise InvalidSetting((where,), f"must be one of {allowed}, got {value!r}")
     return value
 
 
@@ -271,10 +271,10 @@ class Oscillator:
                  backend: str = "numba", input_interpolation: str = "hold"):
         self.force = _force(force, dt)
         self.dt = float(dt)
-        self.output = _one_of(output, OUTPUTS, "integrator.output")
+        self.output = _one_of(output, OUTPUTS, "output")
         self.state_bound = float(state_bound)
-        self.backend = _one_of(backend, BACKENDS, "integrator.backend")
-        self.input_interpolation = _one_of(input_interpolation, INTERPOLATIONS, "data.input_interpolation")
+        self.backend = _one_of(backend, BACKENDS, "backend")
+        self.input_interpolation = _one_of(input_interpolation, INTERPOLATIONS, "input_interpolation")
 
     @property
     def _hold(self) -> int:
@@ -530,7 +530,7 @@ class BoucWen(_RK4Oscillator):
     def unpack(self, params):
         n = params[:, 6]
         if not np.all(np.isin(n, BOUC_WEN_EXPONENTS)):  # refused by the spec's validation (ranges) before a run
-            raise SpecError("fixed.n", f"Bouc-Wen n must be an integer in 1..4, got {np.unique(n)}")
+            raise InvalidSetting(("fixed", "n"), f"Bouc-Wen n must be an integer in 1..4, got {np.unique(n)}")
         return (*tuple(params[:, j] for j in range(6)), n.astype(np.int64))
 
     def _work(self, params):
@@ -599,7 +599,7 @@ class Linear(Oscillator):
     def __init__(self, force=None, dt: float = 0.01, output: str = "displacement", state_bound: float = np.inf,
                  backend: str = "numba", input_interpolation: str = "hold"):
         if input_interpolation == "bandlimited":
-            raise SpecError("data.input_interpolation", "the linear simulator's exact recursion takes 'hold' or "
+            raise InvalidSetting(("input_interpolation",), "the linear simulator's exact recursion takes 'hold' or "
                             "'linear'; for 'bandlimited' use duffing with k3 = k5 = 0 fixed")
         super().__init__(force, dt, output=output, state_bound=state_bound, backend=backend,
                          input_interpolation=input_interpolation)
@@ -675,7 +675,7 @@ class GAndK:
 
     def __init__(self, n_samples: int = 10_000):
         if not (isinstance(n_samples, int) and n_samples >= 2):
-            raise SpecError("data.observed", f"g-and-k needs at least 2 observed samples, got {n_samples!r}")
+            raise InvalidSetting(("observed",), f"g-and-k needs at least 2 observed samples, got {n_samples!r}")
         self.n_samples = n_samples
 
     def config(self) -> dict:

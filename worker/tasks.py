@@ -3,7 +3,7 @@
 :func:`job_payload` holds a job's description and data on the workers; :func:`anchor` is the
 no-op that keeps a run's task group queued; :func:`evaluate_on_worker` runs a group of
 draws. ``job_evaluator(description, arrays)`` builds a job's batch evaluator from its
-JSON-able description (:func:`worker.description.job_parts`, then
+description (:class:`worker.description.JobDescription`: :func:`worker.description.job_parts`, then
 :func:`worker.compose.evaluator`); a worker builds it once per process and job and keeps it
 in a small cache, which a lock guards (a Dask worker runs tasks on several threads).
 """
@@ -17,10 +17,10 @@ from collections import OrderedDict
 from abcns.executor import Evaluate, pack_results, run_draw, unpack_draws
 from abcns.priors import Model
 from worker.compose import evaluator
-from worker.description import job_parts
+from worker.description import JobDescription, job_parts
 
 
-def job_evaluator(description: dict, arrays: dict, allow_import: bool = False) -> tuple[list[Model], Evaluate]:
+def job_evaluator(description: JobDescription, arrays: dict, allow_import: bool = False) -> tuple[list[Model], Evaluate]:
     """(models, evaluate) from a job description and its data (:func:`worker.description.job_parts`)."""
     models, simulators, distance = job_parts(description, arrays, allow_import)
     return models, evaluator(models, simulators, distance)
@@ -33,7 +33,7 @@ _CACHE_SIZE = 8
 _CACHE_LOCK = threading.Lock()
 
 
-def job_payload(description: dict, arrays: dict, allow_import: bool = False) -> dict:
+def job_payload(description: JobDescription, arrays: dict, allow_import: bool = False) -> dict:
     """The Dask task that holds a job's description and data on the workers.
 
     It is a task, not scattered data, on purpose: the scheduler keeps its inputs, so when

@@ -151,8 +151,7 @@ def duffing(quick: bool) -> Case:
     stop_ = job.spec.data.fit[1]
     dt = job.spec.data.dt or 1.0 / job.spec.data.fs
     # as the job's evaluator builds them: only the fit window is simulated
-    sims_ = [simulator_for(m.model_dump(), job.force[:stop_], dt, job.observed[:stop_], f"models[{i}]")
-             for i, m in enumerate(job.spec.models)]
+    sims_ = [simulator_for(m, job.force[:stop_], dt, job.observed[:stop_], i) for i, m in enumerate(job.description.models)]
     nmse = NMSE(job.observed[:stop_])
     sims, secs = (2_000, 15.0) if quick else (600_000, 300.0)
     return Case(

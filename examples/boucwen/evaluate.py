@@ -24,6 +24,7 @@ from matplotlib.figure import Figure
 from abcns.analysis import bands, point_estimates
 from examples.boucwen.prepare import FS, NOISE_RMS, load
 from service.report.analysis import JobData, fit_alone, open_run
+from service.spec import model_description
 from worker.description import simulator_for
 
 HERE = Path(__file__).resolve().parent
@@ -34,9 +35,9 @@ def on_record(data: JobData, force: np.ndarray, observed: np.ndarray) -> JobData
     """The same models with simulators driven by another input record (read as the spec's
     ``data.input_interpolation`` says)."""
     sims = {}
-    for i, desc in enumerate(data.spec.models):
-        sims[desc.name] = simulator_for(desc.model_dump(), force, data.dt, np.resize(observed, force.size),
-                                        f"models[{i}]", input_interpolation=data.spec.data.input_interpolation)
+    for i, desc in enumerate(map(model_description, data.spec.models)):
+        sims[desc.name] = simulator_for(desc, force, data.dt, np.resize(observed, force.size), i,
+                                        input_interpolation=data.spec.data.input_interpolation)
     return JobData(data.spec, force, observed, data.dt, (0, observed.size), None, data.models, sims)
 
 

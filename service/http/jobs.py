@@ -59,7 +59,7 @@ from service.http.limits import Limits, admit
 from service.run.jobs import JOB_RESOURCE, JobRun, WorkerWatch, ensure_job_slots, job_workers, no_space, run_one
 from service.run.runner import Progress, local_population_s, run_job, summary, wait_for_store_lock
 from service.run.store import Store, StoreError
-from service.spec import JobSpec, build, cut_to_read
+from service.spec import JobSpec, build, cut_to_read, spec_text
 
 TERMINAL = ("finished", "failed", "cancelled")
 STATUSES = ("queued", "running", *TERMINAL)
@@ -459,7 +459,7 @@ class JobManager:
             spec = spec.model_copy(update={"data": data})
             built = build(spec, folder, allow_import=False)  # raises SpecError naming the field
             spec = admit(spec, built, self.limits)  # the service's limits (SpecError) and default budget
-            _write_json(folder / "spec.json", spec.model_dump(mode="json"))
+            _write_json(folder / "spec.json", spec_text(spec))
             job = JobRecord(job_id, folder, spec.name, [m.name for m in spec.models], "queued", time.time())
             job.events = EventLog(folder / "events.jsonl", self.loop)
             job.save()
@@ -883,7 +883,7 @@ class JobManager:
                 log.warning("job %s: a message of its loop was not recorded: %r", job.id, err)
 
         client.subscribe_topic(topic, on_message)
-        future = client.submit(run_one, spec.model_dump(mode="json"), data, str(job.store_path),
+        future = client.submit(run_one, spec, data, str(job.store_path),
                                local_s=local_population_s(), threads=sum(client.nthreads().values()), topic=topic,
                                owned_store=True, key=f"abcns-job-{job.id}-{uuid.uuid4().hex[:8]}", workers=[worker],
                                allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)

@@ -23,7 +23,7 @@ import numpy as np
 from abcns import OK, Model, Result
 from abcns.analysis import Confusion, Predictive, confusion, fit_test_nmse, nmse, predictive
 from service.run.store import Store, data_hash
-from service.spec import JobSpec, load_data, load_voltage, parse
+from service.spec import JobSpec, load_data, load_voltage, model_description, parse, spec_errors
 from worker.compose import check_model, full_parameters
 from worker.description import model_of, simulator_for
 from worker.simulators import Simulator
@@ -73,13 +73,12 @@ def job_data(spec: dict | JobSpec, base_dir: str | Path | None, expect_hash: str
                              f"{expect_hash[:12]}); pass the directory of the spec the store was run from")
     dt = spec.data.sample_interval if spec.data.input is not None else None
     models, sims = {}, {}
-    for i, desc in enumerate(spec.models):
-        d = desc.model_dump()
-        m = model_of(d, f"models[{i}]")
-        sim = simulator_for(d, force, dt, observed, f"models[{i}]", allow_import, spec.data.input_interpolation,
-                            voltage)
-        check_model(m, sim, f"models[{i}]")
-        models[m.name], sims[m.name] = m, sim
+    with spec_errors():
+        for i, desc in enumerate(map(model_description, spec.models)):
+            m = model_of(desc, i)
+            sim = simulator_for(desc, force, dt, observed, i, allow_import, spec.data.input_interpolation, voltage)
+            check_model(m, sim, ("models", i))
+            models[m.name], sims[m.name] = m, sim
     fit = spec.data.fit or (0, observed.size)  # tuples already: the spec's Windows (pydantic)
     test = spec.data.test or None
     samples = all(getattr(s, "needs_input", None) is False for s in sims.values())

@@ -64,6 +64,7 @@ from distributed import Client, Future, LocalCluster, as_completed
 from abcns.executor import Draw, Evaluate, Simulated, pack_draws, run_draw, unpack_results
 from abcns.filling import Budget
 from abcns.settings import Stopped
+from worker.description import JobDescription
 from worker.tasks import anchor, evaluate_on_worker, job_payload
 
 #: compute time of a task, at least (a task costs ~1-2 ms of CPU in the client, scheduler and
@@ -139,7 +140,7 @@ class DaskExecutor:
     it runs. Never while other runs share this process (``alone`` says): their populations
     would take turns on one core while the workers wait."""
 
-    def __init__(self, client: Client, job_key: str, description: dict, arrays: dict, allow_import: bool = False,
+    def __init__(self, client: Client, job_key: str, description: JobDescription, arrays: dict, allow_import: bool = False,
                  budget: Budget | None = None, evaluate: Evaluate | None = None, local_s: float = 0.0,
                  alone: Callable[[], bool] = lambda: True):
         self.client = client

@@ -8,11 +8,12 @@ cluster busy is running many jobs at once, each where it runs fastest (docs/desi
 contracts": workers never wait, across jobs).
 
 **A job is one Dask task.** :func:`run_one`, a plain top-level function of picklable
-arguments (the spec as its JSON dump, the records of its data files read by the caller and
-sent inline, so a worker needs none of the caller's files; the store's path; the seed and
-the caller's settings), calls :func:`service.run.runner.run_job` on the worker. The worker
-writes the job's zarr store, so the stores' folder must be one the workers can write (the
-embedded cluster, one machine, or a shared file system). Progress (a start event with the
+arguments (the validated spec, a pydantic model pickled as data, not parsed again; the
+records of its data files read by the caller and sent inline, so a worker needs none of the
+caller's files; the store's path; the seed and the caller's settings), calls
+:func:`service.run.runner.run_job` on the worker. The worker writes the job's zarr store, so
+the stores' folder must be one the workers can write (the embedded cluster, one machine, or
+a shared file system). Progress (a start event with the
 placement, then one event per population) comes back through Dask's event log
 (``Worker.log_event``, ``Client.subscribe_topic``, a topic per call of :func:`run_jobs`);
 the task returns the job's outcome and JSON summary. Where a job runs never changes its
@@ -260,7 +261,7 @@ def _released(worker, key) -> bool:
     return ts is None or ts.state in ("cancelled", "released", "forgotten")
 
 
-def run_one(spec_json: dict, data: dict[str, np.ndarray], store: str, *, seed: int | None = None,
+def run_one(spec: JobSpec, data: dict[str, np.ndarray], store: str, *, seed: int | None = None,
             allow_import: bool = False, local_s: float, threads: int, topic: str | None = None,
             index: int = 0, owned_store: bool = False) -> dict:
     """The Dask task of one job: decide its placement (:func:`place`), run (or resume) it
@@ -278,7 +279,6 @@ def run_one(spec_json: dict, data: dict[str, np.ndarray], store: str, *, seed: i
     placement: dict | None = None
     path = Path(store)
     try:
-        spec = JobSpec.model_validate(spec_json)
         if seed is not None:
             spec = spec.model_copy(update={"seed": seed})
         if _finished(path):  # run_job gives its result at once (or refuses another job's store)
@@ -433,7 +433,7 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
                         break
                     i = waiting.popleft()
                     job = jobs[i]
-                    future = client.submit(run_one, job.spec.model_dump(mode="json"), job.data, str(job.store),
+                    future = client.submit(run_one, job.spec, job.data, str(job.store),
                                            seed=seed, allow_import=allow_import, local_s=local_s, threads=threads,
                                            topic=topic, index=i, key=f"abcns-job-{nonce}-{i}", workers=[addr],
                                            allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)

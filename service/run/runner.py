@@ -38,7 +38,7 @@ from abcns.run import algorithm_name, consume, iterate
 from service.run.dask_executor import LOCAL_POPULATION_S, DaskExecutor
 from service.run.model_error import model_error_warning, residual_check
 from service.run.store import Store, StoreIncomplete, data_hash, result_from_store
-from service.spec import Job, JobSpec, build, description, job_arrays
+from service.spec import Job, JobSpec, build, job_arrays
 
 
 @dataclass
@@ -405,7 +405,7 @@ def _run_job(
     with frozen_heap():  # to the end: a full pass over the heap handed back stalled the last append ~140 ms
         try:
             executor = (SerialExecutor(timed) if client is None
-                        else DaskExecutor(client, key, description(spec), arrays, allow_import, budget=budget,
+                        else DaskExecutor(client, key, job.description, arrays, allow_import, budget=budget,
                                           evaluate=job.evaluate, local_s=local_s, alone=alone))
             gen = iterate(job.models, executor, job.settings, job.stop, job.seed, history=history, budget=budget,
                           noise=job.noise)
