@@ -41,6 +41,7 @@ demo: $(RUNTIME)
 test: $(DEV) browser
 	$(BIN)/ruff check abcns worker service tests benchmarks examples
 	$(BIN)/mypy abcns worker service
+	$(BIN)/python -m tests.numba_warm  # numba's cache compiled once, before the workers that read it start
 	$(BIN)/python -m pytest
 
 # Debian's chromium for the live-page test (as root, e.g. in CI); nothing downloaded from elsewhere

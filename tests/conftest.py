@@ -21,43 +21,56 @@ os.environ.setdefault("ABCNS_LOCAL_POPULATION_S", "0")
 
 
 @pytest.fixture
-def stock_cluster(tmp_path):
-    cluster = StockCluster(tmp_path)
-    yield cluster.address
-    cluster.close()
+def private_cluster(tmp_path):
+    """A stock cluster of the test's own (2 workers), for a test that kills, restarts or
+    retires workers, or needs the cluster idle: nothing else runs on it."""
+    c = StockCluster(tmp_path / "dask")
+    yield c
+    c.close()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
+def stock_cluster(private_cluster):
+    """The address of a :func:`private_cluster`."""
+    return private_cluster.address
+
+
+@pytest.fixture(scope="session")
 def cluster(tmp_path_factory):
-    """A stock cluster shared by the tests of one module."""
+    """One stock cluster (2 workers) for the whole run, shared by the tests that submit
+    independent jobs to it or only read it (its address, its workers' count and pids):
+    none of them kills, restarts or retires a worker (those take ``private_cluster``), and
+    no result depends on which cluster or worker computed it. Starting one costs ~4 s."""
     c = StockCluster(tmp_path_factory.mktemp("dask"))
     yield c
     c.close()
 
 
-@pytest.fixture(scope="module")
-def module_service(cluster, tmp_path_factory):
-    """One `abcns serve` on the module's cluster, for the module's tests that only submit and
-    read (through ``service``): starting one costs ~2 s a test."""
+@pytest.fixture(scope="session")
+def shared_service(cluster, tmp_path_factory):
+    """One `abcns serve` on the shared cluster for the whole run, for the tests that only
+    submit and read (through ``service``): starting one costs ~3.5 s."""
     s = Service(tmp_path_factory.mktemp("service") / "jobs", cluster.address)
     yield s
     s.close()
 
 
 @pytest.fixture
-def service(module_service):
-    """The module's service, reset around each test (``settle``): no job queued or running
-    when the test starts, none of its own left moving after it. A test that kills, restarts
-    or stops its service, edits its store directory, reads its whole log, or measures its
+def service(shared_service):
+    """The shared service, reset around each test (``settle``): no job queued or running
+    when the test starts, none of its own left moving after it; its store directory and
+    log hold the jobs of earlier tests, so a test reads only its own jobs, or compares
+    the job list before and after. A test that kills, restarts or stops its service,
+    edits its store directory, reads its whole log, lists every job, or measures its
     memory from its start takes ``fresh`` instead."""
-    settle(module_service)
-    yield module_service
-    settle(module_service)
+    settle(shared_service)
+    yield shared_service
+    settle(shared_service)
 
 
 @pytest.fixture
 def fresh(cluster, tmp_path):
-    """A service of its own, on the module's cluster."""
+    """A service of its own, on the shared cluster."""
     s = Service(tmp_path / "jobs", cluster.address)
     yield s
     s.close()

@@ -13,7 +13,7 @@ import shutil
 import httpx
 import pytest
 
-from benchmarks.harness import AUTH, TOKEN, Service, StockCluster, duffing_spec, wait_until
+from benchmarks.harness import AUTH, TOKEN, Service, duffing_spec, wait_until
 
 pytestmark = pytest.mark.browser
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -47,15 +47,12 @@ def browser(chromium):
 
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory):
-    """One stock cluster (2 workers) and one service for the module: each test runs its own
-    jobs on it, one at a time."""
-    tmp = tmp_path_factory.mktemp("browser")
-    cluster = StockCluster(tmp / "dask")
-    service = Service(tmp / "jobs", cluster.address)
+def service(cluster, tmp_path_factory):
+    """One service for the module (its index page lists only this module's jobs), on the
+    run's shared cluster (2 workers): each test runs its own jobs on it, one at a time."""
+    service = Service(tmp_path_factory.mktemp("browser") / "jobs", cluster.address)
     yield service
     service.close()
-    cluster.close()
 
 
 def read_all(page, selector: str, read: str) -> list:

@@ -2,7 +2,12 @@
 short human summary (with or without the per-population lines), `--json`, `summary`, the
 NMSE marked as a percentage (Eq. 7: 100 / (n s^2) ...), each population's own rate, the
 workers as they are now, and one line with its own exit code for a scheduler that cannot
-be reached."""
+be reached.
+
+What only formats (help, the run's lines and summary, `summary`) runs in this process through
+typer's CliRunner (:func:`here`), on the run's shared cluster; what a process adds something
+to runs `abcns` for real: the installed entry point (--version), exit codes and their one
+error line, a worker killed under a run, a plugin the workers import, a terminal."""
 
 from __future__ import annotations
 
@@ -19,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from click.testing import Result
 
 from benchmarks.harness import StockCluster, free_port
 
@@ -35,11 +41,16 @@ def abcns(*args, timeout: float = 300) -> subprocess.CompletedProcess:
     return done
 
 
-@pytest.fixture(scope="module")
-def cluster(tmp_path_factory):
-    c = StockCluster(tmp_path_factory.mktemp("dask"), n_workers=1)
-    yield c.address
-    c.close()
+def here(*args, env: dict | None = None) -> Result:
+    """`abcns ARGS` in this process (the typer app under CliRunner, stdout and stderr apart):
+    what it prints is what the command prints; it must exit 0."""
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    done = CliRunner().invoke(app, [str(a) for a in args], prog_name="abcns", env=env)
+    assert done.exit_code == 0, (done.exit_code, done.output[-2000:], done.exception)
+    return done
 
 
 @pytest.fixture(scope="module")
@@ -69,11 +80,11 @@ def test_version():
 def test_help_shows_flags_as_flags_and_what_the_numbers_mean():
     """Q.14: --version is a flag (no ``<bool>``); Q.8 and Q.17: run's help says what sims/s
     is and that stop.min_epsilon_decrease is an absolute difference in % NMSE."""
-    env = {**os.environ, "COLUMNS": "100"}
-    top = subprocess.run([BIN / "abcns", "--help"], capture_output=True, text=True, timeout=60, env=env).stdout
+    env = {"COLUMNS": "100"}
+    top = here("--help", env=env).stdout
     assert re.search(r"^\s+--version\s+Print the version and exit\.$", top, re.M), top
     assert "<bool>" not in top and "submit" in top
-    help_run = subprocess.run([BIN / "abcns", "run", "--help"], capture_output=True, text=True, timeout=60, env=env).stdout
+    help_run = here("run", "--help", env=env).stdout
     text = " ".join(help_run.split())  # as one paragraph, whatever the width
     assert "<bool>" not in help_run and "--quiet " in help_run and "--no-quiet" not in help_run
     assert "sims/s (this population's simulations over the wall time since the previous one ended" in text
@@ -165,7 +176,7 @@ def test_the_progress_line_shows_the_decision_tolerance_once_known():
 
 
 def test_run_prints_populations_then_a_short_summary(spec, cluster, tmp_path):
-    lines = abcns("run", spec, "--out", tmp_path / "a.zarr", "--scheduler", cluster).stdout.splitlines()
+    lines = here("run", spec, "--out", tmp_path / "a.zarr", "--scheduler", cluster.address).stdout.splitlines()
     pops = [line for line in lines if line.startswith("population ")]
     assert len(pops) == POPULATIONS and all("eps" in p and " %  acceptance" in p for p in pops)
     # issue O.5: on a cluster each line gives the workers' efficiency over its population, a
@@ -180,7 +191,7 @@ def test_run_prints_populations_then_a_short_summary(spec, cluster, tmp_path):
 
 
 def test_run_quiet_still_prints_the_summary(spec, cluster, tmp_path):
-    done = abcns("run", spec, "--out", tmp_path / "q.zarr", "--scheduler", cluster, "--quiet")
+    done = here("run", spec, "--out", tmp_path / "q.zarr", "--scheduler", cluster.address, "--quiet")
     lines = done.stdout.splitlines()
     assert not any(line.startswith("population ") for line in lines)
     assert lines[0] == ""
@@ -240,12 +251,12 @@ def test_the_worker_count_is_the_cluster_s_now(tmp_path):
 
 def test_run_json_and_summary_of_the_store(spec, cluster, tmp_path):
     out = tmp_path / "j.zarr"
-    s = json.loads(abcns("run", spec, "--out", out, "--scheduler", cluster, "--quiet", "--json").stdout)
+    s = json.loads(here("run", spec, "--out", out, "--scheduler", cluster.address, "--quiet", "--json").stdout)
     assert s["status"] == "finished" and s["n_populations"] == POPULATIONS and len(s["epsilon"]) == POPULATIONS
-    assert json.loads(abcns("summary", out, "--json").stdout) == s
-    assert_human_summary(abcns("summary", out).stdout.splitlines())
+    assert json.loads(here("summary", out, "--json").stdout) == s
+    assert_human_summary(here("summary", out).stdout.splitlines())
     # run again on the finished store: nothing recomputed, the same short summary
-    again = abcns("run", spec, "--out", out, "--scheduler", cluster, "--quiet").stdout.splitlines()
+    again = here("run", spec, "--out", out, "--scheduler", cluster.address, "--quiet").stdout.splitlines()
     assert_human_summary(again[1:])
 
 
@@ -280,12 +291,12 @@ def test_a_run_that_accepts_nothing_says_why(cluster, tmp_path):
     raw["sampler"].update(particles=200, batch_size=250)
     raw["stop"] = {"min_epsilon_decrease": None, "max_populations": 2, "max_simulations_without_acceptance": 2000}
     (tmp_path / "spec.yaml").write_text(yaml.safe_dump(raw))
-    lines = abcns("run", tmp_path / "spec.yaml", "--out", tmp_path / "n.zarr", "--scheduler", cluster,
-                  "--quiet").stdout.splitlines()
+    lines = here("run", tmp_path / "spec.yaml", "--out", tmp_path / "n.zarr", "--scheduler", cluster.address,
+                 "--quiet").stdout.splitlines()
     assert lines[1].startswith("status finished  stop nothing_accepted  populations 0  simulations 2,000"), lines
     assert lines[2].startswith("note: nothing accepted: population 1 ran 2,000 simulations and none came below"), lines
     assert not any(line.startswith("model probabilities:") for line in lines), lines
-    assert abcns("summary", tmp_path / "n.zarr").stdout.splitlines() == lines[1:-1]
+    assert here("summary", tmp_path / "n.zarr").stdout.splitlines() == lines[1:-1]
 
 
 def test_an_impossible_fixed_value_is_refused_before_the_run_with_exit_2(tmp_path):

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from http_helpers import demo_spec, follow, same_populations
 
-from benchmarks.harness import AUTH, BIN, ROOT, TOKEN, Service, duffing_spec
+from benchmarks.harness import AUTH, BIN, ROOT, TOKEN, Service, StockCluster, duffing_spec
 
 pytestmark = pytest.mark.http
 
@@ -38,7 +38,17 @@ def reference(cluster, tmp_path_factory):
     return tmp / "ref.zarr"
 
 
-def test_http_job_with_a_worker_killed_equals_abcns_run(service, cluster, reference):
+def test_http_job_with_a_worker_killed_equals_abcns_run(private_cluster, tmp_path, reference):
+    """On a cluster of its own (a worker is killed), the reference from the shared one."""
+    cluster = private_cluster
+    service = Service(tmp_path / "jobs", cluster.address)
+    try:
+        killed_mid_job_equals_reference(service, cluster, reference)
+    finally:
+        service.close()
+
+
+def killed_mid_job_equals_reference(service: Service, cluster: StockCluster, reference: Path) -> None:
     r = httpx.post(f"{service.url}/jobs", json=duffing_spec(), headers=AUTH, timeout=60)
     assert r.status_code == 201, r.text
     job_id = r.json()["id"]

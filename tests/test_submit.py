@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import yaml
 
-from benchmarks.harness import AUTH, TOKEN, Service, StockCluster, free_port
+from benchmarks.harness import AUTH, TOKEN, Service, free_port
 
 pytestmark = pytest.mark.http
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,14 +32,12 @@ def abcns(*args, env: dict | None = None) -> subprocess.CompletedProcess:
 
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory):
-    """One worker, one service (at most 1,000 particles a job) for the module."""
-    tmp = tmp_path_factory.mktemp("submit")
-    cluster = StockCluster(tmp / "dask", n_workers=1)
-    service = Service(tmp / "jobs", cluster.address, env={"ABCNS_MAX_PARTICLES": "1000"})
+def service(cluster, tmp_path_factory):
+    """One service (at most 1,000 particles a job) for the module, on the run's shared
+    cluster (2 workers)."""
+    service = Service(tmp_path_factory.mktemp("submit") / "jobs", cluster.address, env={"ABCNS_MAX_PARTICLES": "1000"})
     yield service, cluster.address
     service.close()
-    cluster.close()
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +64,7 @@ def test_submit_uploads_the_spec_and_its_files_and_follows_the_job_to_run_s_resu
     lines = done.stdout.splitlines()
     pops = [line for line in lines if line.startswith("population ")]
     assert [int(p.split()[1]) for p in pops] == list(range(1, POPULATIONS + 1)), lines
-    assert all(" %  acceptance" in p and "sims/s" in p and re.search(r"workers 1\b", p) for p in pops), pops
+    assert all(" %  acceptance" in p and "sims/s" in p and re.search(r"workers 2\b", p) for p in pops), pops
     assert lines[len(pops)] == "" and lines[len(pops) + 1].startswith("status finished  stop max_populations")
     job_id = done.stderr.split("job ", 1)[1].split(":", 1)[0]
     assert lines[-1].startswith(f"job: {svc.url}/jobs/{job_id}")
