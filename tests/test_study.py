@@ -101,10 +101,8 @@ def test_a_study_of_six_data_sets_and_its_report_recomputed_from_the_stores(clie
         truth = models.index(ds["model"])
         counts[truth, int(np.argmax(probs))] += 1
         pairs += [(q, float(j == truth)) for j, q in enumerate(probs)]
-        reading = result.reading()
-        theta, w = (reading.theta[truth], reading.weights[truth]) if reading is not None else \
-            (result.particles(truth, result.decision_population().t)[0], None)
-        w = np.ones(theta.shape[0]) if w is None else w
+        theta, w, _ = result.answer_draws(truth)  # the answer's particles: the likelihood reading's, or
+        # a provisional run's tolerance's where its reading is thin (these runs stop at 6 populations)
         for j, name in enumerate(("c", "k")):
             post = s["posterior"][ds["model"]][name]
             in95 += post["q2_5"] <= p[name] <= post["q97_5"]
