@@ -1,49 +1,21 @@
 """The Gaussian reading of a run: every population's new particles weighted by the likelihood.
 
-With the NMSE over ``n`` samples and independent Gaussian noise of variance ``v`` per sample
-in distance units (``abcns.noise``), ``d(theta) / v`` is the chi-square of the residuals, so
-the likelihood is ``L(theta) = C exp(-d(theta) / (2 v))`` and the exact evidence of model m is
-
-    Z_m = integral of prior(theta) L(theta) = integral over eps of exp(-eps / (2 v)) dX_m(eps),
-
-with ``X_m(eps)`` the prior mass below ``eps``: the ABC evidence that ABC-NS estimates at
-every population (``abcns.evidence``). This is nested sampling's own identity (Skilling
-2006). A population t accepted at eps_t holds new particles uniform (in the prior, which is
-uniform) on {d < eps_t}, and the next tolerance eps_{t+1} cuts that region into a shell
-{eps_{t+1} <= d < eps_t} and what the next populations sample. So
+With the NMSE and independent Gaussian noise of variance ``v`` per sample in distance units
+(``abcns.noise``), the likelihood is ``L(theta) = C exp(-d(theta) / (2 v))``, and nested
+sampling's identity (Skilling 2006) over the ABC evidence ``X_m(eps)`` (``abcns.evidence``)
+gives model m's exact evidence
 
     Z_m ~ sum_t X_m(eps_t) mean over m's new particles of population t of
           exp(-d / (2 v)) 1{d >= eps_{t+1}},
 
-with no cut in model m's last population with new particles (the run's last, or the one
-before the model died: its particles then stand for everything below its tolerance). The
-same weights, ``X_m(eps_t) / n_{m,t} exp(-d / (2 v))``, make the particles an importance
-sample of model m's exact posterior. Survivors are left out: they were drawn by weight, and
-each was a new particle once, where it is counted.
-
-Why (issue W, docs/design.md "Reading by the likelihood"): an ABC posterior at one tolerance is
-uniform on the region below it, so each model's intervals depend on where the run stopped,
-and with nested models the most flexible model's best fit to the noise sets the common
-tolerance below the true model's own floor (its intervals then miss the truth, and whether
-they do depends on the sampler's seed). The likelihood-weighted reading is the posterior of
-the exact Gaussian likelihood of the noise the run estimates or the spec states, whatever
-the populations' tolerances were, as long as the run reached its floor (the weights inside
-the last population's region then vary by e^-3.4 or less) and each model's earlier shells
-hold its particles. A run stopped above its floor (a budget) has a last region far wider than
-the posterior, and its weights fall on the few particles nearest the best fit: where such a
-run's reading of a model rests on fewer than 2 (d + 1) effective particles (:func:`enough`),
-the model's posterior is read from the answer population's particles instead
-(:meth:`abcns.result.Result.answer_draws`), wider than the data's, not narrower.
-
-When the spec does not state the noise, its variance is integrated out under Jeffreys' prior
-(:func:`marginal`): the likelihood of the residuals' sum of squares, ~ d^(-n / 2), is then
-that of the data with the noise unknown, not that of a plug-in estimate.
-
-The standard error of log Z_m adds two parts: each population's log X_m error (taken as
-fully correlated between populations, as the evidence's prediction chains them: the
-conservative choice) weighted by its share of Z_m, and the shells' Monte Carlo means
-(independent). The effective number of particles (Kish) says how many particles the reading
-rests on.
+with no cut in model m's last population with new particles. The same weights make the
+particles an importance sample of model m's exact posterior; survivors are left out (each
+was a new particle once, where it is counted). Without a stated noise, its variance is
+integrated out under Jeffreys' prior (:func:`marginal`). In a run stopped above its floor, a
+model whose reading rests on fewer than 2 (d + 1) effective particles (:func:`enough`) takes
+its posterior from the answer population's particles instead
+(:meth:`abcns.result.Result.answer_draws`). The derivation, why (issue W), the standard
+error and the limits: docs/design.md, "Reading by the likelihood".
 """
 
 from __future__ import annotations

@@ -15,25 +15,12 @@ Population t + 1 = the survivors plus (1 - beta) N new particles: each proposal 
 model, then a point uniform in its bound, redrawn until inside the prior box (redraws are
 counted, not simulated).
 
-Two variants (``NSSettings.variant``):
-
-- ``"paper"``: exactly the published algorithm as the authors' demo runs it. Survivors per
-  model follow particle counts, one ellipsoid per model fitted to its survivors in raw
-  parameter units, proposals pick an alive model with equal probability, and the model
-  probabilities are particle shares (Eq. 12). A model with no survivors is dead.
-- ``"evidence"`` (default): the model probabilities are ABC posterior probabilities from
-  each model's evidence (``abcns.evidence``); survivors follow the probability predicted at
-  eps_{t+1} (at least 2 (d + 1) each while a model has them), proposals follow it too
-  (p / acceptance, with a floor per alive model); a model dies when it has no particle below
-  eps_{t+1}, or when its probability plus three standard errors at the next tolerance falls
-  below ``min_model_probability`` in two populations in a row. Bounds are fitted in the
-  unit prior box to every particle below eps_{t+1} (the region the next population must
-  sample, not only the survivors) and split into several ellipsoids where the split holds
-  less than ``bounds.SPLIT_GAIN`` of the volume (``abcns.bounds``).
-
-What the variants decide is in ``abcns.variants``; the evidence estimator, with its
-derivation, in ``abcns.evidence``; this module holds the steps both share (the paper's
-Algorithm 2) and the run loop.
+Two variants (``NSSettings.variant``): ``"paper"``, the published algorithm as the authors'
+demo runs it, and ``"evidence"`` (the default), the model probabilities from each model's
+evidence. What each decides is stated in ``abcns.variants`` (:class:`~abcns.variants.Paper`,
+:class:`~abcns.variants.Evidence`); the evidence estimator, with its derivation, in
+``abcns.evidence``; this module holds the steps both share (the paper's Algorithm 2) and
+the run loop.
 
 The evidence bookkeeping (``Population.evidence``) is computed in both variants; in the paper
 variant it is a diagnostic and uses its own random stream, so the paper's populations are

@@ -1,48 +1,22 @@
 """The noise floor of a run, and the tolerance at which its models are decided.
 
 Below some tolerance the data's noise, not the model, decides which simulations are
-accepted: a model with more parameters can fit the noise better than the true one, so with
-nested candidate models (linear in cubic in cubic-quintic) a run taken below that tolerance
-ends up choosing the model that fits the noise best.
-
-For a distance that is a scaled sum of ``n`` squared residuals (the NMSE, paper Eq. 7:
-``d = 100 / (n s^2) sum r_i^2``) and independent noise of variance ``sigma^2`` per sample,
-let ``v = 100 sigma^2 / (n s^2)`` be one sample's noise in distance units. Linearised least
-squares (Beale 1960; Seber & Wild, *Nonlinear Regression*, 1989, §5.2) gives, for the true
-model with ``p`` free parameters, its best fit ``d_min`` and the truth ``theta*``:
+accepted, and with nested candidate models a run taken below it chooses the model that fits
+the noise best. For a distance that is a scaled sum of ``n`` squared residuals (the NMSE,
+paper Eq. 7) with one sample's noise ``v`` in distance units, linearised least squares
+gives, for the true model with ``p`` free parameters and its best fit ``d_min``:
 
     d_min / v ~ chi^2_(n - p),        (d(theta*) - d_min) / v ~ chi^2_p.
 
-So once a run has found a best fit, the truth's own distance, the **noise floor**, is
-expected at ``F = d_min + p v``, with spread ``sqrt(2 p) v`` (the sd of ``v chi^2_p``), and
-``v`` is estimated by ``d_min / (n - p)`` unless the spec states the noise. The spread that
-matters is this conditional one: the noise's own sampling spread, ``F sqrt(2 / n)``, is
-shared by every model's distances and moves them together.
-
-The **decision tolerance** is the floor plus its spread, ``eps_dec = F + sqrt(2 p) v``: the
-run's model probabilities are read at the population accepted at it (its
-:class:`Standing`; :meth:`abcns.result.Result.decision_population`), and the evidence variant stops there by
-default (``StopRules.noise_floor``). Why this level:
-
-- the accepted region of the true model, ``{d < eps_dec}``, holds the truth with the
-  probability of ``chi^2_p < p + sqrt(2 p)`` (0.85-0.88 for p = 1..8), the joint
-  confidence region of nonlinear least squares at that level; the ABC posterior there is
-  uniform on it, with per-parameter variance ``(eps_dec - d_min) / (p + 2)`` in whitened
-  units against the Gaussian posterior's ``v``: ``(p + sqrt(2 p)) / (p + 2)`` is 0.8-1.2
-  for p = 1..8, so its 50 % and 95 % intervals hold the truth at close to their nominal
-  rates;
-- a nested model that fits the noise better by ``v chi^2_1`` keeps the simpler (true)
-  model's region at ``eps_dec - d_min >= (p + sqrt(2 p) - chi^2_1) v``, positive but in
-  about 1 % of data sets, so the prior volume (the evidence's Occam factor), not the fit to
-  the noise, decides between them.
-
-``d_min`` is the lowest distance any model has reached and ``p`` the largest number of free
-parameters among the models still alive and the best fit's model (the conservative choice:
-with nested models the best fit is the most flexible model's, and a floor that uses its
-``p`` cannot rise when the best fit passes from one model to another, so the decision
-tolerance only falls as the run goes on). The estimate assumes independent noise samples;
-with correlated residuals (a model error that the data resolve) the floor is optimistic, and
-a stated noise (``Noise.variance``) overrides the estimate.
+So the truth's own distance, the **noise floor**, is expected at ``F = d_min + p v``, with
+spread ``sqrt(2 p) v``; ``v`` is ``d_min / (n - p)`` unless the spec states the noise
+(``Noise.variance``). The **decision tolerance** is ``eps_dec = F + sqrt(2 p) v``: the run's
+model probabilities are read at the population accepted at it (its :class:`Standing`;
+:meth:`abcns.result.Result.decision_population`), and the evidence variant stops there by
+default (``StopRules.noise_floor``). ``d_min`` is the lowest distance any model has reached
+and ``p`` the largest number of free parameters among the models still alive and the best
+fit's model, so the decision tolerance only falls as the run goes on. Why this level, and
+the sources: docs/design.md, "The noise floor and the decision tolerance".
 """
 
 from __future__ import annotations

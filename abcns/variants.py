@@ -9,8 +9,8 @@ A variant decides, from the population and its evidence estimate (``abcns.eviden
   gets, and the model probabilities the population reports.
 
 ``"paper"`` is the published algorithm as the authors' demo runs it; ``"evidence"`` (the
-default) reads the model probabilities from each model's evidence. ``abcns/nested.py``'s
-docstring states both.
+default) reads the model probabilities from each model's evidence: :class:`Paper` and
+:class:`Evidence` state each.
 """
 
 from __future__ import annotations

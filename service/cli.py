@@ -116,6 +116,20 @@ def summary_lines(s: dict, distance: str = "nmse") -> list[str]:
     return lines
 
 
+def print_summary(s: dict, distance: str, as_json: bool, footer: str | None = None) -> None:
+    """A job's JSON summary ``s`` as JSON, or as :func:`summary_lines`; with a ``footer`` (where
+    the full summary is), a blank line before the lines and the footer after them."""
+    if as_json:
+        typer.echo(json.dumps(s, indent=2))
+        return
+    if footer is not None:
+        typer.echo("")
+    for text in summary_lines(s, distance):
+        typer.echo(text)
+    if footer is not None:
+        typer.echo(footer)
+
+
 def where_decided(s: dict, unit: str) -> str:
     """Where the answer is read: the decision population and its tolerance (``summary.decision``)."""
     dec = s.get("decision")
@@ -369,14 +383,8 @@ def run(
         except BatchError as err:  # a bug in a simulator: which batch, which exception; the store keeps the rest
             _fail(f"the job failed in {err}; the populations before it are in {out} (abcns summary {out})", JOB_FAILED)
     line.end()
-    s = summary(Store.open(out))
-    if as_json:
-        typer.echo(json.dumps(s, indent=2))
-        return
-    typer.echo("")
-    for text in summary_lines(s, job_spec.distance.name):
-        typer.echo(text)
-    typer.echo(f"store: {out}  (full JSON summary: abcns summary {out} --json)")
+    print_summary(summary(Store.open(out)), job_spec.distance.name, as_json,
+                  f"store: {out}  (full JSON summary: abcns summary {out} --json)")
 
 
 def open_client(stack: ExitStack, scheduler: str | None, workers: int | None, dashboard: bool):
@@ -511,11 +519,7 @@ def summary_cmd(
         s = summary(opened)
     except StoreError as err:
         _fail(str(err))
-    if as_json:
-        typer.echo(json.dumps(s, indent=2))
-        return
-    for line in summary_lines(s, distance_of(opened.attrs.get("spec"))):
-        typer.echo(line)
+    print_summary(s, distance_of(opened.attrs.get("spec")), as_json)
 
 
 @app.command()
@@ -701,13 +705,8 @@ def submit(
         line.end()
         result = http.get(f"/jobs/{job_id}/result")
         s = result.json() if result.status_code == 200 else {"status": end, "n_populations": 0}
-    if as_json:
-        typer.echo(json.dumps(s, indent=2))
-    else:
-        typer.echo("")
-        for text in summary_lines(s, job_spec.distance.name):
-            typer.echo(text)
-        typer.echo(f"job: {url}/jobs/{job_id}  (full JSON summary: {url}/jobs/{job_id}/result)")
+    print_summary(s, job_spec.distance.name, as_json,
+                  f"job: {url}/jobs/{job_id}  (full JSON summary: {url}/jobs/{job_id}/result)")
     if end != "finished":
         _fail(f"the job {'was cancelled' if end == 'cancelled' else end}" + (f": {error}" if error else ""), JOB_FAILED)
 

@@ -582,7 +582,7 @@ def _bad_sample(field: str, i: int, value: float) -> str:
             "overflows); give the record in larger units")
 
 
-def check_physical(spec: JobSpec, simulators: list[Simulator], distance: object) -> None:
+def check_physical(distance: object) -> None:
     """What makes physical and numerical sense beyond the schema, once the job's parts are
     built: an NMSE scale that is a finite number (each parameter's valid range, a positive
     mass among them, is the simulator's: its ``ranges``, checked by
@@ -744,7 +744,7 @@ def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = Fals
         if data.test is not None:
             check_window(data.test, observed.size, "test")
         check_models(models)  # duplicate names
-        check_physical(spec, simulators, distance)
+        check_physical(distance)
         settings = spec.sampler.settings()
         settings.check_particles(models)
         stop = stop_rules(spec.stop)

@@ -230,7 +230,7 @@ class Replay:
     """One replay of ``trace`` on ``workers`` workers (see the module docstring)."""
 
     budget = None  # DaskExecutor's run budget: the replayed runs have none (time_cap unbounded)
-    busy_s, busy_batches = 0.0, 0  # DaskExecutor._measured adds to them
+    busy_s = 0.0  # DaskExecutor._measured adds to it
 
     def __init__(self, trace: Trace, workers: int, sim_seconds: float, costs: Costs, design: Design = Design(),
                  cluster: Replay | None = None):

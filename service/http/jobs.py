@@ -39,7 +39,6 @@ import datetime
 import json
 import logging
 import math
-import os
 import re
 import shutil
 import threading
@@ -58,7 +57,7 @@ from abcns import SpecError, StopReason
 from service.http.limits import Limits, admit
 from service.run.jobs import JOB_RESOURCE, JobRun, WorkerWatch, ensure_job_slots, job_workers, no_space, run_one
 from service.run.runner import Progress, local_population_s, run_job, summary, wait_for_store_lock
-from service.run.store import Store, StoreError
+from service.run.store import Store, StoreError, metadata
 from service.spec import JobSpec, build, cut_to_read, spec_text
 
 TERMINAL = ("finished", "failed", "cancelled")
@@ -71,13 +70,9 @@ log = logging.getLogger("abcns.jobs")
 
 
 def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_suffix(".tmp")
-    try:
-        tmp.write_text(json.dumps(data))
-        os.replace(tmp, path)  # atomic: a reader sees the old or the new file
-    except BaseException:  # a full disk: no job.tmp / result.tmp left behind (issue Z.6)
-        tmp.unlink(missing_ok=True)
-        raise
+    """Atomic (a reader sees the old or the new file); on a full disk no temporary file is
+    left behind (issue Z.6)."""
+    metadata.replace(path, json.dumps(data).encode())
 
 
 FIRST_POPULATIONS = 10  # the populations whose room a job needs before it is admitted, and to start

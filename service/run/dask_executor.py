@@ -171,9 +171,9 @@ class DaskExecutor:
                                                 pure=False)
         self.expected: int | None = None  # batches the previous map call consumed
         self.batch_seconds: float | None = None  # compute time per batch on a worker (smoothed)
-        # the compute time on the workers of every task consumed, and its batches, since the
-        # executor opened: the useful work, for the efficiency a user sees (runner.Progress)
-        self.busy_s, self.busy_batches = 0.0, 0
+        # the compute time on the workers of every task consumed since the executor opened:
+        # the useful work, for the efficiency a user sees (runner.Progress)
+        self.busy_s = 0.0
         self.last_here = False  # the last stream closed was evaluated in this process (Stream.here)
 
     def close(self) -> None:
@@ -222,7 +222,6 @@ class DaskExecutor:
     def _measured(self, seconds: float, size: int, on_worker: bool = True) -> None:
         if on_worker:
             self.busy_s += seconds
-            self.busy_batches += size
         per = seconds / size
         self.batch_seconds = per if self.batch_seconds is None else 0.7 * self.batch_seconds + 0.3 * per
 

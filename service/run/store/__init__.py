@@ -12,27 +12,14 @@ One concern a module:
 - :mod:`~service.run.store.results`: a store or its dataset read back as an
   :class:`abcns.Result`; one model's view (:func:`model_view`).
 
-Every public name is importable from here (``from service.run.store import Store``).
+The names callers use are importable from here (``from service.run.store import Store``).
 """
 
 from service.run.store.job_store import STATUSES, Store
-from service.run.store.metadata import (
-    PARTIAL_WARNING,
-    StoreError,
-    StoreIncomplete,
-    StoreNotFound,
-    data_hash,
-)
-from service.run.store.results import (
-    dataset_attrs,
-    dataset_populations,
-    dataset_result,
-    model_view,
-    result_from_store,
-    result_of,
-)
-from service.run.store.schema import FORMAT_VERSION, FRAMES, NOTE_CODES, SCHEMA, Variable, ellipsoid_frame
+from service.run.store.metadata import PARTIAL_WARNING, StoreError, StoreIncomplete, StoreNotFound, data_hash
+from service.run.store.results import dataset_result, model_view, result_from_store
+from service.run.store.schema import FORMAT_VERSION, NOTE_CODES, SCHEMA, ellipsoid_frame
 
-__all__ = ["FORMAT_VERSION", "FRAMES", "NOTE_CODES", "PARTIAL_WARNING", "SCHEMA", "STATUSES", "Store", "StoreError",
-           "StoreIncomplete", "StoreNotFound", "Variable", "data_hash", "dataset_attrs", "dataset_populations",
-           "dataset_result", "ellipsoid_frame", "model_view", "result_from_store", "result_of"]
+__all__ = ["FORMAT_VERSION", "NOTE_CODES", "PARTIAL_WARNING", "SCHEMA", "STATUSES", "Store", "StoreError",
+           "StoreIncomplete", "StoreNotFound", "data_hash", "dataset_result", "ellipsoid_frame", "model_view",
+           "result_from_store"]
