@@ -42,7 +42,7 @@ test: $(DEV) browser
 	$(BIN)/ruff check abcns worker service tests benchmarks examples
 	$(BIN)/mypy abcns worker service
 	$(BIN)/python -m tests.numba_warm  # numba's cache compiled once, before the workers that read it start
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n 2 --dist loadfile  # a file's tests in one process (its module fixtures shared)
 
 # Debian's chromium for the live-page test (as root, e.g. in CI); nothing downloaded from elsewhere
 browser:
