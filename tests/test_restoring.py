@@ -247,3 +247,15 @@ def test_the_cyclic_example_reads_both_layouts_and_builds(tmp_path):
         assert [m.name for m in job.models] == ["bw", "bwbn"]
     with pytest.raises(SystemExit, match=r"README\.md says where"):
         cyclic.read_specimen(tmp_path, "chiu")
+
+
+def test_the_cyclic_example_stops_on_populations_never_on_the_clock():
+    """Issue Y: a run stopped by ``max_seconds`` answers what the machine's speed allowed
+    (kunnath stopped at population 70 of a collapsed posterior); the example's answer must be
+    a property of the job, so its spec stops on populations (and the noise floor) only."""
+    from examples.cyclic_tests import run as cyclic
+
+    x = np.sin(np.linspace(0, 6, 50))
+    job = build(parse(cyclic.spec_for(x, x, 1, 100)))
+    assert job.stop.max_seconds is None
+    assert job.stop.max_populations is not None and job.stop.max_populations >= 95  # gill's floor

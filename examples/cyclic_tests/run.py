@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -83,13 +84,22 @@ def loop_figure(x: np.ndarray, observed: np.ndarray, predicted: dict[str, np.nda
     fig.savefig(path, dpi=90)
 
 
+def progress(name: str):
+    """A line per population on stderr, so that a long run can be followed (never part of the answer)."""
+    def report(pop) -> None:
+        print(f"{name}: population {pop.t}, epsilon {pop.epsilon:.4g}, {pop.n_simulations:,} simulations, "
+              f"p = {np.round(pop.model_probabilities, 4).tolist()}, {pop.elapsed_s:.0f} s", file=sys.stderr, flush=True)
+    return report
+
+
 def run_specimen(folder: Path, name: str, seed: int, particles: int | None, out: Path,
                  only: list[str] | None = None) -> dict:
     x, load = read_specimen(folder, name)
     x_scale, f_scale = float(np.max(np.abs(x))), float(np.max(np.abs(load)))
     job = build(parse(spec_for(x / x_scale, load / f_scale, seed, particles, only)))
     t0 = time.perf_counter()
-    result = abcns.run(job.models, job.evaluate, job.settings, job.stop, job.seed, noise=job.noise)
+    result = abcns.run(job.models, job.evaluate, job.settings, job.stop, job.seed, noise=job.noise,
+                       on_population=progress(name))
     summary = result.summary()
     summary["scales"] = {"displacement": x_scale, "load": f_scale}
     summary["wall_s"] = time.perf_counter() - t0
