@@ -1,10 +1,10 @@
-"""The numba cache warmed once per run (tests/conftest.py, ``numba_cache``): the kernels the
-suite's jobs use on the Dask workers (the §4.1 Duffing job and the
-authors' demo, which the HTTP, CLI and cluster tests run) compiled in
-this process before any test, into numba's cache beside their sources (``__pycache__`` of
-worker/ and abcns/ in this checkout), which every process the suite starts (Dask workers,
-`abcns run`, `abcns serve`) reads. Without it, a fresh clone's first processes compile the
-same kernels each (a cluster's two workers at once). On a warm cache: ~1 s."""
+"""The numba cache warmed once per run, before pytest (`make test`: ``python -m
+tests.numba_warm``): the kernels the suite's jobs use on the Dask workers (the §4.1 Duffing
+job and the authors' demo, which the HTTP, CLI and cluster tests run) compiled in this process
+into numba's cache beside their sources (``__pycache__`` of worker/ and abcns/ in this
+checkout), which every process the suite starts (Dask workers, `abcns run`, `abcns serve`)
+reads. Without it, a fresh clone's first processes compile the same kernels each (a
+cluster's two workers at once). On a warm cache: ~1 s."""
 
 from __future__ import annotations
 
