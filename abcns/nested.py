@@ -43,7 +43,7 @@ from abcns import evidence as ev
 from abcns import likelihood
 from abcns.executor import Executor
 from abcns.filling import Budget, Filled, Filling, Stopped, draw_inside, fill, population_rng
-from abcns.noise import Noise, Standing, Tracker, standing, standings, waited_for
+from abcns.noise import Floor, Noise, Standing, Tracker, standing, standings, waited_for
 from abcns.priors import Model
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
 from abcns.result import Population, RunEnd
@@ -280,15 +280,19 @@ class BoundProposer:
 
 
 def _stop_reason(stop: StopRules, at_floor: bool, t: int, eps: float, eps_next: float, tied: bool,
-                 mark: Standing | None, decisions: Sequence[float | None]) -> StopReason | None:
+                 mark: Standing | None, decisions: Sequence[float | None], held: bool = False) -> StopReason | None:
     """The rule that ends the run after population t: ties, the noise floor (``at_floor``:
     the run stops there, and this population's ``mark`` says it was accepted at the decision
-    tolerance or below: :func:`abcns.noise.standing`), then ``stop``'s rules, which wait for
-    the decision tolerance (:meth:`StopRules.reason_after`) while it holds still
-    (:func:`abcns.noise.waited_for` of ``decisions``, one per population)."""
+    tolerance or below: :func:`abcns.noise.standing`; unless ``held``, a model's reading
+    still thin: then the next population is accepted at the decision tolerance too, up to
+    ``max_populations``), then ``stop``'s rules, which wait for the decision tolerance
+    (:meth:`StopRules.reason_after`) while it holds still (:func:`abcns.noise.waited_for` of
+    ``decisions``, one per population)."""
     if tied:
         return StopReason.TIES
     if at_floor and mark is not None and mark.reached:
+        if held and (stop.max_populations is None or t < stop.max_populations):
+            return None
         return StopReason.NOISE_FLOOR  # the lowest population tolerance above the floor
     return stop.reason_after(eps, eps_next, t, decision=waited_for(decisions))
 
@@ -318,13 +322,14 @@ def abc_ns(
 ) -> Generator[Population, None, RunEnd]:
     """Yield ABC-NS populations until a stop rule holds; return a :class:`RunEnd`.
 
-    ``history`` resumes a run: the populations already done (at least the last one; the last
-    two where the run stops at its noise floor, which compares with the floor before);
+    ``history`` resumes a run: every population already done (the likelihood reading, which
+    decides deaths and the holding of the floor, reads them all);
     ``budget`` then carries the simulations and seconds already spent. ``noise``: what is
     known of the distance's noise (``abcns.noise``): each population then carries the noise
     floor as estimated so far, and the evidence variant stops at the decision tolerance
     (``stop.noise_floor``): when the (alpha N)-th largest distance falls below it, the next
-    population is accepted at the decision tolerance itself, and the run stops after it.
+    population is accepted at the decision tolerance itself, and the run stops after it
+    (while a model's reading is thin, :meth:`_Run.held`, after a few more there).
 
     Once a population is full and finished (:func:`finish_population`), the next one is
     opened (``executor.map``: an executor that runs ahead starts simulating) before this one's
@@ -351,6 +356,9 @@ class _Run:
         self.decisions = [None if p.floor is None else p.floor.decision for p in history]
         self.shells = likelihood.records(history) if self.variant.reads_floor else []  # the reading so far
         self.at_floor = self.variant.reads_floor and stop.noise_floor and noise is not None
+        # the first population accepted at the decision tolerance or below (:meth:`held`)
+        self.first_reached = next((p.t for p, mark in zip(history, standings(history), strict=True)
+                                   if mark is not None and mark.reached), None)
         self.pending: Filling | None = None  # the next population, started
 
     def end(self, reason: StopReason) -> RunEnd:
@@ -378,7 +386,18 @@ class _Run:
         self.notes.extend(step.notes)
         self.decisions.append(None if floor is None else floor.decision)
         mark = standing(eps, floor if previous is None else previous.floor)
-        reason = _stop_reason(self.stop, self.at_floor, t, eps, step.epsilon_next, step.tied, mark, self.decisions)
+        if self.first_reached is None and mark is not None and mark.reached:
+            self.first_reached = t
+        if self.variant.reads_floor:
+            self.shells.append(likelihood.Record(which[is_new], theta[is_new], distances[is_new], eps, step.epsilon_next,
+                                                 step.counted.log_z, step.counted.log_z_se))
+        held = self.held(t, mark, floor, step.model_probabilities > 0)
+        reason = _stop_reason(self.stop, self.at_floor, t, eps, step.epsilon_next, step.tied, mark, self.decisions,
+                              bool(held))
+        if reason is None and held:
+            self.notes.append(f"population {t}: accepted at the decision tolerance {eps:.6g}; the reading of "
+                              f"{', '.join(held)} rests on fewer than {likelihood.HELD_EFFECTIVE} (d + 1) effective "
+                              "particles: the next population is accepted at it too")
         if reason is StopReason.NOISE_FLOOR:
             assert floor is not None
             self.notes.append(f"population {t}: accepted at the decision tolerance {eps:.6g}; the run stops (noise "
@@ -391,9 +410,18 @@ class _Run:
             step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
             evidence=step.evidence(geometry_rng(self.seed, t)), floor=floor, standing=mark,
         )
-        if self.variant.reads_floor:
-            self.shells.append(likelihood.record(pop, previous))
         return pop, reason
+
+    def held(self, t: int, mark: Standing | None, floor: Floor | None, alive: np.ndarray) -> list[str]:
+        """The names of the ``alive`` models whose reading is thin (:func:`abcns.likelihood.thin`)
+        after population t, accepted at the decision tolerance (``mark``), while the run may
+        still hold it (at most :data:`abcns.likelihood.HELD_POPULATIONS` populations after the
+        first accepted there); [] otherwise."""
+        if not (self.at_floor and mark is not None and mark.reached and self.first_reached is not None
+                and t - self.first_reached < likelihood.HELD_POPULATIONS):
+            return []
+        thin = likelihood.thin(self.shells, [m.n_dim for m in self.models], floor, alive)
+        return [m.name for m, is_thin in zip(self.models, thin, strict=True) if is_thin]
 
     def populations(self, history: Sequence[Population]) -> Generator[Population, None, RunEnd]:
         """The populations after ``history`` (the first from the priors when it is empty)."""
@@ -402,8 +430,10 @@ class _Run:
             if history:
                 pop = history[-1]
                 tied = next_tolerance(pop.distances, settings.n_drop) is None
+                mark = standings(history[-2:])[-1]
+                held = self.held(pop.t, mark, pop.floor, pop.model_probabilities > 0)
                 reason = _stop_reason(self.stop, self.at_floor, pop.t, pop.epsilon, pop.epsilon_next, tied,
-                                      standings(history[-2:])[-1], self.decisions)
+                                      mark, self.decisions, bool(held))
             else:
                 eps, self.source, self.n_pilot = initial_epsilon(self.models, settings, self.executor, budget, self.seed)
                 filled = fill(prior_proposer(self.models), settings.particles, eps, self.executor, budget,

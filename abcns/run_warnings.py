@@ -14,7 +14,9 @@ run in a notebook, with no service, shows them too.
   noise larger than the data's misfit);
 - "few effective particles": a provisional run's model whose likelihood reading rests on too
   few effective particles is read from its last tolerance's particles
-  (:meth:`abcns.Result.answer_draws`), wider than the data's;
+  (:meth:`abcns.Result.answer_draws`), wider than the data's; or a run at its floor whose
+  reading of a model still rests on fewer than :data:`abcns.likelihood.HELD_EFFECTIVE` (d + 1)
+  after it held the decision tolerance as long as it may (:func:`abcns.likelihood.thin`);
 - "below the noise floor": the final population's model probabilities differ (by more than
   :data:`BELOW_FLOOR_CHANGE`) from those at the decision tolerance, which are the answer;
 - "undecided": the answer holds two or more models above :data:`CONTENDER` while the
@@ -33,6 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from abcns.likelihood import HELD_EFFECTIVE
 from abcns.noise import Standing
 
 if TYPE_CHECKING:
@@ -81,15 +84,27 @@ def _floor(r: Result) -> list[str]:
 
 def _thin_reading(r: Result) -> list[str]:
     """A warning per model whose posterior is not the likelihood reading's, as the run stopped
-    above its floor and the reading rests on too few effective particles."""
+    above its floor and the reading rests on too few effective particles; and per model whose
+    reading at the floor rests on fewer effective particles than the run holds its decision
+    tolerance for."""
     reading, pop = r.reading(), r.decision_population()
     if reading is None:
         return []
-    return [f"few effective particles: {m.name}'s likelihood reading of this provisional run rests on "
-            f"{reading.ess[i]:.3g} effective particles (fewer than 2 (d + 1) = {2 * (m.n_dim + 1)}), so its "
-            f"intervals are those of population {pop.t}'s particles, the ABC posterior at eps {pop.epsilon:.4g}: "
-            "wider than the data's"
-            for i, m in enumerate(r.models) if i in r.alive(pop.t) and r.answer_draws(i)[2] == "tolerance"]
+    out = [f"few effective particles: {m.name}'s likelihood reading of this provisional run rests on "
+           f"{reading.ess[i]:.3g} effective particles (fewer than 2 (d + 1) = {2 * (m.n_dim + 1)}), so its "
+           f"intervals are those of population {pop.t}'s particles, the ABC posterior at eps {pop.epsilon:.4g}: "
+           "wider than the data's"
+           for i, m in enumerate(r.models) if i in r.alive(pop.t) and r.answer_draws(i)[2] == "tolerance"]
+    if r.reached_floor:
+        held = r.final.t - pop.t + 1
+        out += [f"few effective particles: {m.name}'s likelihood reading rests on {reading.ess[i]:.3g} effective "
+                f"particles (fewer than {HELD_EFFECTIVE} (d + 1) = {HELD_EFFECTIVE * (m.n_dim + 1)}) after {held} "
+                f"populations at the decision tolerance: its means and intervals carry a Monte Carlo error of about "
+                f"{1 / np.sqrt(max(reading.ess[i], 1)):.2g} posterior sd; a larger population (more particles) makes it "
+                "smaller"
+                for i, m in enumerate(r.models)
+                if i in r.alive() and reading.ess[i] < HELD_EFFECTIVE * (m.n_dim + 1)]
+    return out
 
 
 def _below_floor(r: Result) -> list[str]:
