@@ -80,18 +80,13 @@ def _radii(points: np.ndarray) -> np.ndarray | None:
     return r2 if ok else None
 
 
-def outliers(y: np.ndarray) -> np.ndarray:
-    """Rows of whitened points ``y`` far outside the rest: squared radius above the chi-square
-    (d) quantile 1 - OUTLIER_TAIL / n, rescaled so the points' median radius is the
-    chi-square median. A Gaussian cloud loses a point in about 1 % of fits, a uniform one
-    never; a stochastic simulator's lucky draw far from the accepted region (which would
-    otherwise make the bound ten times larger) is left out, and the cross-validated
-    coverage counts what that leaves out."""
-    return _far(np.sum(y * y, axis=1), y.shape[1])
-
-
-def _far(r2: np.ndarray, d: int) -> np.ndarray:
-    """:func:`outliers` of points with squared whitened radii ``r2`` in d dimensions."""
+def outliers(r2: np.ndarray, d: int) -> np.ndarray:
+    """Which of n points in d dimensions, of squared whitened radii ``r2``, lie far outside
+    the rest: squared radius above the chi-square (d) quantile 1 - OUTLIER_TAIL / n, rescaled
+    so the points' median radius is the chi-square median. A Gaussian cloud loses a point in
+    about 1 % of fits, a uniform one never; a stochastic simulator's lucky draw far from the
+    accepted region (which would otherwise make the bound ten times larger) is left out, and
+    the cross-validated coverage counts what that leaves out."""
     scale = float(np.median(r2)) / _chi2_quantile(0.5, d)
     return r2 > _chi2_quantile(1.0 - OUTLIER_TAIL / r2.shape[0], d) * scale
 
@@ -113,7 +108,7 @@ def fit_union(points: np.ndarray, enlargement: float, max_ellipsoids: int, fallb
     halves' best sets only when those hold less than ``SPLIT_GAIN`` of its volume)."""
     sets = None
     if max_ellipsoids > 1 and points.shape[0] > points.shape[1] and (r2 := _radii(points)) is not None:
-        far = _far(r2, points.shape[1])
+        far = outliers(r2, points.shape[1])
         if np.any(far) and np.count_nonzero(~far) > 2 * min_points(points.shape[1]):
             points = points[~far]
         sets = _tree_sets(points, max_ellipsoids)
@@ -122,11 +117,6 @@ def fit_union(points: np.ndarray, enlargement: float, max_ellipsoids: int, fallb
     # the points' own ellipsoid is the sets' fallback shape, made only if one needs it
     return tuple(ell.fit_many([points[r] for r in sets], fallback=lambda: ell.fit(points, fallback=fallback),
                               enlargement=enlargement))
-
-
-def n_inside(bound: Union, x: np.ndarray) -> np.ndarray:
-    """How many ellipsoids of the union hold each row of ``x``."""
-    return ell.n_containing(bound, x)
 
 
 def _log_volumes(bound: Union) -> np.ndarray:
@@ -217,7 +207,7 @@ def sample_union(bound: Union, n: int, rng: np.random.Generator) -> np.ndarray:
     while n_got < n:
         chunk = max(2 * (n - n_got), 64)
         x = _mixture(bound, chunk, rng)
-        keep = x[rng.random(chunk) * n_inside(bound, x) < 1.0][: n - n_got]
+        keep = x[rng.random(chunk) * ell.n_containing(bound, x) < 1.0][: n - n_got]
         got.append(keep)
         n_got += keep.shape[0]
     return np.concatenate(got)
@@ -244,7 +234,7 @@ def union_volume(bound: Union, box: tuple[np.ndarray, np.ndarray], n_draws: int,
     if not ok:
         x = _place(bound, which, z, u)
         held = np.all((x >= low) & (x <= high), axis=-1)
-        w = held / n_inside(bound, x) if len(bound) > 1 else held.astype(float)
+        w = held / ell.n_containing(bound, x) if len(bound) > 1 else held.astype(float)
     mean = float(np.mean(w))
     if mean <= 0.0:
         return -np.inf, np.inf
@@ -297,7 +287,7 @@ def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.rando
         rows = np.concatenate(test)
         rows = rows[uniform[rows]]
         if fold and rows.size:
-            held += int(np.count_nonzero(n_inside(fold, points[rows]) > 0))
+            held += int(np.count_nonzero(ell.n_containing(fold, points[rows]) > 0))
     missed = 1.0 - held / n_in if n_in else 0.0
     return n_in / n * (1.0 - 0.5 * missed), n
 

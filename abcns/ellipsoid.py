@@ -185,20 +185,6 @@ def _n_containing_fast(ells: Sequence[Ellipsoid], x: np.ndarray) -> np.ndarray |
     return counts if ok else None
 
 
-def enlarge(ell: Ellipsoid, f0: float) -> Ellipsoid:
-    """Multiply the matrix by ``f0`` (axes grow by sqrt(f0)); Algorithm 2, step 16.
-
-    The result is built by :func:`from_matrix`, so an ellipsoid stored as (centre, matrix)
-    and rebuilt with ``from_matrix`` is bit-identical to it (resume depends on this)."""
-    return enlarge_many([ell], f0)[0]
-
-
-def enlarge_many(ells: Sequence[Ellipsoid], f0: float) -> list[Ellipsoid]:
-    """:func:`enlarge` of each (one stacked :func:`from_matrices`)."""
-    _check_enlargement(f0)
-    return _enlarged([e.centre for e in ells], [e.matrix for e in ells], [e.note for e in ells], f0)
-
-
 def _check_enlargement(f0: float) -> None:
     if not f0 > 0:
         raise ValueError(f"enlargement factor must be > 0, got {f0}")
@@ -307,9 +293,10 @@ def fit_many(
 ) -> list[Ellipsoid]:
     """:func:`fit` of each set of points (of one dimension), the matrix steps stacked.
     ``fallback`` may be a function that makes it, called only if a set needs it, or one
-    fallback per set. With ``enlargement``, each fit enlarged by it: ``enlarge_many(fit_many(
-    ...), enlargement)``, bit for bit, without making the fits themselves (an ellipsoid's
-    matrix is the symmetrised one it is made from, and enlarging multiplies that)."""
+    fallback per set. With ``enlargement`` f0, each fit enlarged by it (Algorithm 2, step 16:
+    the matrix times f0, the axes grow by sqrt(f0)): ``from_matrix(e.centre, f0 * e.matrix,
+    e.note)`` of each fit ``e``, bit for bit, without making the fits themselves (an
+    ellipsoid's matrix is the symmetrised one it is made from, and enlarging multiplies that)."""
     if enlargement is not None:
         _check_enlargement(enlargement)
     sets = [np.atleast_2d(np.asarray(p, dtype=float)) for p in point_sets]

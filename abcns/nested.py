@@ -229,7 +229,7 @@ def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, new: np.
         if enlargement is not None:
             cover, n_cover = bd.coverage(points, bound, enlargement, geometry, new)
         else:
-            cover, n_cover = float(np.mean(bd.n_inside(bound, points) > 0)), points.shape[0]
+            cover, n_cover = float(np.mean(ell.n_containing(bound, points) > 0)), points.shape[0]
         log_v, log_v_se = bd.union_volume(bound, frame.box, VOLUME_DRAWS, geometry)
         return log_v - frame.log_box_volume, log_v_se, cover, n_cover
 

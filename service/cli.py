@@ -223,22 +223,24 @@ class ProgressLine:
                 self.n_workers = None
         return self.n_workers
 
-    def show(self, t: int, epsilon: float, acceptance: float, simulations: int, elapsed_s: float,
-             probabilities: Mapping[str, float | None], decision: float | None = None,
-             efficiency: float | None = None) -> None:
-        """``decision``: the decision tolerance as estimated after this population (None
-        while the run knows no noise floor); ``efficiency``: the workers' share of time spent
-        on the run's simulations over the population (``runner.Progress``; None in-process)."""
+    def show(self, event: Mapping[str, Any]) -> None:
+        """A population event (``service.run.runner.Progress.event``): its decision tolerance
+        once the run has a noise floor, its efficiency (the workers' share of time spent on the
+        run's simulations over the population) when it ran on a cluster."""
+        simulations, elapsed_s = event["simulations"], event["elapsed_s"]
         before, self.last = self.last, (simulations, elapsed_s)
         if self.quiet:
             return
         wall = elapsed_s - before[1]
         rate = f"{(simulations - before[0]) / wall:9.0f}" if wall > 0 else f"{'-':>9}"
-        probs = " ".join(f"{name}={'-' if p is None else format(p, '.2f')}" for name, p in probabilities.items())
+        probs = " ".join(f"{name}={'-' if p is None else format(p, '.2f')}"
+                         for name, p in event["model_probabilities"].items())
         workers = self.workers_now()
+        decision, efficiency = event.get("decision_tolerance"), event.get("efficiency")
         dec = "" if decision is None else f"  decision {decision:.4g}{self.unit}"
-        line = (f"{self.prefix}population {t:4d}  eps {epsilon:11.5g}{self.unit}{dec}  acceptance {acceptance:5.2f}  "
-                f"sims {simulations:8d}  {rate} sims/s  {probs}  workers {'-' if workers is None else workers}"
+        line = (f"{self.prefix}population {event['population']:4d}  eps {event['epsilon']:11.5g}{self.unit}{dec}  "
+                f"acceptance {event['acceptance_rate']:5.2f}  sims {simulations:8d}  {rate} sims/s  {probs}  "
+                f"workers {'-' if workers is None else workers}"
                 + ("" if efficiency is None else f"  efficiency {efficiency:.2f}"))
         if self.live:
             sys.stdout.write(f"\r\x1b[2K{line}")
@@ -371,10 +373,7 @@ def run(
         line = ProgressLine(percent(job_spec.distance.name), quiet, lambda: len(client.nthreads()), resume_point(out))
 
         def progress(p: Progress) -> None:
-            pop = p.population
-            line.show(pop.t, pop.epsilon, pop.acceptance_rate, p.n_simulations_total, p.elapsed_s,
-                      dict(zip(names, pop.model_probabilities.tolist(), strict=True)),
-                      None if pop.floor is None else pop.floor.decision, p.efficiency)
+            line.show(p.event(names))
 
         try:
             run_job(job_spec, base, out, client, seed=seed, on_population=progress, allow_import=True)
@@ -463,12 +462,9 @@ def run_many(specs: list[Path], out_dir: Path, scheduler: str | None, workers: i
         elif event["kind"] == "requeued" and not quiet:
             typer.echo(f"[{job.label}] {event.get('reason', 'requeued')}: it waits for a free worker and resumes")
         elif event["kind"] == "population":
-            if event.get("workers") is not None:
-                seen_workers[i] = event["workers"]
-            names = [m.name for m in job.spec.models]
-            lines[i].show(event["t"], event["epsilon"], event["acceptance"], event["simulations"], event["elapsed_s"],
-                          dict(zip(names, event["probabilities"], strict=True)), event.get("decision"),
-                          event.get("efficiency"))
+            if event["event"]["workers"] is not None:
+                seen_workers[i] = event["event"]["workers"]
+            lines[i].show(event["event"])
 
     with ExitStack() as stack:
         client = open_client(stack, scheduler, workers, dashboard)
@@ -669,7 +665,6 @@ def submit(
     body = json.dumps(spec_text(job_spec.model_copy(update={"data": data})))
     npz = io.BytesIO()
     np.savez(npz, **arrays)  # type: ignore[arg-type]  # mypy checks **arrays against allow_pickle (bool) too
-    names = [m.name for m in job_spec.models]
     url = url.rstrip("/")
     with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"} if token else {},
                       timeout=httpx.Timeout(60, connect=10)) as http:
@@ -692,10 +687,7 @@ def submit(
         try:
             for _, event, info in events(http, url, job_id):
                 if event == "population":
-                    probs = info["model_probabilities"]
-                    line.show(info["population"], info["epsilon"], info["acceptance_rate"], info["simulations"],
-                              info["elapsed_s"], probs if isinstance(probs, dict) else dict(zip(names, probs, strict=True)),
-                              info.get("decision_tolerance"), info.get("efficiency"))
+                    line.show(info)
                 elif event in ("finished", "failed", "cancelled"):
                     end, error = event, info.get("error")
         except KeyboardInterrupt:

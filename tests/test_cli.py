@@ -91,6 +91,14 @@ def test_help_shows_flags_as_flags_and_what_the_numbers_mean():
     assert "stop.min_epsilon_decrease is an absolute difference in the tolerance's unit" in text
 
 
+def event(t: int, epsilon: float, acceptance: float, simulations: int, elapsed_s: float, probabilities: dict,
+          decision: float | None = None) -> dict:
+    """A population event (service.run.runner.Progress.event) with the fields a progress line shows."""
+    return {"population": t, "epsilon": epsilon, "acceptance_rate": acceptance, "simulations": simulations,
+            "elapsed_s": elapsed_s, "model_probabilities": probabilities, "decision_tolerance": decision,
+            "efficiency": None}
+
+
 def test_the_rate_is_each_population_s_own():
     """Q.8: sims/s is a population's simulations over the wall time since the previous one
     ended, not the average since the start (compilation included)."""
@@ -103,9 +111,9 @@ def test_the_rate_is_each_population_s_own():
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(typer, "echo", shown.append)
-        line.show(1, 100.0, 0.5, 1000, 10.0, {"linear": 0.5, "cubic": 0.5})  # 100/s: the first, compiling
-        line.show(2, 50.0, 0.4, 3000, 11.0, {"linear": 0.3, "cubic": 0.7})  # 2000/s (the average: 273/s)
-        line.show(3, 20.0, 0.3, 3000, 11.0, {"linear": 0.1, "cubic": None})  # no time passed: no rate
+        line.show(event(1, 100.0, 0.5, 1000, 10.0, {"linear": 0.5, "cubic": 0.5}))  # 100/s: the first, compiling
+        line.show(event(2, 50.0, 0.4, 3000, 11.0, {"linear": 0.3, "cubic": 0.7}))  # 2000/s (the average: 273/s)
+        line.show(event(3, 20.0, 0.3, 3000, 11.0, {"linear": 0.1, "cubic": None}))  # no time passed: no rate
     rates = [re.search(r"sims\s+\d+\s+(\S+) sims/s", s).group(1) for s in shown]  # type: ignore[union-attr]
     assert rates == ["100", "2000", "-"], shown
     assert shown[1].endswith("linear=0.30 cubic=0.70  workers 2") and "cubic=-" in shown[2]
@@ -169,10 +177,37 @@ def test_the_progress_line_shows_the_decision_tolerance_once_known():
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(typer, "echo", shown.append)
-        line.show(1, 100.0, 0.5, 1000, 10.0, {"linear": 0.5, "cubic": 0.5})
-        line.show(2, 50.0, 0.4, 3000, 11.0, {"linear": 0.3, "cubic": 0.7}, 0.012463)
+        line.show(event(1, 100.0, 0.5, 1000, 10.0, {"linear": 0.5, "cubic": 0.5}))
+        line.show(event(2, 50.0, 0.4, 3000, 11.0, {"linear": 0.3, "cubic": 0.7}, 0.012463))
     assert "decision" not in shown[0]
     assert re.search(r"eps\s+50 %  decision 0.01246 %  acceptance", shown[1]), shown[1]
+
+
+def test_one_population_event_is_the_message_the_http_event_and_the_line():
+    """Issue X: a population's event is built once (``runner.Progress.event``): in plain
+    Python types (it crosses Dask's event log as a job loop's message and is written as JSON
+    to a job's event log), in the HTTP schema's shape (``ProgressOut``), and it is what the
+    progress line shows. The toy's population 2 (tests/toy_results.py): eps 10 / 2, linear
+    0.9 / cubic 0.1, decision tolerance 2.8 + 0.4."""
+    from toy_results import floored_result
+
+    from service.cli import ProgressLine
+    from service.http.schemas import ProgressOut
+    from service.run.runner import Progress
+
+    pop = floored_result().populations[1]
+    event = Progress(pop, 4000, 12.0, 250.0, workers=2, efficiency=0.5).event(["linear", "cubic"])
+    assert ProgressOut(**event).model_dump() == event and json.loads(json.dumps(event)) == event
+    plain = [v for v in event.values() if v is not None] + list(event["model_probabilities"].values())
+    assert all(type(v) in (int, float, dict) for v in plain), event
+    shown: list[str] = []
+    line = ProgressLine(" %", quiet=False, workers=lambda: 2, start=(2000, 10.0))
+    line.live = False
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("typer.echo", shown.append)
+        line.show(event)
+    assert shown == ["population    2  eps           5 %  decision 3.2 %  acceptance  0.50  sims     4000       1000 "
+                     "sims/s  linear=0.90 cubic=0.10  workers 2  efficiency 0.50"], shown
 
 
 def test_run_prints_populations_then_a_short_summary(spec, cluster, tmp_path):

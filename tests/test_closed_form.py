@@ -22,7 +22,7 @@ from closed_form import (
 )
 
 from abcns import OK, Model, NSSettings, RejectionSettings, SMCSettings, StopRules, per_model, run
-from abcns import bounds as bd
+from abcns import ellipsoid as ell
 from abcns.evidence import log_coverage_variance, probabilities
 
 SEED = int(os.environ.get("ABCNS_TEST_SEED", "7"))
@@ -180,7 +180,7 @@ def check_evidence(r, exact_log_z, region, n_models=2):
             c, n_c = before.evidence.coverage[m], before.evidence.n_coverage[m]
             if n_c == 0:
                 continue
-            held = np.mean(bd.n_inside(before.ellipsoids[m], region(m, pop.epsilon, 20_000, rng)) > 0)
+            held = np.mean(ell.n_containing(before.ellipsoids[m], region(m, pop.epsilon, 20_000, rng)) > 0)
             sd = np.sqrt(log_coverage_variance(c, n_c) + (1 - held) / (max(held, 1e-12) * 20_000))
             assert abs(np.log(c) - np.log(held)) < 4 * sd, (pop.t, m, c, n_c, held, sd)
 

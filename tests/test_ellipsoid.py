@@ -35,7 +35,7 @@ def test_fit_holds_every_point_and_is_tight(d):
     e = ell.fit(pts)
     assert np.all(ell.contains(e, pts))
     assert ell.mahalanobis2(e, pts).max() == pytest.approx(1.0, rel=1e-8)  # scaled to the farthest point
-    big = ell.enlarge(e, 1.1)
+    big = ell.fit_many([pts], enlargement=1.1)[0]
     np.testing.assert_allclose(big.matrix, 1.1 * e.matrix)
     assert big.log_volume == pytest.approx(e.log_volume + 0.5 * d * math.log(1.1))
 
@@ -81,7 +81,7 @@ def test_box_ellipsoid_holds_the_box_corners():
 
 def test_stored_centre_and_matrix_rebuild_the_same_ellipsoid():
     rng = np.random.default_rng(SEED)
-    e = ell.enlarge(ell.fit(rng.standard_normal((20, 4))), 1.1)
+    e = ell.fit_many([rng.standard_normal((20, 4))], enlargement=1.1)[0]
     again = ell.from_matrix(e.centre.copy(), e.matrix.copy(), e.note)
     np.testing.assert_array_equal(again.axes, e.axes)
     np.testing.assert_array_equal(ell.sample(again, 5, np.random.default_rng(1)), ell.sample(e, 5, np.random.default_rng(1)))
@@ -130,15 +130,15 @@ def test_fit_many_with_a_fallback_per_set_is_each_fit_bit_for_bit():
 def test_fit_many_enlarged_is_the_fits_enlarged_bit_for_bit():
     """A bound's ellipsoids (``bounds.fit_union``), the coverage's half-fits and the paper's one
     ellipsoid are fits enlarged by f0; ``fit_many(..., enlargement=f0)`` makes them without
-    making the fits first: every field the same bits as ``enlarge_many(fit_many(...), f0)``,
-    a repaired (collinear) set and a fallback included."""
+    making the fits first: every field the same bits as each fit with its matrix times f0
+    (``from_matrix``), a repaired (collinear) set and a fallback included."""
     rng = np.random.default_rng(4)
     line = np.outer(rng.normal(size=30), [1.0, 2.0, -1.0]) + 1e-14 * rng.normal(size=(30, 3))
     sets = [rng.normal(size=(40, 3)), rng.normal(size=(2, 3)) + 5.0, line]
     fallback = ell.from_box(np.zeros(3), np.full(3, 2.0))
     for f0 in (1.1, 1.0, 0.7):
         direct = ell.fit_many(sets, fallback, enlargement=f0)
-        after = ell.enlarge_many(ell.fit_many(sets, fallback), f0)
+        after = [ell.from_matrix(e.centre, f0 * e.matrix, e.note) for e in ell.fit_many(sets, fallback)]
         for a, b in zip(direct, after, strict=True):
             for field in ("centre", "matrix", "axes"):
                 assert np.array_equal(getattr(a, field), getattr(b, field)), (f0, field)

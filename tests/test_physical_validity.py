@@ -73,6 +73,16 @@ def test_what_no_simulation_can_use_is_refused_naming_the_field(base, change, fi
     assert err.field == field and words in err.message, str(err)
 
 
+def test_the_worker_s_substeps_message_names_no_spec_field(base):
+    """Issue X.3: the worker raises in its own terms (the sample interval), ``service.spec``
+    names the spec's fields: the message does not name data.fs or data.dt."""
+    spec = copy.deepcopy(base)
+    spec["data"].update(fs=1e-300)
+    spec["models"][0].pop("integrator")
+    err = refused(spec)
+    assert err.field == "models[0].integrator.substeps" and "data." not in err.message, str(err)
+
+
 def test_a_wide_prior_is_refused_by_the_library_too():
     with pytest.raises(InvalidSetting, match="width high - low overflows") as err:
         Model("m", {"k": (-1e308, 1e308)})

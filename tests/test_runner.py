@@ -131,7 +131,7 @@ def test_populations_that_come_while_the_store_is_made_are_appended_as_the_inter
 
     writer = runner.PopulationWriter(make, "key", None, interval_s)
     for t in (1, 2, 3):
-        writer.put(SimpleNamespace(t=t), 10 * t, None, None)  # type: ignore[arg-type]
+        writer.put(SimpleNamespace(population=SimpleNamespace(t=t), n_simulations_total=10 * t), None)  # type: ignore[arg-type]
     made.set()
     writer.close()
     assert written == appends

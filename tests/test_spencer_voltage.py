@@ -146,6 +146,7 @@ def test_bad_voltage_is_refused_naming_the_field(records, change, words):
     with pytest.raises(SpecError) as err:
         build(parse(raw))
     assert err.value.field == "data.voltage" and words in err.value.message, err.value
+    assert "data.voltage" not in err.value.message, err.value  # the field named once, by service.spec (issue X.3)
 
 
 def test_a_negative_voltage_enters_the_laws_and_c0_plus_c1_must_stay_positive():

@@ -443,7 +443,7 @@ print(json.dumps({"updates": i, "lost": lost}))
 
 def test_status_set_by_another_process_during_appends_is_kept(reference, tmp_path):
     """The scheduler's process sets the status while the runner's appends bump the counter:
-    with the flock in Store._update_attrs neither read-modify-write loses the other's update.
+    with the flock in store_metadata.update_attrs neither read-modify-write loses the other's update.
     Measured with the flock made a no-op: in 10 runs of 10 a write of the other process from
     a stale read wiped the counter within the first 1-7 appends (and in 2 the other process
     saw its own ``progress`` overwritten); with the lock, 40 appends meet ~300 updates in
@@ -604,7 +604,7 @@ def test_a_store_an_earlier_version_made_for_the_job_is_this_jobs(tmp_path):
     a = store.attrs
     old_key = hashlib.sha256(json.dumps({"spec": old, "seed": a["seed"], "data": a["data_hash"]},
                                         sort_keys=True).encode()).hexdigest()
-    store._update_attrs({"spec": old, "job_key": old_key})
+    store_metadata.update_attrs(store.path, {"spec": old, "job_key": old_key})
     again = run_job(spec, Path("/"), path, None)
     assert len(again.populations) == 2 and same_bits(again.populations[1].theta, first.populations[1].theta)
     with pytest.raises(abcns.SpecError, match="holds another job"):
@@ -626,7 +626,7 @@ def test_a_store_marked_finished_without_a_stop_reason_is_resumed_not_called_can
     first = run_job(spec, Path("/"), path, None)
     store = Store.open(path)
     run = {k: store.attrs["run"][k] for k in ("epsilon_initial_source", "n_pilot_simulations")}  # population 1's
-    store._update_attrs({"status": "finished", "stop_reason": None, "run": run})
+    store_metadata.update_attrs(store.path, {"status": "finished", "stop_reason": None, "run": run})
     again = run_job(spec, Path("/"), path, None)
     assert again.stop_reason is first.stop_reason is StopReason.MAX_POPULATIONS
     a = Store.open(path).attrs

@@ -176,7 +176,7 @@ def _substeps(desc: ModelDescription, factory: Any, dt: float | None) -> int | N
     if chosen > MAX_SUBSTEPS:
         raise InvalidSetting(("substeps",), f"the priors' highest natural frequency and the sample interval {dt:.6g} "
                              f"s ask for {_many(chosen)} RK4 substeps per sample, more than {MAX_SUBSTEPS:.0e}, which "
-                             "no simulation ends: check data.fs or data.dt (and decimate), and the priors")
+                             "no simulation ends: check the sample interval (decimate the records) and the priors")
     return chosen
 
 
@@ -223,7 +223,7 @@ def job_parts(description: JobDescription, arrays: Mapping[str, np.ndarray | Non
                                                    _aligned(arrays.get("voltage")))
     interpolation = description.input_interpolation
     if force is None and interpolation != "hold":
-        raise InvalidSetting(("input_interpolation",), f"{interpolation!r} applies to an input record (data.input) only")
+        raise InvalidSetting(("input_interpolation",), f"{interpolation!r} applies to an input record only, and the job has none")
     models, simulators = [], []
     for i, desc in enumerate(description.models):
         models.append(model_of(desc, i))

@@ -53,7 +53,7 @@ EXPONENT = Range(0.5, 10.0)
 
 
 def _displacement(x) -> np.ndarray:
-    """The displacement record, checked (non-finite samples refused naming ``data.input``)."""
+    """The displacement record, checked (non-finite samples refused at the path ``("force",)``)."""
     if x is None:
         raise InvalidSetting(("force",), "this simulator needs the displacement record as its input")
     x = np.asarray(x, dtype=float)
@@ -296,11 +296,11 @@ NO_VOLTAGE = np.zeros(0)
 
 
 def _voltage(voltage, n_samples: int) -> np.ndarray:
-    """The coil voltage record, checked against the displacement's length (errors name
-    ``data.voltage``)."""
+    """The coil voltage record, checked against the displacement's length (errors at the
+    path ``("voltage",)``)."""
     if voltage is None:
-        raise InvalidSetting(("voltage",), "simulator 'spencer_mr_voltage' needs the coil voltage record (data.voltage, "
-                                        "one sample per displacement sample)")
+        raise InvalidSetting(("voltage",), "simulator 'spencer_mr_voltage' needs the coil voltage record (one sample "
+                                        "per displacement sample)")
     v = np.asarray(voltage, dtype=float)
     if v.ndim != 1 or v.size != n_samples:
         raise InvalidSetting(("voltage",), f"must have one sample per displacement sample ({n_samples}), got shape {v.shape}")

@@ -43,7 +43,6 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 import scipy.linalg
-from scipy.special import ndtri
 
 from abcns.distances import NMSE
 from abcns.errors import InvalidSetting
@@ -693,8 +692,3 @@ class GAndK:
             values = self.quantile(params, z)
         status = np.where(np.all(np.isfinite(values), axis=1), OK, DIVERGED).astype(np.int8)
         return SimOutput(values, status)
-
-    @staticmethod
-    def quantile_of_probability(params: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """The quantile function at probabilities ``u`` (for tests and exact summaries)."""
-        return GAndK.quantile(params, ndtri(u))

@@ -52,6 +52,7 @@ from unittest import mock
 import numpy as np
 
 from abcns import bounds as bd
+from abcns import ellipsoid as ell
 from abcns import nested
 from abcns.executor import Draw, Simulated, pack_draws, pack_results, run_draw, unpack_draws, unpack_results
 from abcns.filling import Filling, draws
@@ -255,7 +256,7 @@ def _inside_next(job, pops: list, t: int, which: np.ndarray, theta: np.ndarray) 
         if rows.size == 0 or not bounds[m]:
             continue
         frame = bd.Frame(model, unit=s.evidence)
-        inside[rows] = bd.n_inside(bounds[m], frame.to_frame(theta[rows, : model.n_dim])) > 0
+        inside[rows] = ell.n_containing(bounds[m], frame.to_frame(theta[rows, : model.n_dim])) > 0
     return inside
 
 

@@ -645,36 +645,6 @@ class JobManager:
             held = set(self.held.values())
         return [addr for addr in slots if addr not in held]
 
-    @staticmethod
-    def _progress(pop, models: Sequence[str], n_simulations_total: int, elapsed_s: float, rate: float | None,
-                  workers: int | None = None, efficiency: float | None = None) -> dict:
-        """A population event: the model probabilities by model name; the noise floor and the
-        decision tolerance as estimated after the population (null while the run knows none);
-        the cluster's worker threads and their efficiency over the population (runner.Progress;
-        null for a population read back from the store)."""
-        floor = pop.floor
-        return {
-            "population": pop.t, "epsilon": pop.epsilon, "epsilon_next": pop.epsilon_next,
-            "acceptance_rate": pop.acceptance_rate, "simulations": int(n_simulations_total),
-            "model_probabilities": {name: float(p) for name, p in zip(models, pop.model_probabilities, strict=True)},
-            "elapsed_s": float(elapsed_s), "simulations_per_s": rate,
-            "noise_floor": None if floor is None else floor.floor,
-            "decision_tolerance": None if floor is None else floor.decision,
-            "workers": workers, "efficiency": efficiency,
-        }
-
-    @staticmethod
-    def _progress_of(msg: dict, models: Sequence[str]) -> dict:
-        """A population event from a job loop's message (:func:`service.run.jobs.run_one`)."""
-        return {
-            "population": int(msg["t"]), "epsilon": msg["epsilon"], "epsilon_next": msg.get("epsilon_next"),
-            "acceptance_rate": msg["acceptance"], "simulations": int(msg["simulations"]),
-            "model_probabilities": dict(zip(models, msg["probabilities"], strict=True)),
-            "elapsed_s": float(msg["elapsed_s"]), "simulations_per_s": msg.get("simulations_per_s"),
-            "noise_floor": msg.get("floor"), "decision_tolerance": msg.get("decision"),
-            "workers": msg.get("workers"), "efficiency": msg.get("efficiency"),
-        }
-
     def _announce(self, job: JobRecord, progress: dict) -> None:
         """Append a population event unless that population was announced already (a job
         loop's message that comes after the store was read back, or twice)."""
@@ -697,7 +667,7 @@ class JobManager:
         totals = store.totals()
         for t in range(seen + 1, store.n_populations + 1):
             pop = store.population(t)
-            self._announce(job, self._progress(pop, job.models, totals[t - 1], pop.elapsed_s, None))
+            self._announce(job, Progress(pop, totals[t - 1], pop.elapsed_s, None).event(job.models))
 
     def _connected(self) -> bool:
         """Is the client connected to a scheduler? A client that gave up reconnecting is
@@ -830,8 +800,7 @@ class JobManager:
         """The job's loop in this process (a manager without a client: serial)."""
 
         def on_population(p: Progress) -> None:
-            self._announce(job, self._progress(p.population, job.models, p.n_simulations_total, p.elapsed_s,
-                                               p.simulations_per_s, p.workers, p.efficiency))
+            self._announce(job, p.event(job.models))
 
         result = run_job(spec, job.folder, job.store_path, self.client, on_population=on_population,
                          cancel=lambda: job.cancel.is_set() or self.stopping, owned_store=True)
@@ -871,7 +840,7 @@ class JobManager:
                     if msg.get("busy_s") is not None:
                         self.busy.append((time.monotonic(), float(msg["busy_s"])))
                         self._forget_busy()
-                    self._announce(job, self._progress_of(msg, job.models))
+                    self._announce(job, msg["event"])
                     if job.turn.is_set():  # its turn ends here: the next population has hardly begun
                         released.set()
             except Exception as err:  # a message of another version, a full disk: logged, the store has it

@@ -288,15 +288,10 @@ def run_one(spec: JobSpec, data: dict[str, np.ndarray], store: str, *, seed: int
         placement = place(job, local_s, threads, worker.address)
         emit("start", placement=placement)
 
+        names = [m.name for m in job.models]
+
         def progress(p: Progress) -> None:
-            pop = p.population
-            emit("population", t=pop.t, epsilon=float(pop.epsilon), epsilon_next=float(pop.epsilon_next),
-                 acceptance=float(pop.acceptance_rate), simulations=int(p.n_simulations_total),
-                 elapsed_s=float(p.elapsed_s), simulations_per_s=float(p.simulations_per_s),
-                 probabilities=[float(x) for x in pop.model_probabilities.tolist()],
-                 floor=None if pop.floor is None else float(pop.floor.floor),
-                 decision=None if pop.floor is None else float(pop.floor.decision),
-                 workers=p.workers, efficiency=p.efficiency, busy_s=p.busy_s)
+            emit("population", event=p.event(names), busy_s=p.busy_s)
 
         run = partial(run_job, spec, None, path, data=data, on_population=progress, allow_import=allow_import,
                       cancel=lambda: _released(worker, key), local_s=local_s, placement=placement,
@@ -390,9 +385,8 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
     """Run ``jobs`` on the cluster of ``client``, each as one task (:func:`run_one`) on a
     worker with a free job slot, in the order given as slots free; return their outcomes in
     that order. ``on_event(index, event)`` is called on this thread for each job's events:
-    ``{"kind": "start", "placement": {...}}``, then ``{"kind": "population", "t": ...,
-    "epsilon": ..., "acceptance": ..., "simulations": ..., "elapsed_s": ...,
-    "probabilities": [...], "decision": ..., "workers": ..., "efficiency": ...}``. ``local_s``:
+    ``{"kind": "start", "placement": {...}}``, then ``{"kind": "population", "event": {...},
+    "busy_s": ...}`` (the population event, :meth:`service.run.runner.Progress.event`). ``local_s``:
     :func:`service.run.runner.local_population_s` (None: this process's). Interrupted
     (KeyboardInterrupt), the jobs' tasks are released: each run stops at its next batch."""
     local_s = local_population_s() if local_s is None else local_s

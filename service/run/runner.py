@@ -22,11 +22,12 @@ import queue
 import shutil
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from distributed import Client
@@ -48,7 +49,7 @@ class Progress:
     population: Population
     n_simulations_total: int
     elapsed_s: float
-    simulations_per_s: float
+    simulations_per_s: float | None  # None for a population read back from the store
     # on a Dask cluster: its worker threads now, and the share of their time since the
     # previous population spent on the simulations the run used (the workers' compute time
     # of the tasks consumed over workers x wall time); None in the runner's process, and for
@@ -58,6 +59,23 @@ class Progress:
     # the seconds of simulation the run used since the previous population, wherever they
     # ran (the workers' compute time of the tasks consumed, or the in-process engine's calls)
     busy_s: float | None = None
+
+    def event(self, models: Sequence[str]) -> dict[str, Any]:
+        """The population event, in plain JSON types (``service.http.schemas.ProgressOut``):
+        what a job loop's message carries, HTTP publishes and the CLI's progress line shows.
+        The model probabilities by model name; the noise floor and the decision tolerance as
+        estimated after the population (None while the run knows none)."""
+        pop, floor = self.population, self.population.floor
+        return {
+            "population": int(pop.t), "epsilon": float(pop.epsilon), "epsilon_next": float(pop.epsilon_next),
+            "acceptance_rate": float(pop.acceptance_rate), "simulations": int(self.n_simulations_total),
+            "model_probabilities": {name: float(p) for name, p in zip(models, pop.model_probabilities, strict=True)},
+            "elapsed_s": float(self.elapsed_s),
+            "simulations_per_s": None if self.simulations_per_s is None else float(self.simulations_per_s),
+            "noise_floor": None if floor is None else float(floor.floor),
+            "decision_tolerance": None if floor is None else float(floor.decision),
+            "workers": self.workers, "efficiency": self.efficiency,
+        }
 
 
 class TimedEvaluate:
@@ -222,10 +240,10 @@ class PopulationWriter:
         self.thread = threading.Thread(target=self._run, name="abcns-store", daemon=True)
         self.thread.start()
 
-    def put(self, pop: Population, n_simulations_total: int, info: dict | None, progress: Progress) -> None:
+    def put(self, progress: Progress, info: dict | None) -> None:
         if self.error is not None:
             raise self.error  # surface a failed write early
-        self.queue.put((pop, n_simulations_total, info, progress))
+        self.queue.put((progress, info))
 
     def close(self, raise_error: bool = True) -> None:
         """Write what is queued now and stop the thread."""
@@ -259,12 +277,12 @@ class PopulationWriter:
             self.last_append = time.monotonic()
             assert self.store is not None  # made, or self.error is set
             try:
-                self.store.append_many([(pop, total) for pop, total, _, _ in items])
-                infos = [info for _, _, info, _ in items if info is not None]
+                self.store.append_many([(p.population, p.n_simulations_total) for p, _ in items])
+                infos = [info for _, info in items if info is not None]
                 if infos:
                     self.store.set_status("running", job_key=self.job_key, run=infos[-1])
                 if self.on_population is not None:
-                    for *_, progress in items:
+                    for progress, _ in items:
                         self.on_population(progress)
             except BaseException as err:  # handed to the runner's thread
                 self.error = err
@@ -400,7 +418,7 @@ def _run_job(
         last[:] = [now, busy_now]
         progress = Progress(pop, budget.n_simulations, budget.elapsed(),
                             (budget.n_simulations - sims_start) / dt if dt > 0 else 0.0, workers, efficiency, busy)
-        writer.put(pop, budget.n_simulations, info, progress)
+        writer.put(progress, info)
 
     with frozen_heap():  # to the end: a full pass over the heap handed back stalled the last append ~140 ms
         try:

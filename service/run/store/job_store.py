@@ -146,7 +146,7 @@ class Store:
         update = metadata.jsonable({"status": status, "stop_reason": None if reason is None else str(reason), **extra},
                                    "run information")
         update["updated_at"] = metadata.now()
-        self._update_attrs(update)
+        metadata.update_attrs(self.path, update)
 
     # ------------------------------------------------------------------ writing
 
@@ -181,11 +181,7 @@ class Store:
     def _commit(self, n_populations: int) -> None:
         """Consolidate the metadata (the arrays' new shapes), then bump the counter: the
         population is part of the store from here on."""
-        self._update_attrs({"n_populations": n_populations, "updated_at": metadata.now()}, consolidate=True)
-
-    def _update_attrs(self, update: dict[str, Any], consolidate: bool = False) -> None:
-        """One read-modify-write of the group attributes under the store's lock (:func:`metadata.update_attrs`)."""
-        metadata.update_attrs(self.path, update, consolidate)
+        metadata.update_attrs(self.path, {"n_populations": n_populations, "updated_at": metadata.now()}, consolidate=True)
 
     # ------------------------------------------------------------------ reading
 
