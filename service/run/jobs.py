@@ -56,8 +56,8 @@ leaves processing; so a spread job's seceded task still holds its worker's slot 
 batches use the freed thread, and a second job task can never start in that process. (A
 thread count would not do: a seceded task frees its thread, and the scheduler would start
 the next job beside it.) The workers get the resource from a worker plugin
-(:class:`JobSlot`, registered once per cluster, idempotent; it also reaches workers that
-join later, a nanny's replacement included) that declares ``abcns-job=1`` on a worker that
+(:class:`JobSlot`, registered before the first job by :func:`prepare_cluster`, idempotent;
+it reaches workers that join later, a nanny's replacement included) that declares ``abcns-job=1`` on a worker that
 does not declare it already, so the embedded cluster and a stock ``dask worker`` need
 nothing (``dask worker --resources abcns-job=1`` is the same). The scheduler places a task
 with a resource on any worker that has it, busy or not; a worker then queues it behind the
