@@ -18,8 +18,8 @@ phase (the machine may be shared: a load above its cores slows either phase).
 
 *through the service* (``--service``): the same jobs submitted at once to `abcns serve`
 (no ``--max-running``: one job per worker) on a stock `dask scheduler` with ``--workers``
-`dask worker` processes (all started before the clock), each job's data inline in its JSON
-spec; the clock runs from the first submission to the last job's end, read from the jobs'
+`dask worker` processes (all started, and readied by the service, before the clock), each
+job's data inline in its JSON spec; the clock runs from the first submission to the last job's end, read from the jobs'
 terminal events. Their stores are compared with the jobs run alone too.
 
 *where the time goes* (printed for run_jobs and the service): the CPU seconds per job of the
