@@ -59,8 +59,8 @@ the next job beside it.) The workers get the resource from a worker plugin
 (:class:`JobSlot`, registered before the first job by :func:`prepare_cluster`, idempotent;
 it reaches workers that join later, a nanny's replacement included) that declares
 ``abcns-job=1`` on a worker that does not declare it already, so the embedded cluster and a
-stock ``dask worker`` need
-nothing (``dask worker --resources abcns-job=1`` is the same). The scheduler places a task
+stock ``dask worker`` need nothing (``dask worker --resources abcns-job=1`` is the same).
+The scheduler places a task
 with a resource on any worker that has it, busy or not; a worker then queues it behind the
 job it runs, while another worker may be free (a seceded job even makes its worker look
 idle). So :func:`run_jobs` hands a job to the scheduler only when a worker's slot is free,
