@@ -18,8 +18,8 @@ phase (the machine may be shared: a load above its cores slows either phase).
 
 *through the service* (``--service``): the same jobs submitted at once to `abcns serve`
 (no ``--max-running``: one job per worker) on a stock `dask scheduler` with ``--workers``
-`dask worker` processes (all started before the clock), each job's data inline in its JSON
-spec; the clock runs from the first submission to the last job's end, read from the jobs'
+`dask worker` processes (all started, and readied by the service, before the clock), each
+job's data inline in its JSON spec; the clock runs from the first submission to the last job's end, read from the jobs'
 terminal events. Their stores are compared with the jobs run alone too.
 
 *where the time goes* (printed for run_jobs and the service): the CPU seconds per job of the
@@ -42,12 +42,12 @@ each: what this machine gives at that many processes now, the ceiling of the rat
 from __future__ import annotations
 
 import argparse
-import importlib
 import itertools
 import json
 import multiprocessing
 import os
 import shutil
+import sys
 import tempfile
 import time
 from collections import Counter
@@ -59,7 +59,7 @@ import psutil
 from distributed import Client, get_task_stream
 
 from service.run.dask_executor import local_cluster
-from service.run.jobs import JobRun, run_jobs
+from service.run.jobs import JobRun, job_workers, run_jobs
 from service.run.runner import run_job
 from service.run.store import Store
 from service.spec import JobSpec, load, load_array
@@ -179,7 +179,7 @@ def through_service(spec: JobSpec, base: Path, folder: Path, seeds: range, n: in
     stores by seed, their placements, the processes' CPU and the workers' idle time."""
     import httpx
 
-    from benchmarks.harness import AUTH, Service, StockCluster
+    from benchmarks.harness import AUTH, Service, StockCluster, wait_until
 
     data = {key: load_array(getattr(spec.data, key), base, f"data.{key}").tolist() for key in ("input", "observed")}
     raw = spec.model_dump(mode="json")
@@ -190,10 +190,14 @@ def through_service(spec: JobSpec, base: Path, folder: Path, seeds: range, n: in
               "workers": [p.pid for p in cluster.procs[1:]]}
     try:
         with Client(cluster.address, timeout=30) as watcher, get_task_stream(watcher) as stream:
-            # the job's code imported on the stock workers before the clock, as the LocalCluster's
-            # spawned workers import it with this module before theirs (~2-3.5 s a worker on
-            # this loaded machine, at its first job otherwise); the kernels load in the clock in both
-            watcher.run(importlib.import_module, "service.run.jobs")
+            # the service readies the cluster as it starts (service.run.jobs.prepare_cluster): the
+            # job slots' plugin, whose unpickling imports the job's code on each worker (~2-3.5 s a
+            # worker on a loaded machine), and that code imported on the scheduler, which unpickles
+            # every task; the clock starts once it has, as for a service up a while (the kernels
+            # load in the clock, as on run_jobs's workers)
+            wait_until(lambda: len(job_workers(watcher)) == n and watcher.run_on_scheduler(
+                lambda: "service.run.jobs" in sys.modules), 120, "the service to ready the cluster", 0.2)
+            settled(watcher)
             cpu_0 = {name: cpu_seconds(pids) for name, pids in groups.items()}
             with httpx.Client(timeout=120, headers=AUTH) as http:
                 # the intake's child (it parses every submission) started with the service and may
@@ -214,6 +218,21 @@ def through_service(spec: JobSpec, base: Path, folder: Path, seeds: range, n: in
     finally:
         service.close()
         cluster.close()
+
+
+def settled(client: Client, within_s: float = 0.05, timeout_s: float = 30.0) -> None:
+    """Until each worker's estimate of its clock's offset from the scheduler's (what the
+    task stream's times are shifted by) is within ``within_s`` of 0, its true value on
+    one host. A worker's event loop held by an import (the job slots' plugin: ~2 s) biases
+    the estimate made by the heartbeat it delayed (+0.7 s seen) until its next heartbeat: a
+    first job's start would read that much late. Goes on after ``timeout_s``, saying so."""
+    from benchmarks.harness import wait_until
+
+    try:
+        wait_until(lambda: all(abs(d) <= within_s for d in client.run(
+            lambda dask_worker: dask_worker.scheduler_delay).values()), timeout_s, "the workers' clocks", 0.2)
+    except TimeoutError:
+        print(f"(the workers' clock offsets did not settle within {within_s} s: their idle times are off by as much)")
 
 
 def wait_ended(http, url: str) -> None:

@@ -55,7 +55,7 @@ from distributed import Client
 
 from abcns import SpecError, StopReason
 from service.http.limits import Limits, admit
-from service.run.jobs import JOB_RESOURCE, JobRun, WorkerWatch, ensure_job_slots, job_workers, no_space, run_one
+from service.run.jobs import JOB_RESOURCE, JobRun, WorkerWatch, job_workers, no_space, prepare_cluster, run_one, scheduler_id
 from service.run.runner import Progress, local_population_s, run_job, summary, wait_for_store_lock
 from service.run.store import Store, StoreError, metadata
 from service.spec import JobSpec, build, cut_to_read, spec_text
@@ -382,6 +382,7 @@ class JobManager:
         self.queue: deque[str] = deque()
         self.running: set[str] = set()
         self.held: dict[str, str] = {}  # job id -> the worker whose job slot its loop was given
+        self.prepared_on: str | None = None  # the id of the scheduler prepared for job tasks (_free_slots)
         self.busy: deque[tuple[float, float]] = deque()  # (monotonic, simulation s) per population: utilization()
         self.busy_lock = threading.Lock()
         self.admitting = 0  # submissions that hold a place in the queue while they are built and written
@@ -594,7 +595,8 @@ class JobManager:
             # outside the lock: replacing a client that gave up may take seconds, and submit()
             # must not wait for it; so does asking the scheduler for its workers
             connected = self.stopping or self._connected()
-            free = self._free_slots() if connected and self.queue and not self.stopping else []
+            look = self.queue or self.prepared_on is None  # the first look prepares the cluster
+            free = self._free_slots() if connected and look and not self.stopping else []
             with self.lock:
                 if self.stopping:
                     return
@@ -630,13 +632,19 @@ class JobManager:
 
     def _free_slots(self) -> Sequence[str]:
         """The workers with a job slot that no running job holds (none without a client, or
-        when the scheduler does not answer)."""
+        when the scheduler does not answer). The cluster is prepared for job tasks
+        (:func:`service.run.jobs.prepare_cluster`: the job slots' plugin, the task's modules
+        imported on the scheduler) at the dispatcher's first look, before any job comes, and
+        again at the first look at another scheduler (restarted) or at workers without slots."""
         if self.client is None:
             return []
         try:
-            slots = job_workers(self.client)
-            if not slots and self.client.nthreads():  # a scheduler (restarted) without the job slots' plugin
-                ensure_job_slots(self.client)
+            info = self.client.scheduler_info(n_workers=-1)
+            slots = job_workers(self.client, info)
+            if scheduler_id(info) != self.prepared_on or (not slots and info.get("workers")):
+                # a scheduler new to this manager (the first look, a restart), or one whose
+                # workers lost their job slots: ready for job tasks before one is sent
+                self.prepared_on = prepare_cluster(self.client)
                 slots = job_workers(self.client)
         except Exception as err:  # the scheduler went away meanwhile: look again later
             log.warning("cannot list the workers: %r", err)
@@ -677,6 +685,7 @@ class JobManager:
             if status in ("closed", "closing", "failed") and self.scheduler_address and not self.stopping:
                 try:
                     self.client = Client(self.scheduler_address, timeout=5)
+                    self.prepared_on = None  # prepared at the dispatcher's next look, jobs or not
                     log.warning("reconnected to the scheduler at %s with a new client", self.scheduler_address)
                 except (OSError, TimeoutError, AssertionError) as err:  # AssertionError: a scheduler still starting
                     log.warning("the scheduler at %s does not answer yet: %r", self.scheduler_address, err)

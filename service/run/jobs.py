@@ -56,10 +56,11 @@ leaves processing; so a spread job's seceded task still holds its worker's slot 
 batches use the freed thread, and a second job task can never start in that process. (A
 thread count would not do: a seceded task frees its thread, and the scheduler would start
 the next job beside it.) The workers get the resource from a worker plugin
-(:class:`JobSlot`, registered once per cluster, idempotent; it also reaches workers that
-join later, a nanny's replacement included) that declares ``abcns-job=1`` on a worker that
-does not declare it already, so the embedded cluster and a stock ``dask worker`` need
-nothing (``dask worker --resources abcns-job=1`` is the same). The scheduler places a task
+(:class:`JobSlot`, registered before the first job by :func:`prepare_cluster`, idempotent;
+it reaches workers that join later, a nanny's replacement included) that declares
+``abcns-job=1`` on a worker that does not declare it already, so the embedded cluster and a
+stock ``dask worker`` need nothing (``dask worker --resources abcns-job=1`` is the same).
+The scheduler places a task
 with a resource on any worker that has it, busy or not; a worker then queues it behind the
 job it runs, while another worker may be free (a seceded job even makes its worker look
 idle). So :func:`run_jobs` hands a job to the scheduler only when a worker's slot is free,
@@ -77,6 +78,8 @@ resumes.
 from __future__ import annotations
 
 import errno
+import importlib
+import logging
 import math
 import queue
 import re
@@ -109,6 +112,7 @@ PILOT_CALLS = 3
 PILOT_S = 0.02
 #: seconds between two looks at the cluster's workers while jobs wait for a slot
 LOOK_S = 1.0
+log = logging.getLogger("abcns.jobs")
 
 
 class JobSlot(WorkerPlugin):
@@ -127,9 +131,34 @@ def ensure_job_slots(client: Client) -> None:
     client.register_plugin(JobSlot(), name=PLUGIN_NAME)
 
 
-def job_workers(client: Client) -> dict[str, int]:
-    """The workers that have a job slot, and their threads."""
-    workers = client.scheduler_info(n_workers=-1)["workers"]
+def prepare_cluster(client: Client) -> str:
+    """Make the cluster ready for job tasks before the first one comes; return the
+    scheduler's id (what it was prepared for: a restarted scheduler has another).
+
+    The job slots' plugin is registered (:func:`ensure_job_slots`): each worker, and each
+    that joins later, imports this module as it unpickles the plugin. And this module is
+    imported on the scheduler: the scheduler unpickles every task it is sent, and a job
+    task's function and spec import this module, the spec's and abcns's there (~0.6-2 s on a
+    fresh `dask scheduler`, on its event loop: meanwhile it schedules nothing and answers
+    no one; the service's workers sat idle that long before their first jobs). A scheduler
+    that refuses ``run_on_scheduler`` pays it at the first job instead (logged)."""
+    ensure_job_slots(client)
+    try:
+        client.run_on_scheduler(importlib.import_module, __name__)
+    except Exception as err:  # not needed for the jobs to run: only what their first one waits
+        log.warning("could not import %s on the scheduler ahead of the first job: %r", __name__, err)
+    return scheduler_id(client.scheduler_info(n_workers=0))
+
+
+def scheduler_id(info: Mapping[str, Any]) -> str:
+    """The scheduler's id in its ``scheduler_info`` ("" when it gives none)."""
+    return str(info.get("id") or "")
+
+
+def job_workers(client: Client, info: Mapping[str, Any] | None = None) -> dict[str, int]:
+    """The workers that have a job slot, and their threads (from ``info``, the scheduler's
+    ``scheduler_info(n_workers=-1)``, when given)."""
+    workers = (info if info is not None else client.scheduler_info(n_workers=-1))["workers"]
     return {addr: int(w.get("nthreads", 1)) for addr, w in workers.items()
             if (w.get("resources") or {}).get(JOB_RESOURCE, 0) >= 1}
 
@@ -390,7 +419,7 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
     :func:`service.run.runner.local_population_s` (None: this process's). Interrupted
     (KeyboardInterrupt), the jobs' tasks are released: each run stops at its next batch."""
     local_s = local_population_s() if local_s is None else local_s
-    ensure_job_slots(client)
+    prepare_cluster(client)
     nonce = uuid.uuid4().hex[:8]
     topic = f"abcns-jobs-{nonce}"
     events: queue.SimpleQueue = queue.SimpleQueue()
