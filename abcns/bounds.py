@@ -59,8 +59,8 @@ def _tree_sets(points: np.ndarray, max_ellipsoids: int) -> list[np.ndarray] | No
     farthest apart along the leading eigenvector of its covariance (deterministic,
     ``KMEANS_ITERATIONS`` Lloyd steps at most), or, when 2-means leaves a half fewer than
     ``leaf`` and d + 1 points (a small group apart at one end), at the points' median along
-    that eigenvector, when both halves have an ellipsoid; a node's best set of at most k ellipsoids is its own
-    ellipsoid, or its halves' best sets together (k1 for the first half, k - k1 for the
+    that eigenvector, when both halves have an ellipsoid; a node's best set of at most k
+    ellipsoids is its own ellipsoid, or its halves' best sets together (k1 for the first half, k - k1 for the
     second, k1 of least total) when they hold less than ``SPLIT_GAIN`` of the volume of
     its best set of at most k - 1. Compiled (``abcns.compiled.tree_rows``): only the
     sets come from there, never an ellipsoid."""
