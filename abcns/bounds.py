@@ -57,9 +57,10 @@ def _tree_sets(points: np.ndarray, max_ellipsoids: int) -> list[np.ndarray] | No
     all; a node of at least 2 ``leaf`` points (``leaf`` = max(LEAF_POINTS, 2 (d + 1))) is
     split by a 2-means clustering in whitened coordinates, started at the two points
     farthest apart along the leading eigenvector of its covariance (deterministic,
-    ``KMEANS_ITERATIONS`` Lloyd steps at most), when both halves keep ``leaf`` and d + 1
-    points and have an ellipsoid; a node's best set of at most k ellipsoids is its own
-    ellipsoid, or its halves' best sets together (k1 for the first half, k - k1 for the
+    ``KMEANS_ITERATIONS`` Lloyd steps at most), or, when 2-means leaves a half fewer than
+    ``leaf`` and d + 1 points (a small group apart at one end), at the points' median along
+    that eigenvector, when both halves have an ellipsoid; a node's best set of at most k
+    ellipsoids is its own ellipsoid, or its halves' best sets together (k1 for the first half, k - k1 for the
     second, k1 of least total) when they hold less than ``SPLIT_GAIN`` of the volume of
     its best set of at most k - 1. Compiled (``abcns.compiled.tree_rows``): only the
     sets come from there, never an ellipsoid."""
@@ -102,8 +103,9 @@ def fit_union(points: np.ndarray, enlargement: float, max_ellipsoids: int, fallb
     ``enlargement`` (f0).
 
     The points' ellipsoid (``abcns.ellipsoid.fit``, with ``fallback`` when the points define
-    no shape) is split by 2-means, recursively, while each half keeps ``LEAF_POINTS`` and
-    :func:`min_points` points; of the ellipsoids of that tree, the set of at most
+    no shape) is split by 2-means (at the median where 2-means strands a small group),
+    recursively, while each half keeps ``LEAF_POINTS`` and :func:`min_points` points; of the
+    ellipsoids of that tree, the set of at most
     ``max_ellipsoids`` with the least total volume is kept (a node is replaced by its
     halves' best sets only when those hold less than ``SPLIT_GAIN`` of its volume)."""
     sets = None

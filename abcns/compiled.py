@@ -432,16 +432,24 @@ def _halves(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.ndarra
             work: np.ndarray) -> int:
     """The 2-means split (:func:`_two_means`) of a node's ``rows`` (whitened points ``y``):
     the number n0 of the first half's rows, with ``work`` = the first half's rows then the
-    second's, each in the order of ``rows`` (a stable partition); -1 when a half would keep
-    fewer than ``leaf`` or d + 1 rows."""
+    second's, each in the order of ``rows`` (a stable partition). When 2-means leaves a half
+    fewer than ``leaf`` or d + 1 rows (its start, the row farthest along ``axis``, lies in a
+    small group apart from the rest, as at the tip of a curved ridge), the rows are split at
+    their median along ``axis`` instead (:func:`_median_split`), so that one stray group
+    does not keep the node, and every node under it, whole; -1 when even that leaves a half
+    too small (a node of fewer than 2 ``leaf`` rows, which :func:`_splittable` never splits)."""
     second = _two_means(points, rows, y, axis, iterations)
     m = rows.shape[0]
+    least = max(leaf, points.shape[1] + 1)
     n1 = 0
     for r in range(m):
         n1 += second[r]
+    if min(m - n1, n1) < least:
+        second = _median_split(points, rows, axis)
+        n1 = m - m // 2
+        if m // 2 < least:
+            return -1
     n0 = m - n1
-    if min(n0, n1) < max(leaf, points.shape[1] + 1):
-        return -1
     a, b = 0, n0
     for r in range(m):
         if second[r]:
@@ -451,6 +459,22 @@ def _halves(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.ndarra
             work[a] = rows[r]
             a += 1
     return n0
+
+
+@njit(cache=True, error_model="numpy")
+def _median_split(points: np.ndarray, rows: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """The rows of ``points[rows]`` above their median along ``axis`` (the upper m - m // 2 of
+    their projections, ties in row order: a stable sort), as :func:`_two_means`' mask."""
+    m = rows.shape[0]
+    proj = np.empty(m)
+    for i in range(m):
+        p = 0.0
+        for j in range(points.shape[1]):
+            p += points[rows[i], j] * axis[j]
+        proj[i] = p
+    second = np.zeros(m, np.bool_)
+    second[np.argsort(proj, kind="mergesort")[m // 2:]] = True
+    return second
 
 
 @njit(cache=True, error_model="numpy")
