@@ -397,7 +397,7 @@ class _Run:
         if reason is None and held:
             self.notes.append(f"population {t}: accepted at the decision tolerance {eps:.6g}; the reading of "
                               f"{', '.join(held)} rests on fewer than {likelihood.HELD_EFFECTIVE} (d + 1) effective "
-                              "particles: the next population is accepted at it too")
+                              "particles: the run goes on at the decision tolerance")
         if reason is StopReason.NOISE_FLOOR:
             assert floor is not None
             self.notes.append(f"population {t}: accepted at the decision tolerance {eps:.6g}; the run stops (noise "

@@ -87,7 +87,7 @@ def test_a_small_group_apart_does_not_keep_the_bound_one_ellipsoid():
     region = (2 * 0.3 * 0.03 - 0.03**2 + 0.02**2) * 0.1 ** (d - 2)
     assert len(union) > 1
     assert np.exp(np.logaddexp.reduce([e.log_volume for e in union])) < 300 * region
-    assert np.mean(bd.n_inside(union, points) > 0) >= 0.99
+    assert np.mean(ell.n_containing(union, points) > 0) >= 0.99
 
 
 @pytest.mark.parametrize("seed", [4, 5])

@@ -120,8 +120,7 @@ def test_the_floor_stop_ends_at_the_first_population_accepted_at_the_decision_to
     at a slightly lower tolerance (seeds 1 and 3 of this toy with c ~ U(-30, 30): 3 and 2 of
     them). Now it stops after the first population accepted at the decision tolerance, unless
     a model's reading there is thin (``abcns.likelihood.thin``): each population it then
-    accepts at the decision tolerance says so in a note (seed 3: the parabola's reading at
-    population 23, fewer than 5 (d + 1) effective particles, held it one population)."""
+    accepts at the decision tolerance says so in a note."""
     models, evaluate, noise = problem(seed, width=30.0)
     r = abcns.run(models, evaluate, SETTINGS, StopRules(min_epsilon_decrease=1e-9, max_populations=60), seed=seed,
                   noise=noise)
@@ -129,8 +128,8 @@ def test_the_floor_stop_ends_at_the_first_population_accepted_at_the_decision_to
     pops = r.populations
     first = next(i for i, p in enumerate(pops) if p.standing is not Standing.ABOVE)
     assert [p.standing for p in pops] == [Standing.ABOVE] * first + [Standing.AT] * (len(pops) - first)
-    held = [n for n in r.notes if n.endswith("the next population is accepted at it too")]
-    assert len(held) == len(pops) - 1 - first == {1: 0, 3: 1}[seed]
+    held = [n for n in r.notes if n.endswith("the run goes on at the decision tolerance")]
+    assert len(held) == len(pops) - 1 - first
     # a store's populations carry no record: the floors give the same one, and a run resumed
     # from them before its last population stops after it, as the run did
     bare = [dataclasses.replace(p, standing=None) for p in pops]
@@ -282,15 +281,15 @@ def test_a_run_at_its_floor_holds_the_decision_tolerance_until_its_reading_rests
     """The cyclic test kunnath's BWBN (issue Y, 11 parameters) reached its floor with a reading
     on 4.0 effective particles, means up to 0.96 sd from exact Bayes, and no warning. The same
     on a degree-10 Legendre toy (11 parameters), seed 1: the first population at the decision
-    tolerance gave 3.2 effective particles, widths 0.62-1.06 of the exact ones, a mean 0.86 sd
-    off. The weights in that region vary by ~e^9 and its prior mass lies near its edge, so
-    one population holds few of the posterior's particles. The run now accepts populations at
-    the decision tolerance until the reading rests on 5 (d + 1) = 60 (each population's
-    particles read together: ``abcns.likelihood.regions``): 93 populations against 74, 20 %
-    more simulations, widths 0.95-1.11, means within 0.18 sd. Bounds: widths 0.8-1.25 (issue
-    W's), means within 0.35 sd (the largest of 11 means' Monte Carlo errors of 1 / sqrt(60) =
-    0.13 sd is ~2.3 of them). A run resumed inside the held populations ends identically, and
-    one whose population budget ends the holding says so."""
+    tolerance (population 66) gave 1.8 effective particles, widths 0.41-0.81 of the exact ones,
+    a mean 0.86 sd off. The weights in that region vary by ~e^9 and its prior mass lies near
+    its edge, so one population holds few of the posterior's particles. The run now goes on
+    at the decision tolerance until the reading rests on 5 (d + 1) = 60 (populations of one
+    tolerance read together: ``abcns.likelihood.regions``): 74 populations against 66, 11 %
+    more simulations, 61.6 effective particles, widths 0.92-1.17, means within 0.22 sd.
+    Bounds: widths 0.8-1.25 (issue W's), means within 0.35 sd (the largest of 11 means' Monte
+    Carlo errors of 1 / sqrt(60) = 0.13 sd is ~2.3 of them). A run resumed inside the held
+    populations ends identically, and one whose population budget ends the holding says so."""
     model, evaluate, noise, beta, sd = legendre_toy(10)
     r = abcns.run([model], evaluate, SETTINGS, StopRules(), seed=1, noise=noise)
     s = r.summary()
@@ -301,14 +300,16 @@ def test_a_run_at_its_floor_holds_the_decision_tolerance_until_its_reading_rests
     assert np.all((0.8 <= ratio) & (ratio <= 1.25)) and np.all(shift <= 0.35), (ratio, shift)
     assert not [w for w in s["warnings"] if w.startswith("few effective particles")]
     first = r.decision_population().t
-    assert r.final.t > first + 1 and all(p.standing is Standing.AT for p in r.populations[first - 1:])
+    assert r.final.t > first + 1 and r.final.standing is Standing.AT
+    assert Standing.BELOW not in [p.standing for p in r.populations]
 
     resumed = list(iterate([model], SerialExecutor(evaluate), SETTINGS, StopRules(), 1, noise=noise,
                            history=r.populations[: first + 2]))
     assert [p.t for p in resumed] == [p.t for p in r.populations[first + 2:]]
     assert np.array_equal(resumed[-1].theta, r.final.theta)
 
-    cut = abcns.run([model], evaluate, SETTINGS, StopRules(max_populations=first + 1), seed=1, noise=noise).summary()
+    end = r.final.t - 1
+    cut = abcns.run([model], evaluate, SETTINGS, StopRules(max_populations=end), seed=1, noise=noise).summary()
     assert cut["decision"]["rule"] == "noise_floor"
     assert any(w.startswith("few effective particles: poly's likelihood reading rests on") and
-               "after 2 populations at the decision tolerance" in w for w in cut["warnings"]), cut["warnings"]
+               f"after {end - first + 1} populations at the decision tolerance" in w for w in cut["warnings"]), cut["warnings"]
