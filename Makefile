@@ -9,6 +9,8 @@ DEV := $(VENV)/.installed-dev
 # setuptools' note that an editable install's folders shadow same-named ones is about this
 # very checkout; nothing to act on
 PIP := PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip
+# pytest processes of `make test` (one per core of the 2-core machine it is measured on)
+TEST_PROCESSES ?= 2
 
 .PHONY: demo test browser bench bench-peers clean
 
@@ -40,9 +42,11 @@ demo: $(RUNTIME)
 
 test: $(DEV) browser
 	$(BIN)/ruff check abcns worker service tests benchmarks examples
-	$(BIN)/mypy abcns worker service
-	$(BIN)/python -m tests.numba_warm  # numba's cache compiled once, before the workers that read it start
-	$(BIN)/python -m pytest -n 2 --dist loadfile  # a file's tests in one process (its module fixtures shared)
+	@# mypy (one core) beside the numba step (the other): numba's cache compiled once, before the workers that read it start
+	$(BIN)/mypy abcns worker service & mypy=$$!; $(BIN)/python -m tests.numba_warm && wait $$mypy
+	@# a file's tests in one process (its module fixtures shared); the files longest first (tests/conftest.py), so the
+	@# two processes end together
+	$(BIN)/python -m pytest -n $(TEST_PROCESSES) --dist loadfile --no-loadscope-reorder
 
 # Debian's chromium for the live-page test (as root, e.g. in CI); nothing downloaded from elsewhere
 browser:

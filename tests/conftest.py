@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 from http_helpers import settle
@@ -18,6 +19,33 @@ from benchmarks.harness import Service, StockCluster
 # tests/test_executor_contract.py that say so evaluate populations here, and one runs a job
 # with the default.
 os.environ.setdefault("ABCNS_LOCAL_POPULATION_S", "0")
+
+# The files that take longest (seconds of one pytest process, measured on the shared 2-core VM
+# under load, 2026-11-29, less what issue X 5's cuts took from test_study and test_service_jobs;
+# docs/benchmarks.md, "The test suite"). `make test` runs the files in
+# two processes (`--dist loadfile --no-loadscope-reorder`), each taking the next file in
+# collection order when it runs low: longest first, so that no long file starts near the end
+# while the other process has nothing left (xdist's own order, most tests first, put the
+# one-test files of a minute each last). Unlisted files follow, in their usual order. Only
+# the order changes; a stale figure costs time, never a test.
+LONG_FILES = {
+    "test_http_hostile.py": 171, "test_http.py": 169, "test_distributed.py": 120, "test_paper.py": 118,
+    "test_http_holds.py": 106, "test_study.py": 86, "test_many_jobs.py": 78, "test_plots.py": 70,
+    "test_restoring.py": 62, "test_service_jobs.py": 62, "test_walkthrough.py": 61, "test_cli.py": 59,
+    "test_chaos.py": 54, "test_browser.py": 53, "test_kernels.py": 50, "test_scale_benchmark.py": 48,
+    "test_examples_analysis.py": 45, "test_examples.py": 44, "test_store.py": 38, "test_spec_property.py": 29,
+    "test_closed_form.py": 25, "test_submit.py": 23, "test_http_z.py": 22, "test_cluster_model.py": 21,
+    "test_http_z_holds.py": 20,
+}
+
+
+@pytest.hookimpl(tryfirst=True)  # before tests/reverse_order.py's, which then reverses this order
+def pytest_collection_modifyitems(items: list) -> None:
+    """The longest files first (:data:`LONG_FILES`); each file's tests in their own order."""
+    gone = [name for name in LONG_FILES if not (Path(__file__).parent / name).is_file()]
+    if gone:
+        raise pytest.UsageError(f"tests/conftest.py's LONG_FILES names files that are not in tests/: {gone}")
+    items.sort(key=lambda item: -LONG_FILES.get(item.path.name, 0))
 
 
 @pytest.fixture

@@ -180,7 +180,7 @@ def test_a_killed_study_reruns_no_finished_job_and_ends_identical(client, tmp_pa
     assert all(Path(p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in listed)
 
 
-@pytest.mark.parametrize(("args", "field"), [
+BAD_INPUT = [
     (("--noise-share", "-0.1"), "noise_share"),
     (("--noise-std", "nan"), "noise_std"),
     ((), "noise_std"),
@@ -189,14 +189,33 @@ def test_a_killed_study_reruns_no_finished_job_and_ends_identical(client, tmp_pa
     (("--noise-share", "0.01", "--truth-param", "k=1e6"), "truth_parameters.k: 1e+06 lies outside the prior"),
     (("--noise-share", "0.01", "--truth-param", "k3=1"), "truth_parameters.k3: is not a free parameter"),
     (("--noise-share", "0.01", "--datasets", "0"), "datasets"),
-])
+]
+
+
+def study_argv(tmp_path: Path, args: tuple) -> list[str]:
+    argv = ["study", write_spec(tmp_path / "spec"), "--out", tmp_path / "study", *args]
+    return [str(a) for a in (argv if "--datasets" in args else [*argv, "--datasets", "3"])]
+
+
+@pytest.mark.parametrize(("args", "field"), BAD_INPUT)
 def test_bad_input_is_refused_with_its_field_before_any_job(tmp_path, args, field):
-    """Exit 2, the field named on stderr, and no data set or job made."""
-    spec = write_spec(tmp_path / "spec")
-    argv = ["study", spec, "--out", tmp_path / "study", *args]
-    if "--datasets" not in args:
-        argv += ["--datasets", "3"]
-    proc = abcns(*argv)
+    """Exit 2, the field named on stderr, and no data set or job made. In this process
+    (typer's CliRunner, stdout and stderr apart): the refusal is the command's own code; what
+    the installed command's process adds (its exit status, its stderr) is the next test's."""
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    done = CliRunner().invoke(app, study_argv(tmp_path, args), prog_name="abcns")
+    assert done.exit_code == 2, (done.stderr, done.exception)
+    assert field in done.stderr
+    assert not list((tmp_path / "study").glob("*/*"))
+
+
+def test_the_installed_command_refuses_bad_input_with_exit_status_2(tmp_path):
+    """The last case above as a process of the installed `abcns`: exit status 2, the field on stderr."""
+    args, field = BAD_INPUT[-1]
+    proc = abcns(*study_argv(tmp_path, args))
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 2, err
     assert field in err
