@@ -445,10 +445,10 @@ def _halves(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.ndarra
     for r in range(m):
         n1 += second[r]
     if min(m - n1, n1) < least:
-        second = _median_split(points, rows, axis)
-        n1 = m - m // 2
         if m // 2 < least:
             return -1
+        second = _median_split(points, rows, axis)
+        n1 = m - m // 2
     n0 = m - n1
     a, b = 0, n0
     for r in range(m):

@@ -99,14 +99,14 @@ def of_floor(floor: Floor) -> Callable[[np.ndarray], np.ndarray] | None:
     return marginal(floor.n_samples, floor.best)
 
 
-def enough(ess: np.ndarray, dims: Sequence[int]) -> np.ndarray:
-    """Whether each model's reading rests on at least 2 (d + 1) effective particles. Fewer,
-    and its weights sit on a handful of particles: a run stopped above its floor, whose last
-    region is far wider than the posterior, weighs its few particles nearest the best fit
-    (the cyclic test gill's BWBN at 80 populations: 2.7 effective particles, intervals
-    0.35-1.24 of the exact width); a model's few particles far from its best fit can hide
-    most of its evidence."""
-    return np.asarray(ess) >= 2 * (np.asarray(dims) + 1)
+def enough(ess: np.ndarray, dims: Sequence[int], per: float = 2) -> np.ndarray:
+    """Whether each model's reading rests on at least ``per`` (d + 1) effective particles
+    (2 by default). Fewer than 2 (d + 1), and its weights sit on a handful of particles: a run
+    stopped above its floor, whose last region is far wider than the posterior, weighs its
+    few particles nearest the best fit (the cyclic test gill's BWBN at 80 populations: 2.7
+    effective particles, intervals 0.35-1.24 of the exact width); a model's few particles far
+    from its best fit can hide most of its evidence."""
+    return np.asarray(ess) >= per * (np.asarray(dims) + 1)
 
 
 def spared(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, threshold: float) -> np.ndarray | None:
@@ -140,7 +140,7 @@ def thin(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, ali
     log_l = None if floor is None or not shells else of_floor(floor)
     if log_l is None:
         return np.zeros(len(dims), dtype=bool)
-    return alive & (read(shells, dims, log_l).ess < HELD_EFFECTIVE * (np.asarray(dims) + 1))
+    return alive & ~enough(read(shells, dims, log_l).ess, dims, HELD_EFFECTIVE)
 
 
 def regions(shells: Sequence[Record]) -> tuple[np.ndarray, np.ndarray]:
@@ -184,8 +184,7 @@ def read(shells: Sequence[Record], dims: Sequence[int], log_likelihood: Callable
             log_l = log_likelihood(d)
             if region[i] < last[m]:
                 log_l = np.where(d >= cut[i], log_l, -np.inf)
-            k = readers[m, region[i]]
-            log_w = rec.log_z[m] - np.log(n) + log_l if k == 1 else rec.log_z[m] - np.log(n * k) + log_l
+            log_w = rec.log_z[m] - np.log(n * readers[m, region[i]]) + log_l
             parts[m].append((rec.theta[rows, : dims[m]], log_w))
             top = np.max(log_w)
             if np.isfinite(top):

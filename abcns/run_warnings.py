@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from abcns.likelihood import HELD_EFFECTIVE
+from abcns.likelihood import HELD_EFFECTIVE, enough
 from abcns.noise import Standing
 
 if TYPE_CHECKING:
@@ -97,13 +97,13 @@ def _thin_reading(r: Result) -> list[str]:
            for i, m in enumerate(r.models) if i in r.alive(pop.t) and r.answer_draws(i)[2] == "tolerance"]
     if r.reached_floor:
         held = r.final.t - pop.t + 1
+        many = enough(reading.ess, [m.n_dim for m in r.models], HELD_EFFECTIVE)
         out += [f"few effective particles: {m.name}'s likelihood reading rests on {reading.ess[i]:.3g} effective "
                 f"particles (fewer than {HELD_EFFECTIVE} (d + 1) = {HELD_EFFECTIVE * (m.n_dim + 1)}) after {held} "
                 f"populations at the decision tolerance: its means and intervals carry a Monte Carlo error of about "
                 f"{1 / np.sqrt(max(reading.ess[i], 1)):.2g} posterior sd; a larger population (more particles) makes it "
                 "smaller"
-                for i, m in enumerate(r.models)
-                if i in r.alive() and reading.ess[i] < HELD_EFFECTIVE * (m.n_dim + 1)]
+                for i, m in enumerate(r.models) if i in r.alive() and not many[i]]
     return out
 
 

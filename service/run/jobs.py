@@ -126,23 +126,18 @@ class JobSlot(WorkerPlugin):
             await worker.set_resources(**{JOB_RESOURCE: 1})
 
 
-def ensure_job_slots(client: Client) -> None:
-    """Register :class:`JobSlot` on the cluster (the current workers and those to come)."""
-    client.register_plugin(JobSlot(), name=PLUGIN_NAME)
-
-
 def prepare_cluster(client: Client) -> str:
     """Make the cluster ready for job tasks before the first one comes; return the
     scheduler's id (what it was prepared for: a restarted scheduler has another).
 
-    The job slots' plugin is registered (:func:`ensure_job_slots`): each worker, and each
+    The job slots' plugin (:class:`JobSlot`) is registered, idempotent: each worker, and each
     that joins later, imports this module as it unpickles the plugin. And this module is
     imported on the scheduler: the scheduler unpickles every task it is sent, and a job
     task's function and spec import this module, the spec's and abcns's there (~0.6-2 s on a
     fresh `dask scheduler`, on its event loop: meanwhile it schedules nothing and answers
     no one; the service's workers sat idle that long before their first jobs). A scheduler
     that refuses ``run_on_scheduler`` pays it at the first job instead (logged)."""
-    ensure_job_slots(client)
+    client.register_plugin(JobSlot(), name=PLUGIN_NAME)
     try:
         client.run_on_scheduler(importlib.import_module, __name__)
     except Exception as err:  # not needed for the jobs to run: only what their first one waits
