@@ -20,10 +20,10 @@ from distributed import Client, get_task_stream
 from test_distributed import assert_same_store
 
 from service.run.dask_executor import local_cluster
-from service.run.jobs import JobRun, run_jobs
+from service.run.jobs import JobRun, place, placement_text, run_jobs, spread_next
 from service.run.runner import run_job, summary
 from service.run.store import Store
-from service.spec import load
+from service.spec import build, load
 
 pytestmark = pytest.mark.distributed
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,12 +40,13 @@ def cluster():
         yield client
 
 
-def write_spec(folder: Path, seed: int, name: str = "demo", simulator: str | None = None) -> Path:
+def write_spec(folder: Path, seed: int, name: str = "demo", simulator: str | None = None, particles: int = 200,
+               populations: int = POPULATIONS) -> Path:
     """The authors' demo with the evidence variant, shortened: 200 particles, 3 populations."""
     raw = yaml.safe_load((ROOT / "examples" / "authors_demo" / "evidence.yaml").read_text())
     raw["data"].update(input=f"{DEMO}:force", observed=f"{DEMO}:displacement")
-    raw["sampler"] = {"particles": 200}
-    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": POPULATIONS}
+    raw["sampler"] = {"particles": particles}
+    raw["stop"] = {"min_epsilon_decrease": None, "max_populations": populations}
     raw.update(name=name, seed=seed)
     if simulator is not None:
         for model in raw["models"]:
@@ -243,3 +244,77 @@ def test_store_names_are_distinct_and_stable():
     from service.run.jobs import store_names
 
     assert store_names(["a", "b", "a", "a b/c", "a", "a-2"]) == ["a", "b", "a-2", "a-b-c", "a-3", "a-2-2"]
+
+
+#: what a population may cost to run whole, in the queue rule's tests: any population costs more
+DEAR_S = 1e-7
+
+
+def test_the_queue_rule_places_a_dear_job_whole_when_every_worker_thread_has_a_job(tmp_path):
+    """:func:`place` with ``local_s`` 1e-7 s (the limit 2e-7 s: every population is dear):
+    the job runs whole when the jobs running or waiting (this one too) and the job slots are
+    each at least the worker threads (every thread runs a job anyway), and says so (reason
+    ``queue``, the figures recorded, in words); it spreads when alone, when the jobs are
+    fewer than the threads, on workers of several threads (2 slots never fill 16 threads)
+    and without figures (as before); a cheap job runs whole, and ``local_s`` 0 keeps every
+    population on the cluster, whatever the queue. Before: every dear job spread."""
+    spec, base = load(write_spec(tmp_path, 1))
+    job = build(spec, base, False)
+
+    def placed(local_s: float, threads: int, jobs: int | None, slots: int | None) -> tuple[str, str]:
+        p = place(job, local_s, threads, "tcp://w", jobs, slots)
+        return p["mode"], p["reason"]
+
+    assert placed(DEAR_S, 2, 3, 2) == placed(DEAR_S, 2, 2, 2) == ("whole", "queue")
+    assert placed(DEAR_S, 2, 1, 2) == ("spread", "dear")  # a lone dear job still spreads
+    assert placed(DEAR_S, 4, 3, 4) == ("spread", "dear")  # a thread would idle
+    assert placed(DEAR_S, 16, 32, 2) == ("spread", "dear")  # 2 workers of 8 threads
+    assert placed(DEAR_S, 2, None, None) == ("spread", "dear")
+    assert placed(1e3, 2, 1, 2) == ("whole", "cheap")
+    assert placed(0.0, 2, 3, 2) == ("spread", "on the cluster")
+    p = place(job, DEAR_S, 2, "tcp://w", 3, 2)
+    assert p["jobs"] == 3 and p["job_slots"] == 2 and p["worker_threads"] == 2 and p["population_s"] > p["limit_s"]
+    assert placement_text(p).startswith("whole on tcp://w: a population ~")
+    assert placement_text(p).endswith(" > 0.0002 ms, but 3 jobs for 2 worker threads: every thread has a job")
+
+
+def test_the_tail_spreads_one_whole_job_per_free_slot_the_latest_started_first():
+    """:func:`spread_next` (no job waits): of the jobs placed whole by the queue rule, the
+    latest started spreads first, one per free job slot beyond the jobs already asked that
+    still run; a job whole because it is cheap, or not placed yet, stays."""
+    queue, cheap = {"mode": "whole", "reason": "queue"}, {"mode": "whole", "reason": "cheap"}
+    running = [("a", queue), ("b", cheap), ("c", queue), ("d", None)]
+    assert spread_next(running, set(), 1) == ["c"]
+    assert spread_next(running, set(), 5) == ["c", "a"]
+    assert spread_next(running, {"c"}, 1) == []  # the free slot's threads are c's batches'
+    assert spread_next(running, {"c", "z"}, 2) == ["a"]  # z has ended: it holds no slot's threads
+    assert spread_next(running, set(), 0) == []
+
+
+def test_dear_jobs_run_whole_while_every_thread_has_one_and_the_last_spreads_when_a_slot_frees(cluster, tmp_path):
+    """Two dear jobs (``local_s`` 1e-7 s) on 2 single-threaded workers through run_jobs:
+    each is placed whole by the queue rule (2 jobs, 2 slots, 2 threads), where each spread
+    before. When the short one (200 particles, 3 populations) ends, no job waits and a slot
+    is free: the long one (1000 particles, 15 populations: ~5x longer) is asked to spread,
+    stops its whole run at its next batch and resumes from its store spread (a second
+    start event; the store's placement says so, with the populations it made whole). Both
+    results equal, bit for bit, their runs alone in this process."""
+    specs = [write_spec(tmp_path / "specs", 1, name="short"),
+             write_spec(tmp_path / "specs", 2, name="long", particles=1000, populations=15)]
+    starts: dict[int, list[dict]] = {0: [], 1: []}
+
+    def on_event(i: int, event: dict) -> None:
+        if event["kind"] == "start":
+            starts[i].append(event["placement"])
+
+    jobs = [JobRun.of(*load(spec), tmp_path / "out" / f"{spec.stem}.zarr", spec.stem) for spec in specs]
+    outcomes = run_jobs(cluster, jobs, local_s=DEAR_S, on_event=on_event)
+    assert [o.status for o in outcomes] == ["finished", "finished"], outcomes
+    for first in (starts[0][0], starts[1][0]):
+        assert (first["mode"], first["reason"], first["jobs"], first["job_slots"]) == ("whole", "queue", 2, 2), first
+    assert len(starts[0]) == 1, starts[0]
+    assert [(p["mode"], p["reason"]) for p in starts[1]] == [("whole", "queue"), ("spread", "idle")], starts[1]
+    moved = Store.open(jobs[1].store).attrs["run"]["placement"]
+    assert moved == starts[1][1] == outcomes[1].placement and 0 <= moved["whole_populations"] < 15, moved
+    for spec, job in zip(specs, jobs, strict=True):
+        assert_same_store(alone(spec, tmp_path / f"alone-{spec.stem}.zarr"), job.store)

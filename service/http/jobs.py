@@ -55,7 +55,19 @@ from distributed import Client
 
 from abcns import SpecError, StopReason
 from service.http.limits import Limits, admit
-from service.run.jobs import JOB_RESOURCE, JobRun, WorkerWatch, job_workers, no_space, prepare_cluster, run_one, scheduler_id
+from service.run.jobs import (
+    JOB_RESOURCE,
+    JobRun,
+    WorkerWatch,
+    ask_to_spread,
+    cluster_slots,
+    job_workers,
+    no_space,
+    prepare_cluster,
+    run_one,
+    scheduler_id,
+    spread_next,
+)
 from service.run.runner import Progress, local_population_s, run_job, summary, wait_for_store_lock
 from service.run.store import Store, StoreError, metadata
 from service.spec import JobSpec, build, cut_to_read, spec_text
@@ -275,6 +287,7 @@ class JobRecord:
     announcing: threading.Lock = field(default_factory=threading.Lock)  # one population event at a time
     turn: threading.Event = field(default_factory=threading.Event)  # asked to give its worker to a waiting job
     running_since: float = 0.0  # monotonic: when its loop last started (its turn's start)
+    task: str | None = None  # its loop's Dask task, while it runs on a worker
     events: EventLog | None = None  # opened when the manager takes the job (``log``)
 
     @property
@@ -382,6 +395,7 @@ class JobManager:
         self.queue: deque[str] = deque()
         self.running: set[str] = set()
         self.held: dict[str, str] = {}  # job id -> the worker whose job slot its loop was given
+        self.spread_asked: set[str] = set()  # the tasks of running jobs asked to spread (no job waits)
         self.prepared_on: str | None = None  # the id of the scheduler prepared for job tasks (_free_slots)
         self.busy: deque[tuple[float, float]] = deque()  # (monotonic, simulation s) per population: utilization()
         self.busy_lock = threading.Lock()
@@ -597,6 +611,8 @@ class JobManager:
             connected = self.stopping or self._connected()
             look = self.queue or self.prepared_on is None  # the first look prepares the cluster
             free = self._free_slots() if connected and look and not self.stopping else []
+            if connected and not self.queue and not self.stopping:
+                self._spread_idle()
             with self.lock:
                 if self.stopping:
                     return
@@ -629,6 +645,22 @@ class JobManager:
         due = [job for job in running if job.running_since and now - job.running_since >= self.turn_s]
         if due:
             min(due, key=lambda job: job.running_since).turn.set()
+
+    def _spread_idle(self) -> None:
+        """No job waits: the running jobs placed whole by the queue rule spread, one per free
+        job slot, the latest started first (:func:`service.run.jobs.spread_next`), each asked
+        once (:func:`service.run.jobs.ask_to_spread`). The scheduler is asked for the free
+        slots only while such a job runs."""
+        with self.lock:
+            running = sorted((self.jobs[i] for i in self.running if i in self.jobs and self.jobs[i].task),
+                             key=lambda j: j.running_since)
+        if self.client is None or not any((j.placement or {}).get("reason") == "queue"
+                                          and j.task not in self.spread_asked for j in running):
+            return
+        tasks = {j.task: j for j in running}
+        for key in spread_next([(j.task, j.placement) for j in running], self.spread_asked, len(self._free_slots())):
+            self.spread_asked.add(key)
+            ask_to_spread(self.client, key, (tasks[key].placement or {}).get("worker") or self.held.get(tasks[key].id, ""))
 
     def _free_slots(self) -> Sequence[str]:
         """The workers with a job slot that no running job holds (none without a client, or
@@ -800,6 +832,8 @@ class JobManager:
     def _free(self, job: JobRecord) -> None:
         job.placement = None
         job.turn.clear()
+        self.spread_asked.discard(job.task or "")
+        job.task = None
         with self.lock:
             self.running.discard(job.id)
             self.held.pop(job.id, None)
@@ -856,10 +890,13 @@ class JobManager:
                 log.warning("job %s: a message of its loop was not recorded: %r", job.id, err)
 
         client.subscribe_topic(topic, on_message)
-        future = client.submit(run_one, spec, data, str(job.store_path),
-                               local_s=local_population_s(), threads=sum(client.nthreads().values()), topic=topic,
-                               owned_store=True, key=f"abcns-job-{job.id}-{uuid.uuid4().hex[:8]}", workers=[worker],
-                               allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)
+        threads, slots = cluster_slots(client)
+        with self.lock:  # the queue rule's figures: the jobs running (this one too) and waiting
+            jobs = len(self.running) + len(self.queue)
+        job.task = f"abcns-job-{job.id}-{uuid.uuid4().hex[:8]}"
+        future = client.submit(run_one, spec, data, str(job.store_path), local_s=local_population_s(), threads=threads,
+                               jobs=jobs, slots=len(slots), topic=topic, owned_store=True, key=job.task,
+                               workers=[worker], allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)
         job.running_since = time.monotonic()
         lost, done = WorkerWatch(client, worker), threading.Event()
         future.add_done_callback(lambda _: done.set())

@@ -87,7 +87,7 @@ import time
 import traceback
 import uuid
 from collections import deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -97,7 +97,7 @@ import numpy as np
 from distributed import Client, Future, get_worker, worker_client
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from abcns import Result, SpecError
+from abcns import Result, SpecError, StopReason
 from abcns.executor import Batch, BatchError
 from service.run.runner import Progress, local_population_s, run_job, summary, with_records
 from service.run.store import Store, StoreError
@@ -259,24 +259,84 @@ def limit_seconds(local_s: float, threads: int) -> float:
     return local_s * min(2.0, threads / (threads - 1))
 
 
-def place(job: Job, local_s: float, threads: int, worker: str) -> dict:
-    """The job's placement (``mode`` whole or spread) and what it was decided from."""
+def queue_full(jobs: int | None, slots: int | None, threads: int) -> bool:
+    """Whether every worker thread runs a job's loop anyway (the queue rule): the jobs
+    running or waiting, and the job slots (one loop per worker process), are each at least
+    the cluster's worker threads. Workers of several threads have fewer slots than threads:
+    their queue never fills the cluster, and a dear job spreads there. Unknown figures
+    (None): not full."""
+    return jobs is not None and slots is not None and min(jobs, slots) >= threads
+
+
+def cluster_slots(client: Client) -> tuple[int, dict[str, int]]:
+    """The cluster's worker threads, and its workers with a job slot and their threads
+    (:func:`job_workers`), from one scheduler call."""
+    info = client.scheduler_info(n_workers=-1)
+    return sum(int(w.get("nthreads", 1)) for w in info["workers"].values()), job_workers(client, info)
+
+
+def place(job: Job, local_s: float, threads: int, worker: str, jobs: int | None = None,
+          slots: int | None = None) -> dict:
+    """The job's placement (``mode`` whole or spread), why (``reason``) and what it was
+    decided from: its cost (the pilot) against the limit, and the queue (``jobs`` running or
+    waiting with this one, ``job_slots``) against the worker threads (:func:`queue_full`)."""
     limit = limit_seconds(local_s, threads)
     out: dict[str, Any] = {"worker": worker, "worker_threads": threads, "local_s": local_s,
-                           "limit_s": None if math.isinf(limit) else limit, "particles": int(job.settings.particles)}
+                           "limit_s": None if math.isinf(limit) else limit, "particles": int(job.settings.particles),
+                           "jobs": jobs, "job_slots": slots}
     if limit == 0 or math.isinf(limit):  # nothing to measure
-        out.update(mode="spread" if limit == 0 else "whole", simulation_s=None, population_s=None, pilot_s=0.0)
+        out.update(mode="spread" if limit == 0 else "whole", reason="on the cluster" if limit == 0 else "one thread",
+                   simulation_s=None, population_s=None, pilot_s=0.0)
         return out
     try:
         c, spent, warm = simulation_seconds(job, limit)
     except Exception as err:  # the run says what is wrong, with its batch
-        out.update(mode="whole", simulation_s=None, population_s=None, pilot_s=None,
+        out.update(mode="whole", reason="pilot failed", simulation_s=None, population_s=None, pilot_s=None,
                    note=f"the pilot failed ({type(err).__name__}); the run reports it")
         return out
     cost = c * job.settings.particles
-    out.update(mode="whole" if cost <= limit else "spread", simulation_s=c, population_s=cost, pilot_s=spent,
+    mode, reason = (("whole", "cheap") if cost <= limit else ("whole", "queue") if queue_full(jobs, slots, threads)
+                    else ("spread", "dear"))
+    out.update(mode=mode, reason=reason, simulation_s=c, population_s=cost, pilot_s=spent,
                pilot="warm calls" if warm else "first call (at most)")
     return out
+
+
+# ---------------------------------------------------------------------------- the tail
+
+
+#: on a worker: the keys of the job tasks asked to spread (:func:`ask_to_spread`)
+ASKED: set[str] = set()
+
+
+def _asked(key: str) -> None:
+    """On a worker (``Client.run``, its event loop): the job task ``key`` is to spread."""
+    ASKED.add(key)
+
+
+def ask_to_spread(client: Client, key: str, worker: str) -> bool:
+    """Tell the job task ``key`` on ``worker``, placed whole by the queue rule, that no job
+    waits and a job slot is free: it spreads from its next batch (:func:`run_one`). False
+    (logged) when the worker did not answer; the job then stays whole."""
+    try:
+        client.run(_asked, key, workers=[worker])
+        return True
+    except Exception as err:  # the worker left meanwhile: its job is placed again anyway
+        log.warning("could not ask job task %s on %s to spread: %r", key, worker, err)
+        return False
+
+
+def spread_next(running: Sequence[tuple[Any, Mapping[str, Any] | None]], asked: Collection[Any], free: int) -> list:
+    """Which running jobs to ask to spread now that no job waits (``running``: each job's
+    id and placement, oldest start first; ``asked``: those asked before; ``free``: the job
+    slots no loop holds): the jobs placed whole by the queue rule, the latest started
+    first (the most work left, like their peers), one per free slot beyond the jobs asked
+    already that still run. Each so spreads over its own thread and at least one idle one;
+    asking every whole job at once would share the idle threads among many, each paying
+    the cluster's round trips for a small share."""
+    room = free - sum(1 for job, _ in running if job in asked)
+    movable = [job for job, p in running if (p or {}).get("reason") == "queue" and job not in asked]
+    return movable[::-1][:max(0, room)]
 
 
 def _released(worker, key) -> bool:
@@ -287,12 +347,13 @@ def _released(worker, key) -> bool:
 
 def run_one(spec: JobSpec, data: dict[str, np.ndarray], store: str, *, seed: int | None = None,
             allow_import: bool = False, local_s: float, threads: int, topic: str | None = None,
-            index: int = 0, owned_store: bool = False) -> dict:
-    """The Dask task of one job: decide its placement (:func:`place`), run (or resume) it
-    with :func:`run_job` whole here or spread from here, and return its outcome as a dict
-    (:class:`Outcome`'s fields). Holds the worker's :data:`JOB_RESOURCE` (the caller asks
-    for it). Never raises for the job's own failure: the other jobs go on. ``owned_store``:
-    the store is the service's (:func:`run_job`'s lock and clean-up)."""
+            index: int = 0, owned_store: bool = False, jobs: int | None = None, slots: int | None = None) -> dict:
+    """The Dask task of one job: decide its placement (:func:`place`; ``jobs``, ``slots``:
+    the queue as the caller saw it when it handed the job out), run (or resume) it with
+    :func:`run_job` whole here or spread from here (:func:`_run_placed`), and return its
+    outcome as a dict (:class:`Outcome`'s fields). Holds the worker's :data:`JOB_RESOURCE`
+    (the caller asks for it). Never raises for the job's own failure: the other jobs go on.
+    ``owned_store``: the store is the service's (:func:`run_job`'s lock and clean-up)."""
     worker = get_worker()
     key = worker.get_current_task()
 
@@ -309,7 +370,7 @@ def run_one(spec: JobSpec, data: dict[str, np.ndarray], store: str, *, seed: int
             run_job(spec, None, path, None, data=data, allow_import=allow_import)
             return _outcome(path, None, "finished")
         job = build(with_records(spec, data), None, allow_import)  # the job as run_job builds it
-        placement = place(job, local_s, threads, worker.address)
+        placement = place(job, local_s, threads, worker.address, jobs, slots)
         emit("start", placement=placement)
 
         names = [m.name for m in job.models]
@@ -318,13 +379,8 @@ def run_one(spec: JobSpec, data: dict[str, np.ndarray], store: str, *, seed: int
             emit("population", event=p.event(names), busy_s=p.busy_s)
 
         run = partial(run_job, spec, None, path, data=data, on_population=progress, allow_import=allow_import,
-                      cancel=lambda: _released(worker, key), local_s=local_s, placement=placement,
-                      owned_store=owned_store)
-        if placement["mode"] == "whole":
-            result = run(None)
-        else:
-            with worker_client() as client:  # secedes: the worker's thread goes to the batches
-                result = run(client)
+                      local_s=local_s, owned_store=owned_store)
+        placement, result = _run_placed(run, placement, lambda: _released(worker, key), str(key), emit, path)
         status = Store.open(path).attrs.get("status")
         return _outcome(path, placement, "finished" if status == "finished" else "cancelled",
                         None if status == "finished" else "the job was cancelled", result)
@@ -336,6 +392,38 @@ def run_one(spec: JobSpec, data: dict[str, np.ndarray], store: str, *, seed: int
         if no_space(err):  # a full disk: the stored populations stand, the caller may resume them
             return _outcome(path, placement, "no_space", f"{type(err).__name__}: {err}")
         return _outcome(path, placement, "error", f"{type(err).__name__}: {err}\n{traceback.format_exc()}")
+    finally:
+        ASKED.discard(str(key))
+
+
+def _run_placed(run: Callable[..., Result], placement: dict, released: Callable[[], bool], key: str,
+                emit: Callable[..., None], path: Path) -> tuple[dict, Result]:
+    """Run the job where it is placed: whole here (``run(None)``, the in-process engine), or
+    spread from here (the task secedes: ``distributed.worker_client`` gives the worker's
+    thread to the batches). A job placed whole by the queue rule spreads once the caller
+    asks (:func:`ask_to_spread`: no job waits, a slot is free): its whole run stops at its
+    next batch (the rows of the population being filled are dropped, as at a turn's end)
+    and resumes from its store spread, bit-identical (the resume contract); the new
+    placement (``reason`` idle, ``whole_populations``: those it made whole) is sent as a
+    second start event and recorded. Returns the final placement and the result."""
+    movable = placement["mode"] == "whole" and placement.get("reason") == "queue"
+    if placement["mode"] == "whole" and not (movable and key in ASKED):
+        result = run(None, cancel=lambda: released() or (movable and key in ASKED), placement=placement)
+        if not movable or released() or key not in ASKED or result.stop_reason is not StopReason.CANCELLED:
+            return placement, result
+    if placement["mode"] == "whole":  # asked to spread, before its run or during it
+        placement = {**placement, "mode": "spread", "reason": "idle", "whole_populations": _populations(path)}
+        emit("start", placement=placement)
+    with worker_client() as client:
+        return placement, run(client, cancel=released, placement=placement)
+
+
+def _populations(path: Path) -> int:
+    """The populations in the store at ``path`` (0 without one)."""
+    try:
+        return Store.open(path).n_populations
+    except (StoreError, OSError, KeyError, ValueError):
+        return 0
 
 
 def no_space(err: BaseException | None) -> bool:
@@ -423,8 +511,10 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
     running: dict[int, tuple[Future, str]] = {}
     watches: dict[int, WorkerWatch] = {}
     where: dict[int, str] = {}  # the worker of each running job's latest start event
+    placed: dict[int, dict | None] = {}  # each job's latest placement (its start events)
+    asked: set[int] = set()  # the jobs asked to spread (the tail)
     outcomes: list[Outcome | None] = [None] * len(jobs)
-    next_look = 0.0
+    next_look, n_slots = 0.0, 0
 
     def deliver(wait_s: float = 0.0) -> None:
         """Hand every queued event to ``on_event``, waiting ``wait_s`` at most for the first."""
@@ -435,6 +525,7 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
                 return
             wait_s = 0.0
             if isinstance(msg, dict) and msg.get("kind") == "start" and "job" in msg:
+                placed[int(msg["job"])] = msg.get("placement")
                 where[int(msg["job"])] = str((msg.get("placement") or {}).get("worker") or "")
             if on_event is not None and isinstance(msg, dict) and "job" in msg:
                 on_event(int(msg["job"]), {k: v for k, v in msg.items() if k != "job"})
@@ -443,20 +534,16 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
         while waiting or running:
             if waiting and time.monotonic() >= next_look:
                 next_look = time.monotonic() + LOOK_S
-                slots = job_workers(client)
-                threads = sum(client.nthreads().values())
+                threads, slots = cluster_slots(client)
+                n_slots = len(slots)
                 held = {addr for _, addr in running.values()}
                 for addr in (a for a in slots if a not in held):
                     if not waiting:
                         break
                     i = waiting.popleft()
-                    job = jobs[i]
-                    future = client.submit(run_one, job.spec, job.data, str(job.store),
-                                           seed=seed, allow_import=allow_import, local_s=local_s, threads=threads,
-                                           topic=topic, index=i, key=f"abcns-job-{nonce}-{i}", workers=[addr],
-                                           allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)
-                    future.add_done_callback(lambda _: events.put(None))  # wakes deliver(): the slot is free
-                    running[i] = (future, addr)
+                    running[i] = (_submit(client, jobs[i], addr, events, key=f"abcns-job-{nonce}-{i}", topic=topic,
+                                          index=i, seed=seed, allow_import=allow_import, local_s=local_s,
+                                          threads=threads, jobs=len(running) + len(waiting) + 1, slots=n_slots), addr)
                     watches[i], where[i] = WorkerWatch(client, addr), addr
             deliver(poll_s)
             for i, (future, addr) in list(running.items()):
@@ -473,12 +560,33 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
                     next_look = 0.0
                     if on_event is not None:
                         on_event(i, {"kind": "requeued", "reason": "its worker was lost"})
+            if not waiting and running:  # the tail: idle slots go to jobs placed whole by the queue rule
+                _spread_idle(client, running, where, placed, asked, n_slots - len(running))
         deliver(min(poll_s, 0.05))  # an event still on its way after the last task's end
     finally:
         for future, _ in running.values():
             future.release()  # each run stops at its next batch (run_one's cancel)
         client.unsubscribe_topic(topic)
     return [o if o is not None else Outcome("error", "no outcome") for o in outcomes]
+
+
+def _submit(client: Client, job: JobRun, addr: str, events: queue.SimpleQueue, *, key: str, **kwargs: Any) -> Future:
+    """The job's task ``key`` (:func:`run_one`, with ``kwargs``) on ``addr``'s job slot,
+    pinned loosely; its end puts None on ``events`` (wakes :func:`run_jobs`: a slot is free)."""
+    future = client.submit(run_one, job.spec, job.data, str(job.store), key=key, workers=[addr],
+                           allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False, **kwargs)
+    future.add_done_callback(lambda _: events.put(None))
+    return future
+
+
+def _spread_idle(client: Client, running: Mapping[int, tuple[Future, str]], where: Mapping[int, str],
+                 placed: Mapping[int, dict | None], asked: set[int], free: int) -> None:
+    """No job waits: ask the running jobs that :func:`spread_next` names to spread (once
+    each; in handing-out order, the start order)."""
+    for i in spread_next([(i, placed.get(i)) for i in sorted(running)], asked, free):
+        asked.add(i)
+        future, addr = running[i]
+        ask_to_spread(client, str(future.key), where.get(i) or addr)
 
 
 def _collect(future: Future) -> Outcome:
@@ -506,8 +614,20 @@ def placement_text(placement: Mapping[str, Any] | None) -> str:
                else "ABCNS_LOCAL_POPULATION_S is 0: every population on the cluster" if limit == 0
                else placement.get("note", "not measured"))
     else:
-        sign = "<=" if mode == "whole" else ">"
+        sign = "<=" if cost <= limit else ">"
         most = "at most " if placement.get("pilot", "").startswith("first") else "~"
         why = (f"a population {most}{cost * 1e3:.3g} ms of simulations ({c * 1e6:.3g} us each x "
                f"{placement['particles']} particles) {sign} {limit * 1e3:.3g} ms")
-    return f"{where}: {why}"
+    return f"{where}: {why}{_queue_text(placement)}"
+
+
+def _queue_text(placement: Mapping[str, Any]) -> str:
+    """What the queue rule added to the placement, in words ("" when it had no say)."""
+    reason, jobs, threads = (placement.get(k) for k in ("reason", "jobs", "worker_threads"))
+    if reason == "queue":
+        return f", but {jobs} jobs for {threads} worker threads: every thread has a job"
+    if reason == "idle":
+        return f"; spread after {placement.get('whole_populations')} populations whole: no job waits, a slot is free"
+    if reason == "dear" and jobs is not None:
+        return f", and {jobs} jobs for {threads} worker threads"
+    return ""
