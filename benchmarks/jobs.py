@@ -255,8 +255,16 @@ def service_ends(service, ids: dict[int, str]) -> tuple[float, Counter]:
             raise SystemExit(f"seed {seed} ended {events[-1]['event']} through the service: {events[-1]['data']}")
         last = max(last, events[-1]["time"])
         placed = [e["data"]["placement"] for e in events if e["event"] == "placed"]
-        places[placed[0]["mode"] if placed else "?"] += 1
+        places[placement_kind(placed[-1] if placed else None)] += 1
     return last, places
+
+
+def placement_kind(placement: dict | None) -> str:
+    """A job's final placement for the counts: its mode and why (the queue rule: ``whole
+    (queue)``; ``spread (idle)``: placed whole by it, spread once a slot was free)."""
+    if not placement:
+        return "?"
+    return f"{placement['mode']} ({placement['reason']})" if placement.get("reason") else placement["mode"]
 
 
 def job_specs(args) -> tuple[JobSpec, Path | None]:
@@ -344,7 +352,7 @@ def report(args, folder: Path, seeds: range, one: dict | None, both: dict, plain
         print(where_time_goes("service", args.jobs, args.workers, served["wall"], served["cpu"], served["idle"]))
         print(f"through the service: the {args.jobs} submissions took {served['submit_s']:.1f} s of it (each spec's data "
               "inline, parsed apart); placements: " + ", ".join(f"{n} {m}" for m, n in sorted(served["places"].items())))
-    places = Counter((o.placement or {}).get("mode", "?") for o in both["outcomes"])
+    places = Counter(placement_kind(o.placement) for o in both["outcomes"])
     print(f"run_jobs: the cluster's start {both['cluster_s']:.1f} s apart; placements: "
           + ", ".join(f"{n} {mode}" for mode, n in sorted(places.items())))
     if args.sleepy is not None:

@@ -160,3 +160,27 @@ def test_the_service_readies_a_fresh_cluster_for_jobs_before_any_is_submitted(pr
         assert not list(service.store_dir.iterdir()), "a job was submitted"
     finally:
         service.close()
+
+
+def test_the_service_runs_a_dear_job_whole_while_jobs_fill_the_workers_and_spreads_it_when_a_slot_frees(
+        cluster, tmp_path):
+    """The queue rule in the service (ABCNS_LOCAL_POPULATION_S=1e-7 s: every population is
+    dear), on the shared cluster's 2 single-threaded workers, no --max-running: jobs a (2
+    populations), b (6) and c (16) submitted at once. c starts only when a slot frees (a's),
+    while b runs: 2 jobs for 2 slots and 2 threads, so c runs whole (reason queue; before:
+    spread). When b ends, no job waits and b's slot is free: c is asked to spread, and says
+    so in a second `placed` event (reason idle). Every job ends bit-identical to its spec
+    run alone."""
+    service = Service(tmp_path / "jobs", cluster.address, max_running=None, env={"ABCNS_LOCAL_POPULATION_S": "1e-7"})
+    try:
+        ids = [submit(service, seed, populations=n, floor=False) for seed, n in ((6, 2), (7, 6), (8, 16))]
+        events = {job_id: follow(service.url, job_id) for job_id in ids}
+        for job_id in ids:
+            assert events[job_id][-1]["event"] == "finished", events[job_id][-3:]
+        placed = [e["data"]["placement"] for e in events[ids[2]] if e["event"] == "placed"]
+        assert [(p["mode"], p["reason"]) for p in placed] == [("whole", "queue"), ("spread", "idle")], placed
+        assert (placed[0]["jobs"], placed[0]["job_slots"], placed[0]["worker_threads"]) == (2, 2, 2), placed[0]
+        for job_id in ids:
+            identical_to_a_run_alone(service, job_id, tmp_path)
+    finally:
+        service.close()

@@ -891,11 +891,11 @@ class JobManager:
 
         client.subscribe_topic(topic, on_message)
         threads, slots = cluster_slots(client)
-        with self.lock:  # the queue rule's figures: the jobs running (this one too) and waiting
-            jobs = len(self.running) + len(self.queue)
+        with self.lock:  # the queue rule's figures: the jobs running (this one too) and waiting, the loops at once
+            jobs, loops = len(self.running) + len(self.queue), min(len(slots), self.max_running or len(slots))
         job.task = f"abcns-job-{job.id}-{uuid.uuid4().hex[:8]}"
         future = client.submit(run_one, spec, data, str(job.store_path), local_s=local_population_s(), threads=threads,
-                               jobs=jobs, slots=len(slots), topic=topic, owned_store=True, key=job.task,
+                               jobs=jobs, slots=loops, topic=topic, owned_store=True, key=job.task,
                                workers=[worker], allow_other_workers=True, resources={JOB_RESOURCE: 1}, pure=False)
         job.running_since = time.monotonic()
         lost, done = WorkerWatch(client, worker), threading.Event()

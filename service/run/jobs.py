@@ -20,7 +20,7 @@ the task returns the job's outcome and JSON summary. Where a job runs never chan
 result: a batch's result does not depend on where it runs (the determinism contract), and
 the in-process engine and the Dask executor give the same bits.
 
-**Placement by cost, decided once on the worker before the run.** The task times the job's
+**Placement by cost and by the queue, decided on the worker before the run.** The task times the job's
 own evaluator on one batch of the first population's kind of proposals (``batch_size``
 draws from the priors, with a generator of its own, so the job's random stream is
 untouched): a warm-up call (it loads the compiled kernels, as the run's first batch would),
@@ -31,22 +31,35 @@ run ~0.5-2 N per population, the first ~5 N, a rare one ~7 N). Today's rule of t
 (:meth:`service.run.dask_executor.Stream.here`, ``ABCNS_LOCAL_POPULATION_S``: 25 ms) says
 what a population must cost for the cluster to shorten it by more than Dask's round trips
 cost: ``local_s x min(2, W / (W - 1))`` over ``W`` worker threads. At or below it the job
-runs **whole** on its worker: ``run_job(..., client=None)`` inside the task, the in-process
-engine, no task per batch, the worker's thread held for the whole job. Above it the job
-**spreads**: the task secedes (``distributed.worker_client``, which gives the worker's
-thread back to the cluster and rejoins at the end) and hands that client to ``run_job``, so
-the Dask executor fans the job's batches out over every worker with a free thread (and its
-own per-population rule still keeps a population that turns out cheap in the job's
-process). With one worker thread in the cluster a job always runs whole (spreading would
-send its batches back to its own process); with ``local_s`` 0 ("always on the cluster", as
-for one job) it always spreads. The decision is recorded in the store (the run information's
-``placement``, also in the summary: ``mode``, ``worker``, ``simulation_s``, ``population_s``,
-``limit_s``, ``worker_threads``, ``pilot``: the warm calls, or the first call alone when
-that already put a population under the limit) and sent with the job's start event. Near the limit either
+runs **whole** on its worker (``reason`` cheap): ``run_job(..., client=None)`` inside the
+task, the in-process engine, no task per batch, the worker's thread held for the whole job.
+Above it the job **spreads** (``reason`` dear): the task secedes
+(``distributed.worker_client``, which gives the worker's thread back to the cluster and
+rejoins at the end) and hands that client to ``run_job``, so the Dask executor fans the
+job's batches out over every worker with a free thread (and its own per-population rule
+still keeps a population that turns out cheap in the job's process), unless **the queue
+rule** (:func:`queue_full`) says every worker thread runs a job anyway: the jobs running or
+waiting (this one too, as the caller counted them when it handed the job out: ``jobs``)
+and the job slots (``job_slots``) are each at least ``W``. Then a dear job runs whole too
+(``reason`` queue): spread, it would only take its turn on threads that other jobs' loops
+keep busy, and pay Dask's round trips and each population's surplus tasks for nothing
+(docs/benchmarks.md, "Many jobs at once": 8 sleepy jobs on 2 workers). Workers of several
+threads have fewer slots than threads (one loop per process): there a queue never fills
+the threads, and dear jobs spread as before. With one worker thread in the cluster a job
+always runs whole (spreading would send its batches back to its own process); with
+``local_s`` 0 ("always on the cluster", as for one job) it always spreads. **The tail**: a
+job placed whole by the queue rule spreads once no job waits and a job slot is free (the
+caller asks it, :func:`ask_to_spread`, one job per free slot, the latest started first:
+:func:`spread_next`): its whole run stops at its next batch, as at a turn's end (the rows
+of the population being filled are dropped), and resumes from its store spread, in the same
+task and worker slot, bit-identical (the resume contract). The decision is recorded in the
+store (the run information's ``placement``, also in the summary: ``mode``, ``reason``,
+``worker``, ``simulation_s``, ``population_s``, ``limit_s``, ``worker_threads``, ``jobs``,
+``job_slots``, ``pilot``: the warm calls, or the first call alone when that already put a
+population under the limit; after the tail's move ``reason`` idle and ``whole_populations``)
+and sent with the job's start event (a second one at the move). Near the limit either
 placement costs about the same (that is what the limit means), so the estimate's error
-there matters little; a whole job whose later populations turn dear stays whole (on a full
-cluster, more jobs than workers, spreading them would gain nothing: every worker already
-runs a job of its own).
+there matters little; a job whole because it is cheap stays whole.
 
 **One job loop per worker process: a worker resource.** Each job task asks for the
 resource ``abcns-job`` (:data:`JOB_RESOURCE`), of which every worker has one. Dask keeps a
@@ -261,10 +274,10 @@ def limit_seconds(local_s: float, threads: int) -> float:
 
 def queue_full(jobs: int | None, slots: int | None, threads: int) -> bool:
     """Whether every worker thread runs a job's loop anyway (the queue rule): the jobs
-    running or waiting, and the job slots (one loop per worker process), are each at least
-    the cluster's worker threads. Workers of several threads have fewer slots than threads:
-    their queue never fills the cluster, and a dear job spreads there. Unknown figures
-    (None): not full."""
+    running or waiting, and the job slots (the loops that may run at once: one per worker
+    process, at most the service's ``--max-running``), are each at least the cluster's
+    worker threads. Workers of several threads have fewer slots than threads: their queue
+    never fills the cluster, and a dear job spreads there. Unknown figures (None): not full."""
     return jobs is not None and slots is not None and min(jobs, slots) >= threads
 
 
