@@ -508,7 +508,9 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
              local_s: float | None = None, on_event: Callable[[int, dict], None] | None = None,
              poll_s: float = 0.2) -> list[Outcome]:
     """Run ``jobs`` on the cluster of ``client``, each as one task (:func:`run_one`) on a
-    worker with a free job slot, in the order given as slots free; return their outcomes in
+    worker with a free job slot, in the order given as slots free (each told the queue as it
+    is then: the queue rule of :func:`place`); once none waits, the jobs placed whole by that
+    rule are asked to spread as slots free (:func:`spread_next`). Return their outcomes in
     that order. ``on_event(index, event)`` is called on this thread for each job's events:
     ``{"kind": "start", "placement": {...}}``, then ``{"kind": "population", "event": {...},
     "busy_s": ...}`` (the population event, :meth:`service.run.runner.Progress.event`). ``local_s``:
@@ -570,6 +572,7 @@ def run_jobs(client: Client, jobs: Sequence[JobRun], *, seed: int | None = None,
                     future.release()
                     del running[i]
                     waiting.appendleft(i)  # resumed from its store on the next free slot
+                    asked.discard(i)  # placed again there
                     next_look = 0.0
                     if on_event is not None:
                         on_event(i, {"kind": "requeued", "reason": "its worker was lost"})
