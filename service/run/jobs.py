@@ -643,7 +643,7 @@ def _queue_text(placement: Mapping[str, Any]) -> str:
     if reason == "queue":
         return f", but {jobs} jobs for {threads} worker threads: every thread has a job"
     if reason == "idle":
-        return f"; spread after {placement.get('whole_populations')} populations whole: no job waits, a slot is free"
+        return f"; after {placement.get('whole_populations')} populations whole: no job waits, a slot is free"
     if reason == "dear" and jobs is not None:
         return f", and {jobs} jobs for {threads} worker threads"
     return ""
