@@ -122,33 +122,33 @@ def spared(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, t
     return (r.probabilities + 3 * r.se >= threshold) | ~enough(r.ess, dims)
 
 
-def kept(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, now: Record,
-         which: np.ndarray, distances: np.ndarray) -> tuple[float, list[int]]:
-    """(the next tolerance, the models that hold it) after population ``now`` (its new
-    particles, ``now.epsilon_next`` the tolerance the population's distances give; ``which``
-    and ``distances``: all its particles, survivors too). A model with particles in it but
-    none below ``now.epsilon_next`` leaves the run (``no_particles``; with fewer than 2 (d + 1)
-    below it, its next bound is a fit of too few points, and it leaves soon after), and its
-    reading ends with ``now``'s region, {d < eps_t}, uncut. Where the common tolerance jumped
-    far below that model's best fit, the likelihood inside that region varies by many e-folds
-    and the reading weighs its few particles nearest the best fit: its evidence rests on a
-    handful of them, and falls short of its own (a model that fits much worse than another:
-    the cyclic test chiu's Bouc-Wen, on 2.5 effective particles, 2.5 nats below its own
-    run's). While that reading, ``shells`` and ``now`` read together, rests on fewer than
-    2 (d + 1) effective particles (:func:`enough`, the rule that spares a model from death
-    by probability), the next tolerance is raised so that the model keeps its 2 (d + 1)
-    best particles (more than that in the population, else it leaves): each population then
+def kept(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, which: np.ndarray,
+         distances: np.ndarray) -> tuple[float, list[int]]:
+    """(the next tolerance, the models that hold it) after the population of ``shells[-1]``
+    (its new particles; its ``epsilon_next``, the tolerance the population's distances give;
+    ``which`` and ``distances``: all its particles, survivors too). A model with particles in
+    it but none below that tolerance leaves the run (``no_particles``; with fewer than
+    2 (d + 1) below it, its next bound is a fit of too few points, and it leaves soon after),
+    and its reading ends with that population's region, {d < eps_t}, uncut. Where the common
+    tolerance jumped far below that model's best fit, the likelihood inside that region
+    varies by many e-folds and the reading weighs its few particles nearest the best fit: its
+    evidence rests on a handful of them, and falls short of its own (a model that fits much
+    worse than another: the cyclic test chiu's Bouc-Wen, on 2.5 effective particles, 2.5 nats
+    below its own run's). While that reading (of ``shells``) rests on fewer than 2 (d + 1)
+    effective particles (:func:`enough`, the rule that spares a model from death by
+    probability), the next tolerance is raised so that the model keeps its 2 (d + 1) best
+    particles (more than that in the population, else it leaves): each population then
     shrinks its region by its own nested sampling, towards its best fit, until its reading
-    holds. ``now.epsilon_next`` unchanged, no model, without a reading."""
+    holds. The tolerance unchanged, no model, without a reading."""
     log_l = None if floor is None else of_floor(floor)
+    eps = shells[-1].epsilon_next
     counts = np.bincount(which, minlength=len(dims))
-    below = np.bincount(which, weights=distances < now.epsilon_next, minlength=len(dims))
+    below = np.bincount(which, weights=distances < eps, minlength=len(dims))
     keep = np.array([2 * (d + 1) for d in dims])
     leaving = (counts > keep) & (below < keep)
     if log_l is None or not leaving.any():
-        return now.epsilon_next, []
-    leaving &= ~enough(read([*shells, now], dims, log_l).ess, dims)
-    eps = now.epsilon_next
+        return eps, []
+    leaving &= ~enough(read(shells, dims, log_l).ess, dims)
     for m in map(int, np.flatnonzero(leaving)):
         eps = max(eps, float(np.sort(distances[which == m])[keep[m]]))
     return eps, [int(m) for m in np.flatnonzero(leaving)]
