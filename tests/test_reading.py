@@ -385,3 +385,16 @@ def test_a_model_that_leaves_early_is_read_on_enough_particles(seed):
                            history=r.populations[:t]))
     assert [p.t for p in resumed] == [p.t for p in r.populations[t:]]
     assert np.array_equal(resumed[-1].theta, r.final.theta)
+
+
+def test_a_step_a_leaving_model_held_up_is_not_a_stall():
+    """Above the decision tolerance (1.0), a population that closes less than 1e-3 of its
+    distance to it has stalled and stops the run; a step that a leaving model's thin reading
+    set (``abcns.likelihood.kept``) is that model's nested sampling near its own best fit,
+    not the run's, and never stops it (nor does ``min_epsilon_decrease``)."""
+    from abcns.nested import _stop_reason
+
+    rules = StopRules()
+    args = (rules, True, 10, 3.0, 3.0 - 1e-4, False, Standing.ABOVE, [1.0] * 10)
+    assert _stop_reason(*args) is StopReason.STALLED
+    assert _stop_reason(*args, False, True) is None
