@@ -14,8 +14,11 @@ was a new particle once, where it is counted). Without a stated noise, its varia
 integrated out under Jeffreys' prior (:func:`marginal`). In a run stopped above its floor, a
 model whose reading rests on fewer than 2 (d + 1) effective particles (:func:`enough`) takes
 its posterior from the answer population's particles instead
-(:meth:`abcns.result.Result.answer_draws`). The derivation, why (issue W), the standard
-error and the limits: docs/design.md, "Reading by the likelihood".
+(:meth:`abcns.result.Result.answer_draws`). A run at its floor holds its decision tolerance
+while an alive model's reading is thin (:func:`thin`), and a model about to leave on a thin
+reading first keeps its best particles below the next tolerance (:func:`kept`). The
+derivation, why (issue W), the standard error and the limits: docs/design.md, "Reading by
+the likelihood".
 """
 
 from __future__ import annotations
@@ -101,11 +104,11 @@ def of_floor(floor: Floor) -> Callable[[np.ndarray], np.ndarray] | None:
 
 def enough(ess: np.ndarray, dims: Sequence[int], per: float = 2, least: float = 0) -> np.ndarray:
     """Whether each model's reading rests on at least ``per`` (d + 1) effective particles
-    (2 by default), and at least ``least`` of them. Fewer than 2 (d + 1), and its weights sit on a handful of particles: a run
-    stopped above its floor, whose last region is far wider than the posterior, weighs its
-    few particles nearest the best fit (the cyclic test gill's BWBN at 80 populations: 2.7
-    effective particles, intervals 0.35-1.24 of the exact width); a model's few particles far
-    from its best fit can hide most of its evidence."""
+    (2 by default), and at least ``least`` of them. Fewer than 2 (d + 1), and its weights sit
+    on a handful of particles: a run stopped above its floor, whose last region is far wider
+    than the posterior, weighs its few particles nearest the best fit (the cyclic test gill's
+    BWBN at 80 populations: 2.7 effective particles, intervals 0.35-1.24 of the exact width);
+    a model's few particles far from its best fit can hide most of its evidence."""
     return np.asarray(ess) >= np.maximum(per * (np.asarray(dims) + 1), least)
 
 
