@@ -14,8 +14,11 @@ was a new particle once, where it is counted). Without a stated noise, its varia
 integrated out under Jeffreys' prior (:func:`marginal`). In a run stopped above its floor, a
 model whose reading rests on fewer than 2 (d + 1) effective particles (:func:`enough`) takes
 its posterior from the answer population's particles instead
-(:meth:`abcns.result.Result.answer_draws`). The derivation, why (issue W), the standard
-error and the limits: docs/design.md, "Reading by the likelihood".
+(:meth:`abcns.result.Result.answer_draws`). A run at its floor holds its decision tolerance
+while an alive model's reading is thin (:func:`thin`), and a model about to leave on a thin
+reading first keeps its best particles below the next tolerance (:func:`kept`). The
+derivation, why (issue W), the standard error and the limits: docs/design.md, "Reading by
+the likelihood".
 """
 
 from __future__ import annotations
@@ -99,14 +102,14 @@ def of_floor(floor: Floor) -> Callable[[np.ndarray], np.ndarray] | None:
     return marginal(floor.n_samples, floor.best)
 
 
-def enough(ess: np.ndarray, dims: Sequence[int], per: float = 2) -> np.ndarray:
+def enough(ess: np.ndarray, dims: Sequence[int], per: float = 2, least: float = 0) -> np.ndarray:
     """Whether each model's reading rests on at least ``per`` (d + 1) effective particles
-    (2 by default). Fewer than 2 (d + 1), and its weights sit on a handful of particles: a run
-    stopped above its floor, whose last region is far wider than the posterior, weighs its
-    few particles nearest the best fit (the cyclic test gill's BWBN at 80 populations: 2.7
-    effective particles, intervals 0.35-1.24 of the exact width); a model's few particles far
-    from its best fit can hide most of its evidence."""
-    return np.asarray(ess) >= per * (np.asarray(dims) + 1)
+    (2 by default), and at least ``least`` of them. Fewer than 2 (d + 1), and its weights sit
+    on a handful of particles: a run stopped above its floor, whose last region is far wider
+    than the posterior, weighs its few particles nearest the best fit (the cyclic test gill's
+    BWBN at 80 populations: 2.7 effective particles, intervals 0.35-1.24 of the exact width);
+    a model's few particles far from its best fit can hide most of its evidence."""
+    return np.asarray(ess) >= np.maximum(per * (np.asarray(dims) + 1), least)
 
 
 def spared(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, threshold: float) -> np.ndarray | None:
@@ -122,6 +125,38 @@ def spared(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, t
     return (r.probabilities + 3 * r.se >= threshold) | ~enough(r.ess, dims)
 
 
+def kept(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, which: np.ndarray,
+         distances: np.ndarray) -> tuple[float, list[int]]:
+    """(the next tolerance, the models that hold it) after the population of ``shells[-1]``
+    (its new particles; its ``epsilon_next``, the tolerance the population's distances give;
+    ``which`` and ``distances``: all its particles, survivors too). A model with particles in
+    it but none below that tolerance leaves the run (``no_particles``; with fewer than
+    2 (d + 1) below it, its next bound is a fit of too few points, and it leaves soon after),
+    and its reading ends with that population's region, {d < eps_t}, uncut. Where the common
+    tolerance jumped far below that model's best fit, the likelihood inside that region
+    varies by many e-folds and the reading weighs its few particles nearest the best fit: its
+    evidence rests on a handful of them, and falls short of its own (a model that fits much
+    worse than another: the cyclic test chiu's Bouc-Wen, on 2.5 effective particles, 2.5 nats
+    below its own run's). While that reading (of ``shells``) rests on fewer than 2 (d + 1)
+    effective particles (:func:`enough`, the rule that spares a model from death by
+    probability), the next tolerance is raised so that the model keeps its 2 (d + 1) best
+    particles (more than that in the population, else it leaves): each population then
+    shrinks its region by its own nested sampling, towards its best fit, until its reading
+    holds. The tolerance unchanged, no model, without a reading."""
+    log_l = None if floor is None else of_floor(floor)
+    eps = shells[-1].epsilon_next
+    counts = np.bincount(which, minlength=len(dims))
+    below = np.bincount(which, weights=distances < eps, minlength=len(dims))
+    keep = np.array([2 * (d + 1) for d in dims])
+    leaving = (counts > keep) & (below < keep)
+    if log_l is None or not leaving.any():
+        return eps, []
+    leaving &= ~enough(read(shells, dims, log_l).ess, dims)
+    for m in map(int, np.flatnonzero(leaving)):
+        eps = max(eps, float(np.sort(distances[which == m])[keep[m]]))
+    return eps, [int(m) for m in np.flatnonzero(leaving)]
+
+
 #: a run at its decision tolerance accepts the next population there too while an alive
 #: model's reading rests on fewer than HELD_EFFECTIVE (d + 1) effective particles
 #: (:func:`thin`): measured on a degree-10 polynomial toy (11 parameters, tests/test_reading.py,
@@ -129,6 +164,12 @@ def spared(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, t
 #: exact widths, means up to 1.04 sd off; 2 (d + 1) gave 0.85-1.31 and 0.55 sd; 5 (d + 1),
 #: 0.95-1.15 and 0.21 sd, for 10-20 % more simulations
 HELD_EFFECTIVE = 5
+#: and on fewer than HELD_LEAST, whatever d: a weighted mean's Monte Carlo error is about
+#: 1 / sqrt(effective particles) posterior sd, whatever the model's dimension, and 5 (d + 1)
+#: is only 10-25 for d = 1-4 (errors of 0.2-0.3 sd). 64 puts a mean within 0.25 sd at 2 of
+#: its errors: the exact-Bayes benchmark's losing cubic-quintic (d = 4, seed 1), alive at the
+#: end with 50 effective particles above its 5 (d + 1) = 25, had c 0.42 sd off (3 errors)
+HELD_LEAST = 64
 #: at most this many populations after the first accepted at the decision tolerance (each
 #: adds about as many effective particles as that one: 13-19 populations for the toy)
 HELD_POPULATIONS = 30
@@ -136,11 +177,18 @@ HELD_POPULATIONS = 30
 
 def thin(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, alive: np.ndarray) -> np.ndarray:
     """The ``alive`` models (boolean (n_models,)) whose reading of ``shells`` rests on fewer
-    than :data:`HELD_EFFECTIVE` (d + 1) effective particles; none without a reading."""
+    than :data:`HELD_EFFECTIVE` (d + 1) effective particles, or fewer than :data:`HELD_LEAST`;
+    none without a reading."""
     log_l = None if floor is None or not shells else of_floor(floor)
     if log_l is None:
         return np.zeros(len(dims), dtype=bool)
-    return alive & ~enough(read(shells, dims, log_l).ess, dims, HELD_EFFECTIVE)
+    return alive & ~enough(read(shells, dims, log_l).ess, dims, HELD_EFFECTIVE, HELD_LEAST)
+
+
+def held_target(n_dim: int) -> int:
+    """The effective particles a run at its floor holds its decision tolerance for (:func:`thin`):
+    max(:data:`HELD_EFFECTIVE` (d + 1), :data:`HELD_LEAST`)."""
+    return max(HELD_EFFECTIVE * (n_dim + 1), HELD_LEAST)
 
 
 def regions(shells: Sequence[Record]) -> tuple[np.ndarray, np.ndarray]:

@@ -15,7 +15,7 @@ run in a notebook, with no service, shows them too.
 - "few effective particles": a provisional run's model whose likelihood reading rests on too
   few effective particles is read from its last tolerance's particles
   (:meth:`abcns.Result.answer_draws`), wider than the data's; or a run at its floor whose
-  reading of a model still rests on fewer than :data:`abcns.likelihood.HELD_EFFECTIVE` (d + 1)
+  reading of a model still rests on fewer than :func:`abcns.likelihood.held_target` of them
   after it held the decision tolerance as long as it may (:func:`abcns.likelihood.thin`);
 - "below the noise floor": the final population's model probabilities differ (by more than
   :data:`BELOW_FLOOR_CHANGE`) from those at the decision tolerance, which are the answer;
@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from abcns.likelihood import HELD_EFFECTIVE, enough
+from abcns.likelihood import HELD_EFFECTIVE, HELD_LEAST, enough, held_target
 from abcns.noise import Standing
 
 if TYPE_CHECKING:
@@ -97,9 +97,9 @@ def _thin_reading(r: Result) -> list[str]:
            for i, m in enumerate(r.models) if i in r.alive(pop.t) and r.answer_draws(i)[2] == "tolerance"]
     if r.reached_floor:
         held = r.final.t - pop.t + 1
-        many = enough(reading.ess, [m.n_dim for m in r.models], HELD_EFFECTIVE)
+        many = enough(reading.ess, [m.n_dim for m in r.models], HELD_EFFECTIVE, HELD_LEAST)
         out += [f"few effective particles: {m.name}'s likelihood reading rests on {reading.ess[i]:.3g} effective "
-                f"particles (fewer than {HELD_EFFECTIVE} (d + 1) = {HELD_EFFECTIVE * (m.n_dim + 1)}) after {held} "
+                f"particles (fewer than max({HELD_EFFECTIVE} (d + 1), {HELD_LEAST}) = {held_target(m.n_dim)}) after {held} "
                 f"populations at the decision tolerance: its means and intervals carry a Monte Carlo error of about "
                 f"{1 / np.sqrt(max(reading.ess[i], 1)):.2g} posterior sd; a larger population (more particles) makes it "
                 "smaller"

@@ -58,7 +58,9 @@ not depend on abcns, so it is cached per (case, seed, model, nlive) in
 from: a change of either reruns it); a rerun after a change to abcns redoes abcns only.
 
 Printed: per (case, seed) the exact and abcns winners; for the models the exact answer
-rejects, abcns's p ± se against the exact p, and their difference in abcns's se; abcns's
+rejects, abcns's p ± se against the exact p, and their difference in abcns's se, and (per
+model) abcns's effective particles and its ln Bayes factor against the exact winner less the
+exact one (a model that left the run early is read on its last particles); abcns's
 decision rule, stop reason and number of warnings; abcns's simulations against dynesty's
 evaluations; wall times. Per parameter of every model in abcns's posterior, the 95 %
 interval width ratio abcns / exact and the mean shift (abcns - exact) in exact posterior
@@ -331,7 +333,9 @@ def abcns_answer(job: Any, seed: int) -> dict:
     return {"p": s.get("model_probabilities") or {}, "p_se": s.get("model_probability_se") or {},
             "posterior": s.get("posterior") or {}, "rule": decision.get("rule"), "reading": decision.get("reading"),
             "stop_reason": s.get("stop_reason"), "warnings": s.get("warnings"),
-            "n_simulations": s.get("n_simulations"), "wall_s": wall}
+            "n_simulations": s.get("n_simulations"), "wall_s": wall,
+            "ess": decision.get("effective_particles") or {},
+            "log_z": {m: v.get("log_z") for m, v in (s.get("log_evidence") or {}).items()}}
 
 
 def one(case: str, seed: int, nlive: int, particles: int | None, cache: str | None) -> dict:
@@ -401,7 +405,8 @@ RUN_HEADER = ("| case | seed | exact winner | abcns winner | losing model | p ab
 PARAM_HEADER = ("| case | seed | model | parameter | exact mean ± sd | abcns mean ± sd | 95 % width abcns / exact | "
                 "exact width rse | mean shift (exact sd) | within |")
 MODEL_HEADER = ("| case | seed | model | exact log Z ± err | p exact ± se | p abcns ± se | dynesty evaluations | "
-                "iterations | effective samples | dynesty wall s |")
+                "iterations | effective samples | dynesty wall s | abcns effective particles | "
+                "ln BF against the exact winner, abcns - exact |")
 CASE_HEADER = ("| case | runs | winner agrees | losing p within max(0.005, 2 se) | width ratio min | width ratio max | "
                "max abs mean shift (exact sd) | simulations / evaluations |")
 
@@ -428,6 +433,16 @@ def fmt_p(x: float | None) -> str:
     return fmt(x, ".1e" if x is not None and 0 < abs(x) < 1e-3 else ".4f")
 
 
+def bayes_factor_error(row: dict, model: str) -> float | None:
+    """abcns's ln Bayes factor of ``model`` against the exact winner less the exact one (None
+    for the winner itself, or where abcns gives no log evidence)."""
+    ex, log_z = row["exact"], row["abcns"].get("log_z", {})
+    top = winner(ex["p"])
+    if top is None or model == top or log_z.get(model) is None or log_z.get(top) is None:
+        return None
+    return (log_z[model] - log_z[top]) - (ex["models"][model]["log_z"] - ex["models"][top]["log_z"])
+
+
 def print_models(rows: list[dict]) -> None:
     print(MODEL_HEADER)
     print("|" + "---|" * MODEL_HEADER.count(" | ") + "---|")
@@ -437,7 +452,8 @@ def print_models(rows: list[dict]) -> None:
             print(f"| {r['case']} | {r['seed']} | {name} | {m['log_z']:.2f} ± {m['log_z_err']:.2f} | "
                   f"{fmt_p(ex['p'][name])} ± {fmt_p(ex['p_se'][name])} | {fmt_p(ab['p'].get(name))} ± "
                   f"{fmt_p(ab['p_se'].get(name))} | {m['n_evaluations']:,} | {m['n_iterations']:,} | {m['ess']:,.0f} | "
-                  f"{m['wall_s']:.1f}{' (cached)' if m.get('cached') else ''} |")
+                  f"{m['wall_s']:.1f}{' (cached)' if m.get('cached') else ''} | {fmt(ab.get('ess', {}).get(name), '.1f')} | "
+                  f"{fmt(bayes_factor_error(r, name), '+.2f')} |")
 
 
 def print_params(rows: list[dict], checks: list[dict]) -> None:

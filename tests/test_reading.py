@@ -32,10 +32,9 @@ def data(seed: int) -> np.ndarray:
     return 1.0 + 2.0 * X + SIGMA * np.random.default_rng(100 + seed).standard_normal(X.size)
 
 
-def problem(seed: int, width: float = 3.0, stated: bool = True):
-    """(models, evaluate, noise) of data set ``seed``; the parabola's c ~ U(-width, width);
-    the noise stated (sd 0.1) or estimated from the best fit."""
-    y = data(seed)
+def linear(y: np.ndarray, width: float = 3.0):
+    """(models, evaluate, the NMSE) of a line and a parabola fitted to ``y``; the parabola's
+    c ~ U(-width, width)."""
     nmse = NMSE(y)
 
     def simulator(design):
@@ -43,13 +42,19 @@ def problem(seed: int, width: float = 3.0, stated: bool = True):
 
     models = [Model("line", {"a": (0, 2), "b": (0, 4)}),
               Model("parabola", {"a": (0, 2), "b": (0, 4), "c": (-width, width)})]
-    return models, per_model([simulator(DESIGNS["line"]), simulator(DESIGNS["parabola"])]), nmse.noise(SIGMA if stated else None)
+    return models, per_model([simulator(DESIGNS["line"]), simulator(DESIGNS["parabola"])]), nmse
 
 
-def exact(seed: int, width: float = 3.0) -> tuple[dict[str, float], dict[str, tuple[np.ndarray, np.ndarray]]]:
-    """The exact model probabilities and each model's posterior (mean, sd) per parameter:
-    least squares with known noise, the evidence a Gaussian integral over the prior box."""
-    y = data(seed)
+def problem(seed: int, width: float = 3.0, stated: bool = True):
+    """(models, evaluate, noise) of data set ``seed``; the parabola's c ~ U(-width, width);
+    the noise stated (sd 0.1) or estimated from the best fit."""
+    models, evaluate, nmse = linear(data(seed), width)
+    return models, evaluate, nmse.noise(SIGMA if stated else None)
+
+
+def closed_form(y: np.ndarray, width: float = 3.0) -> tuple[dict[str, float], dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Each model's exact log evidence and posterior (mean, sd) per parameter on ``y``: least
+    squares with known noise, the evidence a Gaussian integral over the prior box."""
     log_z, post = {}, {}
     for (name, design), volume in zip(DESIGNS.items(), (8.0, 8.0 * 2 * width)):
         beta = np.linalg.lstsq(design, y, rcond=None)[0]
@@ -58,6 +63,12 @@ def exact(seed: int, width: float = 3.0) -> tuple[dict[str, float], dict[str, tu
         p = design.shape[1]
         log_z[name] = -chi2 / 2 + p / 2 * math.log(2 * math.pi) - 0.5 * np.linalg.slogdet(precision)[1] - math.log(volume)
         post[name] = (beta, np.sqrt(np.diag(np.linalg.inv(precision))))
+    return log_z, post
+
+
+def exact(seed: int, width: float = 3.0) -> tuple[dict[str, float], dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """The exact model probabilities and each model's posterior (mean, sd) per parameter."""
+    log_z, post = closed_form(data(seed), width)
     top = max(log_z.values())
     z = {k: math.exp(v - top) for k, v in log_z.items()}
     return {k: v / sum(z.values()) for k, v in z.items()}, post
@@ -284,16 +295,16 @@ def test_a_run_at_its_floor_holds_the_decision_tolerance_until_its_reading_rests
     tolerance (population 66) gave 1.8 effective particles, widths 0.41-0.81 of the exact ones,
     a mean 0.86 sd off. The weights in that region vary by ~e^9 and its prior mass lies near
     its edge, so one population holds few of the posterior's particles. The run now goes on
-    at the decision tolerance until the reading rests on 5 (d + 1) = 60 (populations of one
-    tolerance read together: ``abcns.likelihood.regions``): 74 populations against 66, 11 %
-    more simulations, 61.6 effective particles, widths 0.92-1.17, means within 0.22 sd.
+    at the decision tolerance until the reading rests on max(5 (d + 1), 64) = 64 (populations
+    of one tolerance read together: ``abcns.likelihood.regions``): 75 populations against 66,
+    12 % more simulations, 70.2 effective particles, widths 0.93-1.17, means within 0.23 sd.
     Bounds: widths 0.8-1.25 (issue W's), means within 0.35 sd (the largest of 11 means' Monte
-    Carlo errors of 1 / sqrt(60) = 0.13 sd is ~2.3 of them). A run resumed inside the held
+    Carlo errors of 1 / sqrt(64) = 0.13 sd is ~2.3 of them). A run resumed inside the held
     populations ends identically, and one whose population budget ends the holding says so."""
     model, evaluate, noise, beta, sd = legendre_toy(10)
     r = abcns.run([model], evaluate, SETTINGS, StopRules(), seed=1, noise=noise)
     s = r.summary()
-    assert s["decision"]["rule"] == "noise_floor" and s["decision"]["effective_particles"]["poly"] >= 60
+    assert s["decision"]["rule"] == "noise_floor" and s["decision"]["effective_particles"]["poly"] >= 64
     q = list(s["posterior"]["poly"].values())
     ratio = np.array([v["q97_5"] - v["q2_5"] for v in q]) / (2 * 1.959964 * sd)
     shift = np.abs(np.array([v["mean"] for v in q]) - beta) / sd
@@ -313,3 +324,77 @@ def test_a_run_at_its_floor_holds_the_decision_tolerance_until_its_reading_rests
     assert cut["decision"]["rule"] == "noise_floor"
     assert any(w.startswith("few effective particles: poly's likelihood reading rests on") and
                f"after {end - first + 1} populations at the decision tolerance" in w for w in cut["warnings"]), cut["warnings"]
+
+
+@pytest.mark.parametrize("seed", [5, 11])
+def test_a_rare_model_alive_at_the_floor_is_read_on_enough_particles_whatever_its_dimension(seed):
+    """The exact-Bayes benchmark's losing cubic-quintic (d = 4, p 6.6e-4, seed 1) was alive at
+    the end on 50 effective particles, above the 5 (d + 1) = 25 the floor held for, and its c
+    was 0.42 exact sd off: 3 Monte Carlo errors of 1 / sqrt(50). A mean's Monte Carlo error
+    does not shrink with d, so the run now holds its decision tolerance until each alive
+    model's reading rests on max(5 (d + 1), 64) effective particles (``HELD_LEAST``: 0.25 sd
+    is 2 errors of 1 / sqrt(64)). The same here: the rare parabola (c ~ U(-30, 30), exact p
+    0.0028 and 0.0014 on data seeds 5 and 11) was read on 20 and 28 effective particles
+    (5 (d + 1) = 20), its means 0.27 and 0.29 exact sd off; now on 81 and 71, 0.05 and 0.14,
+    for 17 % and 8 % more simulations. Issue W's bounds (:func:`check_against_exact`) for both
+    models."""
+    models, evaluate, noise = problem(seed, width=30.0)
+    s = abcns.run(models, evaluate, SETTINGS, StopRules(), seed=seed, noise=noise).summary()
+    assert s["decision"]["rule"] == "noise_floor" and "parabola" in s["posterior"]
+    assert s["decision"]["effective_particles"]["parabola"] >= 64
+    check_against_exact(s, seed, 30.0, ("line", "parabola"))
+
+
+def curved(seed: int):
+    """(models, evaluate, noise, exact ln Bayes factor parabola / line) of a parabola truth
+    (1 + 2 x + 1.5 x^2, noise sd 0.1 stated, 100 points) that the line misfits by a chi^2 of
+    ~2000: the line leaves the run early, by ``no_particles``, ~1000 nats behind."""
+    y = 1.0 + 2.0 * X + 1.5 * X**2 + SIGMA * np.random.default_rng(100 + seed).standard_normal(X.size)
+    models, evaluate, nmse = linear(y)
+    log_z, _ = closed_form(y)
+    return models, evaluate, nmse.noise(SIGMA), log_z["parabola"] - log_z["line"]
+
+
+@pytest.mark.parametrize("seed", [8, 29])
+def test_a_model_that_leaves_early_is_read_on_enough_particles(seed):
+    """The cyclic test chiu's Bouc-Wen left the joint run by ``no_particles`` with its evidence
+    on 2.5 effective particles, 2.5 nats below its own run's: the common tolerance jumped far
+    below its best fit, and its last region, {d < eps_t}, read uncut, spans many e-folds of
+    its likelihood, whose weight sits on the few particles nearest its best fit. The same
+    here: the line, ~1000 nats behind the parabola, left at population 10 on 1.0 and 1.6
+    effective particles, ln BF 7.08 and 4.20 nats above the exact one (7.2 and 5.5 of its
+    stated errors; data seeds 1-40: 5 beyond 2 errors, 4 beyond 3). While a leaving model's
+    reading rests on fewer than 2 (d + 1) effective particles, the next tolerance now keeps
+    its 2 (d + 1) best particles (``abcns.likelihood.kept``; a note says so), so it leaves on
+    6 or more (here 16.0 and 24.5; ln BF 0.08 and 0.09 nats off): seeds 1-40, errors within
+    2.05 of the stated ones (3 beyond 2), the largest 1.13 nats, for 0.8 % more simulations.
+    Bound: 3 stated errors. A run resumed after the raised tolerance ends as the run did."""
+    models, evaluate, noise, exact_bf = curved(seed)
+    r = abcns.run(models, evaluate, SETTINGS, StopRules(), seed=seed, noise=noise)
+    s = r.summary()
+    assert s["death_rules"] == {"line": "no_particles"} and s["decision"]["rule"] == "noise_floor"
+    assert s["decision"]["effective_particles"]["line"] >= 6
+    kept = [n for n in r.notes if "the next tolerance is held" in n and "for line" in n]
+    assert kept
+    z = s["log_evidence"]
+    bf, se = z["parabola"]["log_z"] - z["line"]["log_z"], math.hypot(z["parabola"]["se"], z["line"]["se"])
+    assert abs(bf - exact_bf) <= 3 * se, (bf, exact_bf, se)
+
+    t = int(kept[0].split(":")[0].removeprefix("population "))
+    resumed = list(iterate(models, SerialExecutor(evaluate), SETTINGS, StopRules(), seed, noise=noise,
+                           history=r.populations[:t]))
+    assert [p.t for p in resumed] == [p.t for p in r.populations[t:]]
+    assert np.array_equal(resumed[-1].theta, r.final.theta)
+
+
+def test_a_step_a_leaving_model_held_up_is_not_a_stall():
+    """Above the decision tolerance (1.0), a population that closes less than 1e-3 of its
+    distance to it has stalled and stops the run; a step that a leaving model's thin reading
+    set (``abcns.likelihood.kept``) is that model's nested sampling near its own best fit,
+    not the run's, and never stops it (nor does ``min_epsilon_decrease``)."""
+    from abcns.nested import _stop_reason
+
+    rules = StopRules()
+    args = (rules, True, 10, 3.0, 3.0 - 1e-4, False, Standing.ABOVE, [1.0] * 10)
+    assert _stop_reason(*args) is StopReason.STALLED
+    assert _stop_reason(*args, False, True) is None
