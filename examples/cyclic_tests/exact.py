@@ -1,7 +1,8 @@
 """The cyclic tests with the exact Gaussian likelihood (dynesty) beside abcns.
 
     python -m examples.cyclic_tests.exact --data DIR [--specimen daniel ...] [--seed 1]
-                                          [--nlive 300] [--sample rwalk] [--abcns OUT] [--out OUT] [--stored OUT]
+                                          [--nlive 300] [--sample rwalk] [--model bwbn] [--abcns OUT] [--out OUT]
+                                          [--stored OUT]
                                           [--mcmc STEPS]
 
 Per specimen: the records, scaling, models, priors and simulators of ``run.py`` (the same
@@ -167,7 +168,7 @@ def mcmc_check(exact: GaussianRestoring, posterior: dict, steps: int, seed: int)
 
 def with_mcmc(folder: Path, answer: dict, steps: int) -> dict:
     """``answer`` (one specimen's exact answers) with each model's :func:`mcmc_check` added."""
-    job = specimen_job(folder, answer["specimen"], answer["seed"])
+    job = specimen_job(folder, answer["specimen"], answer["seed"], list(answer["models"]))
     for model, simulator in zip(job.models, job.simulators, strict=True):
         exact = GaussianRestoring(model, simulator, job.observed, tuple(answer["window"]))
         ans = answer["models"][model.name]
@@ -177,17 +178,19 @@ def with_mcmc(folder: Path, answer: dict, steps: int) -> dict:
     return answer
 
 
-def specimen_job(folder: Path, name: str, seed: int) -> Any:
-    """run.py's job of specimen ``name`` (the scaled records, models.yaml's models)."""
+def specimen_job(folder: Path, name: str, seed: int, only: list[str] | None = None) -> Any:
+    """run.py's job of specimen ``name`` (the scaled records, models.yaml's models; ``only``:
+    these models alone)."""
     from service.spec import build, parse
 
     x, load = read_specimen(folder, name)
-    return build(parse(spec_for(x / np.max(np.abs(x)), load / np.max(np.abs(load)), seed, None)))
+    return build(parse(spec_for(x / np.max(np.abs(x)), load / np.max(np.abs(load)), seed, None, only)))
 
 
-def exact_specimen(folder: Path, name: str, seed: int, nlive: int, sample: str) -> dict:
-    """Every model's dynesty answer on specimen ``name`` and the exact model probabilities."""
-    job = specimen_job(folder, name, seed)
+def exact_specimen(folder: Path, name: str, seed: int, nlive: int, sample: str, only: list[str] | None = None) -> dict:
+    """Every model's (``only``: these models') dynesty answer on specimen ``name`` and the exact
+    model probabilities (among the models run)."""
+    job = specimen_job(folder, name, seed, only)
     window = tuple(job.spec.data.fit) if job.spec.data.fit else (0, len(job.observed))
     models = {}
     for model, simulator in zip(job.models, job.simulators, strict=True):
@@ -203,7 +206,7 @@ def exact_specimen(folder: Path, name: str, seed: int, nlive: int, sample: str) 
 
 def diagnosed(folder: Path, stored: dict) -> dict:
     """A stored answer (``--out``'s JSON) with ``at_mean`` filled in where it is missing."""
-    job = specimen_job(folder, stored["specimen"], stored["seed"])
+    job = specimen_job(folder, stored["specimen"], stored["seed"], list(stored["models"]))
     for model, simulator in zip(job.models, job.simulators, strict=True):
         ans = stored["models"][model.name]
         if not ans.get("at_mean"):
@@ -289,8 +292,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--specimen", nargs="+", default=["daniel"], choices=SPECIMENS)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--nlive", type=int, default=300)
-    parser.add_argument("--sample", default="rwalk", choices=("unif", "rwalk", "rslice"),
+    parser.add_argument("--sample", default="rwalk", choices=("unif", "rwalk", "rslice", "slice"),
                         help="dynesty's proposal (rwalk: BWBN's 12 dimensions fill the ellipsoids badly for unif)")
+    parser.add_argument("--model", action="append", choices=("bw", "bwbn"),
+                        help="run only this model (repeatable): each model's log Z alone")
     parser.add_argument("--mcmc", type=int, default=0, metavar="STEPS",
                         help="also run 16 Metropolis chains of STEPS steps per model (the second exact method)")
     parser.add_argument("--abcns", type=Path, default=Path("out/cyclic_tests"), help="run.py's --out")
@@ -303,7 +308,7 @@ def main(argv: list[str] | None = None) -> None:
         if name in stored:
             exact = diagnosed(args.data, stored[name])
         else:
-            exact = exact_specimen(args.data, name, args.seed, args.nlive, args.sample)
+            exact = exact_specimen(args.data, name, args.seed, args.nlive, args.sample, args.model)
         if args.mcmc:
             exact = with_mcmc(args.data, exact, args.mcmc)
         answers.append(exact)
