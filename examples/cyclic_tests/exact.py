@@ -290,7 +290,7 @@ def mcmc_lines(exact: dict) -> list[str]:
 
 def report(exact: dict, abcns: dict) -> list[str]:
     """Markdown lines: per model log Z, p exact ± se, p abcns; per parameter both intervals."""
-    lines = ["| model | exact log Z ± err | p exact ± se | p abcns | dynesty evaluations | NMSE % at the exact mean | "
+    lines = ["| model | exact log Z ± err | p exact ± se | p abcns | likelihood evaluations | NMSE % at the exact mean | "
              "residual lag-1 autocorrelation | Ljung-Box p |", "|---|---|---|---|---|---|---|---|"]
     for m, ans in exact["models"].items():
         p_abcns = (abcns.get("model_probabilities") or {}).get(m)
@@ -351,7 +351,9 @@ def main(argv: list[str] | None = None) -> None:
         if args.mcmc and args.sample != "importance":
             exact = with_mcmc(args.data, exact, args.mcmc)
         answers.append(exact)
-        print(f"\n### {name}, seed {args.seed}, {exact['nlive']} live points, {exact.get('sample', 'unif')}\n")
+        how = (f"importance sampling, {args.draws:,} draws" if exact.get("sample") == "importance"
+               else f"{exact['nlive']} live points, {exact.get('sample', 'unif')}")
+        print(f"\n### {name}, seed {args.seed}, {how}\n")
         if args.out is not None:  # after each specimen: a long run keeps what it has
             args.out.write_text(json.dumps(answers, indent=1))
         print("\n".join(report(exact, abcns_summary(args.data, name, args.seed, args.abcns))), flush=True)
