@@ -1,7 +1,8 @@
 """The cyclic tests with the exact Gaussian likelihood (dynesty) beside abcns.
 
     python -m examples.cyclic_tests.exact --data DIR [--specimen daniel ...] [--seed 1]
-                                          [--nlive 300] [--sample rwalk] [--abcns OUT] [--out OUT] [--stored OUT]
+                                          [--nlive 300] [--sample rwalk] [--model bwbn] [--abcns OUT] [--out OUT]
+                                          [--stored OUT]
                                           [--mcmc STEPS]
 
 Per specimen: the records, scaling, models, priors and simulators of ``run.py`` (the same
@@ -84,20 +85,24 @@ class GaussianRestoring:
         r = self.residual(theta[:-1])
         return -np.inf if r is None else gaussian_loglike(r, float(theta[-1]))
 
+    def rss(self, params: np.ndarray) -> np.ndarray:
+        """The sum of squared residuals of a batch of the model's parameters (k, d), one
+        batch simulation; inf outside the prior box or where the simulation fails."""
+        params = np.atleast_2d(params)
+        out = np.full(params.shape[0], np.inf)
+        inside = np.all((params >= self.low) & (params <= self.low + self.width), axis=1)
+        if np.any(inside):
+            sim = self.simulator.simulate(self.expand(params[inside]))
+            r = sim.values[:, self.window[0]:self.window[1]] - self.observed
+            out[inside] = np.where(sim.status == self.ok, np.sum(r**2, axis=1), np.inf)
+        return out
+
     def log_marginal(self, params: np.ndarray) -> np.ndarray:
         """The log posterior (up to a constant) of a batch of the model's parameters (k, d),
         sigma integrated out under Jeffreys' prior (the log-uniform one, its bounds far from
         the posterior's sigma): -(n / 2) log(sum of squared residuals), -inf outside the
         prior box or where the simulation fails. The target of :func:`metropolis`."""
-        params = np.atleast_2d(params)
-        out = np.full(params.shape[0], -np.inf)
-        inside = np.all((params >= self.low) & (params <= self.low + self.width), axis=1)
-        if np.any(inside):
-            sim = self.simulator.simulate(self.expand(params[inside]))
-            r = sim.values[:, self.window[0]:self.window[1]] - self.observed
-            rss = np.where(sim.status == self.ok, np.sum(r**2, axis=1), np.inf)
-            out[inside] = -0.5 * self.observed.size * np.log(rss)
-        return out
+        return -0.5 * self.observed.size * np.log(self.rss(params))
 
     def diagnose(self, posterior: dict[str, dict[str, float]]) -> dict[str, Any]:
         """At the posterior mean: the NMSE (%) and the residuals' whiteness (Ljung-Box, lag-1
@@ -148,26 +153,33 @@ def split_rhat(chain: np.ndarray) -> np.ndarray:
     return np.sqrt(((n - 1) / n * within + between / n) / within)
 
 
-def mcmc_check(exact: GaussianRestoring, posterior: dict, steps: int, seed: int) -> dict:
-    """The second exact method on one model: :data:`CHAINS` chains of :func:`metropolis` on
-    ``exact.log_marginal``, started over-dispersed at N(mean, (2 sd)^2) of dynesty's
-    ``posterior`` (clipped into the prior box); the second halves' posterior summary, split
-    R-hat per parameter and acceptance."""
-    from abcns.result import posterior_summary
-
+def chains(exact: GaussianRestoring, posterior: dict, steps: int, seed: int) -> tuple[np.ndarray, dict]:
+    """:data:`CHAINS` chains of :func:`metropolis` on ``exact.log_marginal``, started
+    over-dispersed at N(mean, (2 sd)^2) of ``posterior`` (a summary: dynesty's, abcns's;
+    clipped into the prior box): their second halves (steps / 2, chains, d), and the split
+    R-hat per parameter and the acceptance."""
     rng = np.random.default_rng(seed)
     names = exact.names[:-1]
     mean, sd = (np.array([posterior[n][k] for n in names]) for k in ("mean", "std"))
     starts = np.clip(mean + 2 * sd * rng.standard_normal((CHAINS, len(names))), exact.low, exact.low + exact.width)
     chain, acceptance = metropolis(exact.log_marginal, starts, steps, rng)
     second = chain[steps // 2:]
-    return {"posterior": posterior_summary(second.reshape(-1, len(names)), None, names), "steps": steps,
-            "chains": CHAINS, "rhat": dict(zip(names, split_rhat(second).tolist(), strict=True)), "acceptance": acceptance}
+    return second, {"steps": steps, "chains": CHAINS, "rhat": dict(zip(names, split_rhat(second).tolist(), strict=True)),
+                    "acceptance": acceptance}
+
+
+def mcmc_check(exact: GaussianRestoring, posterior: dict, steps: int, seed: int) -> dict:
+    """The second exact method on one model: :func:`chains` started around dynesty's
+    ``posterior``; the second halves' posterior summary, split R-hat and acceptance."""
+    from abcns.result import posterior_summary
+
+    second, info = chains(exact, posterior, steps, seed)
+    return {"posterior": posterior_summary(second.reshape(-1, second.shape[-1]), None, exact.names[:-1]), **info}
 
 
 def with_mcmc(folder: Path, answer: dict, steps: int) -> dict:
     """``answer`` (one specimen's exact answers) with each model's :func:`mcmc_check` added."""
-    job = specimen_job(folder, answer["specimen"], answer["seed"])
+    job = specimen_job(folder, answer["specimen"], answer["seed"], list(answer["models"]))
     for model, simulator in zip(job.models, job.simulators, strict=True):
         exact = GaussianRestoring(model, simulator, job.observed, tuple(answer["window"]))
         ans = answer["models"][model.name]
@@ -177,33 +189,52 @@ def with_mcmc(folder: Path, answer: dict, steps: int) -> dict:
     return answer
 
 
-def specimen_job(folder: Path, name: str, seed: int) -> Any:
-    """run.py's job of specimen ``name`` (the scaled records, models.yaml's models)."""
+def specimen_job(folder: Path, name: str, seed: int, only: list[str] | None = None) -> Any:
+    """run.py's job of specimen ``name`` (the scaled records, models.yaml's models; ``only``:
+    these models alone)."""
     from service.spec import build, parse
 
     x, load = read_specimen(folder, name)
-    return build(parse(spec_for(x / np.max(np.abs(x)), load / np.max(np.abs(load)), seed, None)))
+    return build(parse(spec_for(x / np.max(np.abs(x)), load / np.max(np.abs(load)), seed, None, only)))
 
 
-def exact_specimen(folder: Path, name: str, seed: int, nlive: int, sample: str) -> dict:
-    """Every model's dynesty answer on specimen ``name`` and the exact model probabilities."""
-    job = specimen_job(folder, name, seed)
+def solve(exact: GaussianRestoring, method: argparse.Namespace, seed: int, start: dict | None) -> dict:
+    """One model's exact answer: dynesty (``method.sample`` its proposal, ``method.nlive``), or
+    with ``--sample importance`` importance sampling (``method.draws`` draws, after chains of
+    ``method.mcmc`` or 4000 steps started around ``start``, abcns's posterior; the prior box's
+    middle, sd a quarter of its width, where abcns has none)."""
+    if method.sample != "importance":
+        return run_dynesty(exact, method.nlive, seed, method.sample)
+    from examples.cyclic_tests.importance import importance_answer
+
+    if start is None:
+        start = {n: {"mean": lo + w / 2, "std": w / 4} for n, lo, w in
+                 zip(exact.names[:-1], exact.low, exact.width, strict=True)}
+    return importance_answer(exact, start, method.mcmc or 4000, method.draws, seed)
+
+
+def exact_specimen(folder: Path, name: str, seed: int, method: argparse.Namespace, only: list[str] | None = None,
+                   starts: dict | None = None) -> dict:
+    """Every model's (``only``: these models') exact answer (:func:`solve`; ``starts``: abcns's
+    posterior per model) on specimen ``name`` and the exact model probabilities (among the
+    models run)."""
+    job = specimen_job(folder, name, seed, only)
     window = tuple(job.spec.data.fit) if job.spec.data.fit else (0, len(job.observed))
     models = {}
     for model, simulator in zip(job.models, job.simulators, strict=True):
         exact = GaussianRestoring(model, simulator, job.observed, window)
-        models[model.name] = run_dynesty(exact, nlive, seed, sample)
+        models[model.name] = solve(exact, method, seed, (starts or {}).get(model.name))
         models[model.name]["at_mean"] = exact.diagnose(models[model.name]["posterior"])
-        print(f"  {name} {model.name}: log Z {models[model.name]['log_z']:.2f}, "
+        print(f"  {name} {model.name}: log Z {models[model.name]['log_z']:.2f} ± {models[model.name]['log_z_err']:.2f}, "
               f"{models[model.name]['n_evaluations']:,} evaluations, {models[model.name]['wall_s']:.0f} s", flush=True)
-    return {"specimen": name, "seed": seed, "nlive": nlive, "sample": sample, "observed_var": float(np.var(exact.observed)),
-            "window": list(window), "models": models,
+    return {"specimen": name, "seed": seed, "nlive": method.nlive, "sample": method.sample,
+            "observed_var": float(np.var(exact.observed)), "window": list(window), "models": models,
             **model_probabilities(models)}
 
 
 def diagnosed(folder: Path, stored: dict) -> dict:
     """A stored answer (``--out``'s JSON) with ``at_mean`` filled in where it is missing."""
-    job = specimen_job(folder, stored["specimen"], stored["seed"])
+    job = specimen_job(folder, stored["specimen"], stored["seed"], list(stored["models"]))
     for model, simulator in zip(job.models, job.simulators, strict=True):
         ans = stored["models"][model.name]
         if not ans.get("at_mean"):
@@ -259,7 +290,7 @@ def mcmc_lines(exact: dict) -> list[str]:
 
 def report(exact: dict, abcns: dict) -> list[str]:
     """Markdown lines: per model log Z, p exact ± se, p abcns; per parameter both intervals."""
-    lines = ["| model | exact log Z ± err | p exact ± se | p abcns | dynesty evaluations | NMSE % at the exact mean | "
+    lines = ["| model | exact log Z ± err | p exact ± se | p abcns | likelihood evaluations | NMSE % at the exact mean | "
              "residual lag-1 autocorrelation | Ljung-Box p |", "|---|---|---|---|---|---|---|---|"]
     for m, ans in exact["models"].items():
         p_abcns = (abcns.get("model_probabilities") or {}).get(m)
@@ -283,14 +314,27 @@ def report(exact: dict, abcns: dict) -> list[str]:
     return lines
 
 
+def starts(args: argparse.Namespace, name: str) -> dict | None:
+    """abcns's posterior per model (its joint run's, else its run alone) where importance
+    sampling needs somewhere to start its chains; None for dynesty."""
+    if args.sample != "importance":
+        return None
+    summary = abcns_summary(args.data, name, args.seed, args.abcns)
+    return {**summary["alone"], **(summary.get("posterior") or {})}
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True, help="your copy of the data (README.md)")
     parser.add_argument("--specimen", nargs="+", default=["daniel"], choices=SPECIMENS)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--nlive", type=int, default=300)
-    parser.add_argument("--sample", default="rwalk", choices=("unif", "rwalk", "rslice"),
-                        help="dynesty's proposal (rwalk: BWBN's 12 dimensions fill the ellipsoids badly for unif)")
+    parser.add_argument("--sample", default="rwalk", choices=("unif", "rwalk", "rslice", "slice", "importance"),
+                        help="dynesty's proposal (rwalk: BWBN's 12 dimensions fill the ellipsoids badly for unif), "
+                             "or importance sampling instead of dynesty (importance.py)")
+    parser.add_argument("--draws", type=int, default=50_000, help="--sample importance: its draws per model")
+    parser.add_argument("--model", action="append", choices=("bw", "bwbn"),
+                        help="run only this model (repeatable): each model's log Z alone")
     parser.add_argument("--mcmc", type=int, default=0, metavar="STEPS",
                         help="also run 16 Metropolis chains of STEPS steps per model (the second exact method)")
     parser.add_argument("--abcns", type=Path, default=Path("out/cyclic_tests"), help="run.py's --out")
@@ -303,11 +347,13 @@ def main(argv: list[str] | None = None) -> None:
         if name in stored:
             exact = diagnosed(args.data, stored[name])
         else:
-            exact = exact_specimen(args.data, name, args.seed, args.nlive, args.sample)
-        if args.mcmc:
+            exact = exact_specimen(args.data, name, args.seed, args, args.model, starts(args, name))
+        if args.mcmc and args.sample != "importance":
             exact = with_mcmc(args.data, exact, args.mcmc)
         answers.append(exact)
-        print(f"\n### {name}, seed {args.seed}, {exact['nlive']} live points, {exact.get('sample', 'unif')}\n")
+        how = (f"importance sampling, {args.draws:,} draws" if exact.get("sample") == "importance"
+               else f"{exact['nlive']} live points, {exact.get('sample', 'unif')}")
+        print(f"\n### {name}, seed {args.seed}, {how}\n")
         if args.out is not None:  # after each specimen: a long run keeps what it has
             args.out.write_text(json.dumps(answers, indent=1))
         print("\n".join(report(exact, abcns_summary(args.data, name, args.seed, args.abcns))), flush=True)

@@ -1,0 +1,85 @@
+"""examples.cyclic_tests.importance: the exact evidence by importance sampling, the second way
+beside dynesty. Its sigma integral is checked against quadrature, and the whole estimator
+(chains, t proposal, draws) against the evidence of a toy whose integral quadrature gives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+
+from examples.cyclic_tests.exact import SIGMA_HIGH, SIGMA_LOW
+from examples.cyclic_tests.importance import importance_answer, log_sigma_marginal
+
+
+def sigma_integral(rss: float, n: int, low: float, high: float) -> float:
+    """The same integral by quadrature over log sigma (scaled by its peak to stay finite)."""
+    def log_f(s: float) -> float:
+        return -n * np.log(np.sqrt(2 * np.pi) * s) - rss / (2 * s * s) - np.log(np.log(high / low))
+
+    peak = log_f(np.clip(np.sqrt(rss / n), low, high))
+    value, _ = quad(lambda u: np.exp(log_f(np.exp(u)) - peak), np.log(low), np.log(high), epsabs=0, epsrel=1e-11,
+                    limit=500, points=[np.log(np.clip(np.sqrt(rss / n), low, high))])
+    return peak + np.log(value)
+
+
+@pytest.mark.parametrize(("rss", "n"), [(0.3, 40), (2e-5, 30), (3.0, 12), (1e-3, 1000)])
+def test_the_sigma_integral_is_exact(rss, n):
+    # (0.3, 40): the peak (sigma ~ 0.087) far inside [0.001, 0.5]; (2e-5, 30) and (3, 12): the
+    # peak at sigma ~ 8e-4 and 0.5, cut by the prior's lower and upper bounds; (1e-3, 1000):
+    # a long record. quad's relative accuracy 1e-11: agreement to 1e-8 in the log
+    got = log_sigma_marginal(np.array([rss]), n, SIGMA_LOW, SIGMA_HIGH)[0]
+    assert got == pytest.approx(sigma_integral(rss, n, SIGMA_LOW, SIGMA_HIGH), abs=1e-8)
+
+
+def test_a_failed_simulation_has_likelihood_zero():
+    assert log_sigma_marginal(np.array([np.inf]), 50, SIGMA_LOW, SIGMA_HIGH)[0] == -np.inf
+
+
+class Toy:
+    """An ``exact`` with a quadratic sum of squares in 2 parameters (a linear model's), a
+    posterior correlated at 0.8 and cut by the box on one side: the interface importance
+    sampling uses (names, low, width, observed, rss, log_marginal)."""
+
+    names = ("a", "b", "sigma")
+    low, width = np.array([0.0, -1.0]), np.array([1.0, 2.0])
+    observed = np.zeros(50)
+    center = np.array([0.02, 0.3])  # a 0.77 posterior sd from its lower bound: the posterior is cut there
+    hessian = np.array([[40.0, -32.0], [-32.0, 40.0]])
+
+    def rss(self, params: np.ndarray) -> np.ndarray:
+        params = np.atleast_2d(params)
+        d = params - self.center
+        out = 0.5 + np.einsum("ij,jk,ik->i", d, self.hessian, d)
+        inside = np.all((params >= self.low) & (params <= self.low + self.width), axis=1)
+        return np.where(inside, out, np.inf)
+
+    def log_marginal(self, params: np.ndarray) -> np.ndarray:
+        return -0.5 * self.observed.size * np.log(self.rss(params))
+
+
+def toy_by_grid(toy: Toy) -> tuple[float, float]:
+    """The toy's log evidence and posterior mean of a by a 2-d grid (midpoint rule, 1,200 x
+    2,400 cells over the box, 30 to a posterior sd)."""
+    a = toy.low[0] + (np.arange(1200) + 0.5) / 1200 * toy.width[0]
+    b = toy.low[1] + (np.arange(2400) + 0.5) / 2400 * toy.width[1]
+    grid = np.stack(np.meshgrid(a, b, indexing="ij"), axis=-1).reshape(-1, 2)
+    log_m = log_sigma_marginal(toy.rss(grid), toy.observed.size, SIGMA_LOW, SIGMA_HIGH)
+    # the prior's density 1 / area times the cell's area: the mean over the cells
+    w = np.exp(log_m - log_m.max())
+    return float(np.logaddexp.reduce(log_m) - np.log(grid.shape[0])), float(w @ grid[:, 0] / w.sum())
+
+
+def test_importance_sampling_finds_the_toy_evidence():
+    toy = Toy()
+    log_z, mean_a = toy_by_grid(toy)
+    start = {"a": {"mean": 0.5, "std": 0.25}, "b": {"mean": 0.0, "std": 0.5}}  # the box's middle
+    ans = importance_answer(toy, start, steps=2000, draws=20_000, seed=1)
+    # seed 1; the stated error is the weights' standard error (~0.01 here): 4 of them, and it
+    # must be small, so that an evidence off by a missed constant (0.1 nats and up) fails
+    assert ans["log_z_err"] < 0.03
+    assert ans["log_z"] == pytest.approx(log_z, abs=4 * ans["log_z_err"])
+    assert ans["ess"] > 2000
+    # the posterior of a (sd 0.026), cut at 0 by the box: its mean ~0.03, above the center
+    # 0.02; the draws' Monte Carlo error ~0.026 / sqrt(ess) < 0.0006: 4 of them
+    assert ans["posterior"]["a"]["mean"] == pytest.approx(mean_a, abs=0.0025)
