@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from cli_in_process import invoke
 from distributed import Client, get_task_stream
 from test_distributed import assert_same_store
 
@@ -121,8 +122,7 @@ def test_a_cheap_job_runs_whole_on_one_worker(cluster, tmp_path):
     assert len(keys) == 1 and keys[0].startswith("abcns-job-"), keys
     assert stream.data[0]["worker"] == placement["worker"]
     assert "[cheap] whole on tcp://" in done.stdout
-    s = json.loads(subprocess.run([BIN / "abcns", "summary", out, "--json"], capture_output=True, text=True,
-                                  timeout=120).stdout)
+    s = json.loads(invoke("summary", out, "--json").stdout)
     assert s["placement"]["mode"] == "whole"
     assert_same_store(alone(spec, tmp_path / "alone.zarr"), out)
     # run again: the finished store is not run again (no pilot, no population), the same summary
