@@ -115,8 +115,9 @@ def gk_summaries(samples: np.ndarray) -> np.ndarray:
     pct = np.percentile(samples, [20.0, 40.0, 60.0, 80.0], axis=1).T
     centred = samples - samples.mean(axis=1, keepdims=True)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        m2 = np.mean(centred**2, axis=1)
-        m3 = np.mean(centred**3, axis=1)
+        squared = centred * centred  # the same bits as centred**2
+        m2 = np.mean(squared, axis=1)
+        m3 = np.mean(squared * centred, axis=1)  # 1/30 of centred**3's time (numpy's pow); last bits differ
         skew = m3 / m2**1.5
     return np.column_stack([pct, skew])
 

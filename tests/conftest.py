@@ -27,9 +27,11 @@ os.environ.setdefault("ABCNS_LOCAL_POPULATION_S", "0")
 # collection order when it runs low: longest first, so that no long file starts near the end
 # while the other process has nothing left (xdist's own order, most tests first, put the
 # one-test files of a minute each last). Unlisted files follow, in their usual order. Only
-# the order changes; a stale figure costs time, never a test.
+# the order changes; a stale figure costs time, never a test. The container test (as root;
+# 428 s at load 9, most of it dockerd, debootstrap and pip in the image, not this process)
+# goes first: last, one process ran it alone for minutes after the other had finished.
 LONG_FILES = {
-    "test_http_hostile.py": 171, "test_http.py": 169, "test_distributed.py": 120, "test_paper.py": 118,
+    "test_container.py": 428, "test_http_hostile.py": 171, "test_http.py": 169, "test_distributed.py": 120, "test_paper.py": 118,
     "test_http_holds.py": 106, "test_study.py": 86, "test_many_jobs.py": 78, "test_plots.py": 70,
     "test_restoring.py": 62, "test_service_jobs.py": 62, "test_walkthrough.py": 61, "test_cli.py": 59,
     "test_chaos.py": 54, "test_browser.py": 53, "test_kernels.py": 50, "test_scale_benchmark.py": 48,

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from click.testing import Result
+from cli_in_process import invoke
+from typer.testing import Result
 
 from benchmarks.harness import StockCluster, free_port
 
@@ -42,15 +43,8 @@ def abcns(*args, timeout: float = 300) -> subprocess.CompletedProcess:
 
 
 def here(*args, env: dict | None = None) -> Result:
-    """`abcns ARGS` in this process (the typer app under CliRunner, stdout and stderr apart):
-    what it prints is what the command prints; it must exit 0."""
-    from typer.testing import CliRunner
-
-    from service.cli import app
-
-    done = CliRunner().invoke(app, [str(a) for a in args], prog_name="abcns", env=env)
-    assert done.exit_code == 0, (done.exit_code, done.output[-2000:], done.exception)
-    return done
+    """`abcns ARGS` in this process: what it prints is what the command prints; it must exit 0."""
+    return invoke(*args, env=env)
 
 
 @pytest.fixture(scope="module")
@@ -240,14 +234,11 @@ def test_a_scheduler_that_cannot_be_reached_is_one_line_and_exit_3(spec, tmp_pat
     """Q.6: a wrong --scheduler address: one line naming it, exit code 3, no traceback (and
     at once for a refused connection, not after Dask's 30 s of retries)."""
     address = f"tcp://127.0.0.1:{free_port()}"  # nothing listens there
-    done = subprocess.run([BIN / "abcns", "run", spec, "--out", tmp_path / "x.zarr", "--scheduler", address],
-                          capture_output=True, text=True, timeout=120)
-    assert done.returncode == 3, done.stderr[-2000:]
+    done = invoke("run", spec, "--out", tmp_path / "x.zarr", "--scheduler", address, code=3)
     assert done.stderr.strip().splitlines() == [f"error: cannot reach the scheduler at {address}: Connection refused"]
     assert not (tmp_path / "x.zarr").exists()
-    serve = subprocess.run([BIN / "abcns", "serve", "--scheduler", address, "--store-dir", tmp_path / "jobs"],
-                           capture_output=True, text=True, timeout=120)
-    assert serve.returncode == 3 and serve.stderr.strip().splitlines() == done.stderr.strip().splitlines(), serve.stderr
+    serve = invoke("serve", "--scheduler", address, "--store-dir", tmp_path / "jobs", code=3)
+    assert serve.stderr.strip().splitlines() == done.stderr.strip().splitlines(), serve.stderr
 
 
 def test_the_worker_count_is_the_cluster_s_now(tmp_path):
@@ -343,9 +334,7 @@ def test_an_impossible_fixed_value_is_refused_before_the_run_with_exit_2(tmp_pat
     raw["models"][1]["fixed"]["n"] = 1.5
     path = tmp_path / "n.yaml"
     path.write_text(yaml.safe_dump(raw))
-    done = subprocess.run([BIN / "abcns", "run", path, "--out", tmp_path / "n.zarr", "--workers", "1"],
-                          capture_output=True, text=True, timeout=300)
-    assert done.returncode == 2, done.stderr
+    done = invoke("run", path, "--out", tmp_path / "n.zarr", "--workers", "1", code=2)
     assert done.stderr.startswith("error: models[1].fixed.n: must be an integer in 1..4"), done.stderr
     assert not (tmp_path / "n.zarr").exists()
 
@@ -368,7 +357,7 @@ def test_a_bug_in_a_simulator_names_the_batch_and_the_exception(spec, tmp_path):
                      r"'tests\.faulty_plugin:Faulty'\): RuntimeError: a bug in the user's simulator",
                      done.stderr), done.stderr[-2000:]
     assert "Traceback (most recent call last)" not in done.stderr  # a message, not a Python traceback
-    s = json.loads(abcns("summary", tmp_path / "f.zarr", "--json").stdout)
+    s = json.loads(here("summary", tmp_path / "f.zarr", "--json").stdout)
     assert s["status"] == "failed" and "RuntimeError: a bug in the user's simulator" in s["error"], s
     assert "population 1, batch" in s["error"]
 

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import xarray as xr
 import yaml
+from cli_in_process import invoke
 from distributed import Client, LocalCluster
 
 from service.run.dask_executor import DaskExecutor, local_cluster
@@ -238,17 +239,13 @@ def test_cli_refuses_a_bad_spec_naming_the_field(tmp_path):
     raw["models"][1]["simulator"] = "nope"
     spec.write_text(yaml.safe_dump(raw))
     out = tmp_path / "never.zarr"
-    done = subprocess.run([BIN / "abcns", "run", str(spec), "--out", str(out)], capture_output=True, text=True,
-                          timeout=60)
-    assert done.returncode == 2
+    done = invoke("run", spec, "--out", out, code=2)
     assert "models[1].simulator" in done.stderr
     assert not out.exists()
 
 
 def test_cli_summary_json(reference):
     _, store, _ = reference
-    done = subprocess.run([BIN / "abcns", "summary", str(store), "--json"], capture_output=True, text=True, timeout=60)
-    assert done.returncode == 0, done.stderr
-    s = json.loads(done.stdout)
+    s = json.loads(invoke("summary", store, "--json").stdout)
     assert s["status"] == "finished" and s["stop_reason"] == "max_populations" and s["n_populations"] == 6
     assert len(s["epsilon"]) == 6 and set(s["model_probabilities"]) == {"linear", "cubic"}

@@ -20,6 +20,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from cli_in_process import invoke
 from http_helpers import demo_spec, follow, same_populations
 
 from benchmarks.harness import AUTH, BIN, ROOT, TOKEN, Service, StockCluster, duffing_spec
@@ -29,12 +30,10 @@ pytestmark = pytest.mark.http
 
 @pytest.fixture(scope="module")
 def reference(cluster, tmp_path_factory):
-    """The same job run with `abcns run` on the same cluster."""
+    """The same job run with `abcns run` on the same cluster (in this process: tests/cli_in_process)."""
     tmp = tmp_path_factory.mktemp("cli")
     (tmp / "spec.json").write_text(json.dumps(duffing_spec()))
-    done = subprocess.run([BIN / "abcns", "run", str(tmp / "spec.json"), "--out", str(tmp / "ref.zarr"), "--scheduler",
-                           cluster.address, "--quiet"], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
+    invoke("run", tmp / "spec.json", "--out", tmp / "ref.zarr", "--scheduler", cluster.address, "--quiet")
     return tmp / "ref.zarr"
 
 
