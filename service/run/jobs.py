@@ -420,9 +420,13 @@ def _run_placed(run: Callable[..., Result], placement: dict, released: Callable[
     placement (``reason`` idle, ``whole_populations``: those it made whole) is sent as a
     second start event and recorded. Returns the final placement and the result."""
     movable = placement["mode"] == "whole" and placement.get("reason") == "queue"
-    if placement["mode"] == "whole" and not (movable and key in ASKED):
-        result = run(None, cancel=lambda: released() or (movable and key in ASKED), placement=placement)
-        if not movable or released() or key not in ASKED or result.stop_reason is not StopReason.CANCELLED:
+
+    def asked() -> bool:
+        return movable and key in ASKED
+
+    if placement["mode"] == "whole" and not asked():
+        result = run(None, cancel=lambda: released() or asked(), placement=placement)
+        if released() or not asked() or result.stop_reason is not StopReason.CANCELLED:
             return placement, result
     if placement["mode"] == "whole":  # asked to spread, before its run or during it
         placement = {**placement, "mode": "spread", "reason": "idle", "whole_populations": _populations(path)}
