@@ -450,8 +450,8 @@ def _halves(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.ndarra
     """The 2-means split (:func:`_two_means`) of a node's ``rows`` (whitened points ``y``):
     the number n0 of the first half's rows, with ``work`` = the first half's rows then the
     second's, each in the order of ``rows`` (a stable partition). When 2-means leaves a half
-    fewer than ``leaf`` or d + 1 rows (its start, the row farthest along ``axis``, lies in a
-    small group apart from the rest, as at the tip of a curved ridge), the rows are split at
+    fewer than ``leaf`` or d + 1 rows (a small group apart from the rest, as at the tip of a
+    curved ridge, kept alone), the rows are split at
     their median along ``axis`` instead (:func:`_median_split`), so that one stray group
     does not keep the node, and every node under it, whole; -1 when even that leaves a half
     too small (a node of fewer than 2 ``leaf`` rows, which :func:`_splittable` never splits)."""

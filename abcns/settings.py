@@ -69,8 +69,10 @@ MAX_ELLIPSOIDS = 64  # ``NSSettings.max_ellipsoids``' largest value (a store's e
 #: ``LEAST_ELLIPSOIDS`` (so up to 512 particles keep the former fixed 8, ~45 points below the
 #: next tolerance per ellipsoid), at most ``MAX_ELLIPSOIDS``. A cap that does not grow with N
 #: makes each ellipsoid of a larger population cover more of a curved or split region: on the
-#: cyclic test gill (BWBN, 11-D) 2,000 particles with 8 ellipsoids proposed from a bound up to
-#: ~20 times (e^3) the 500-particle one's at the same tolerance (issue Y, docs/benchmarks.md)
+#: cyclic test gill (BWBN, 11-D, seed 1) the 1,400 points of a 2,000-particle population at
+#: eps 3.78 were bounded by 7 ellipsoids of e^3.3 the total volume of 32 (e^2.3 inside the
+#: box), and the run needed 19.5 M simulations to eps 3.0 against 1.5 M now (issue Y,
+#: docs/benchmarks.md, "Mode loss and 2,000 particles")
 PARTICLES_PER_ELLIPSOID = 64
 LEAST_ELLIPSOIDS = 8
 

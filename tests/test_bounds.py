@@ -73,7 +73,7 @@ def l_with_a_stray_group(rng, n=300, k=10, d=6):
 
 def test_a_small_group_apart_does_not_keep_the_bound_one_ellipsoid():
     """Issue Y, kunnath's population 71 (6.18 M simulations, its neighbours 2-5 k). The tree's
-    2-means starts at the point farthest along the leading axis; when it lies in a group apart
+    2-means started at the point farthest along the leading axis; when it lay in a group apart
     from the rest smaller than a leaf (here 10 points, a leaf 2 (d + 1) = 14), 2-means keeps
     that group alone, and the split was refused: no tree, one ellipsoid over the whole region.
     Now such a node is split at its median along the axis. Measured over seeds 1000-1199
