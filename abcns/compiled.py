@@ -255,7 +255,7 @@ def _two_means(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.nda
     loss): whitened, a point of a cluster lies as far out in each of the other d - 1
     directions as the clusters lie apart, so in 11-D the first assignment to two single
     points was a coin toss per point and Lloyd settled on halves that cut the clusters (two
-    balls 10 radii apart were split 68 / 108 across both)."""
+    balls at least 10 radii apart were split 68 / 108 across both)."""
     n = rows.shape[0]
     d = points.shape[1]
     proj = np.empty(n)

@@ -276,12 +276,13 @@ def test_the_tree_keeps_separate_clusters_whole_in_11_d():
     """Issue Y (gill's mode loss): the tree's 2-means started at the two points farthest apart
     along the leading axis; whitened, a point of a cluster lies as far out in each of the
     other 10 directions as the clusters lie apart, so the first assignment was a coin toss
-    and the halves cut clusters (two balls 10 radii apart split 68 / 108 across both). Now
-    started at the means of the two sides of the mean along that axis. 16 balls of 88 points
-    (1,408: the points below eps_next of 2,000 particles) and 16 ellipsoids: measured over
-    seeds 1000-1099 every set is one whole ball and the bound's volume is the balls' own
-    (excess 0.00 nats); before, seed 1 spread 13 of the 16 balls over several sets and its
-    bound was e^11.2 times theirs. ln 1.5 leaves room for a set split in two, never for one over two balls."""
+    and the halves cut clusters (two balls at least 10 radii apart split 68 / 108 across
+    both). Now started at the means of the two sides of the mean along that axis. 16 balls of
+    88 points (1,408: the points below eps_next of 2,000 particles) and 16 ellipsoids:
+    measured over seeds 1000-1099 every set is one whole ball and the bound's volume is the
+    balls' own (excess 0.00 nats); before, seed 1 spread 13 of the 16 balls over several sets
+    and its bound was e^11.2 times theirs. ln 1.5 leaves room for a set split in two, never
+    for one over two balls."""
     points, cluster, own = balls_11d(np.random.default_rng(1))
     sets = bd._tree_sets(points, 16)
     assert sets is not None and all(np.unique(cluster[rows]).size == 1 for rows in sets)
