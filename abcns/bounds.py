@@ -55,8 +55,8 @@ def _tree_sets(points: np.ndarray, max_ellipsoids: int) -> list[np.ndarray] | No
 
     The tree: a node's ellipsoid is its points' covariance ellipsoid scaled to hold them
     all; a node of at least 2 ``leaf`` points (``leaf`` = max(LEAF_POINTS, 2 (d + 1))) is
-    split by a 2-means clustering in whitened coordinates, started at the two points
-    farthest apart along the leading eigenvector of its covariance (deterministic,
+    split by a 2-means clustering in whitened coordinates, started at the means of the two
+    sides of the points' mean along the leading eigenvector of its covariance (deterministic,
     ``KMEANS_ITERATIONS`` Lloyd steps at most), or, when 2-means leaves a half fewer than
     ``leaf`` and d + 1 points (a small group apart at one end), at the points' median along
     that eigenvector, when both halves have an ellipsoid; a node's best set of at most k

@@ -247,23 +247,40 @@ def radii(points: np.ndarray) -> tuple[bool, np.ndarray]:
 @njit(cache=True, error_model="numpy")
 def _two_means(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.ndarray,
                iterations: int) -> np.ndarray:
-    """A 2-means clustering of ``points[rows]`` in whitened coordinates ``y``, started at the two
-    rows farthest apart along ``axis`` (deterministic), at most ``iterations`` Lloyd steps:
-    which rows are in the second cluster (a boolean mask)."""
+    """A 2-means clustering of ``points[rows]`` in whitened coordinates ``y``, started at the
+    means of the two sides of the rows' mean along ``axis`` (deterministic), at most
+    ``iterations`` Lloyd steps: which rows are in the second cluster (a boolean mask).
+
+    Not at two single rows (the two farthest apart along ``axis``, before issue Y's mode
+    loss): whitened, a point of a cluster lies as far out in each of the other d - 1
+    directions as the clusters lie apart, so in 11-D the first assignment to two single
+    points was a coin toss per point and Lloyd settled on halves that cut the clusters (two
+    balls at least 10 radii apart were split 68 / 108 across both)."""
     n = rows.shape[0]
     d = points.shape[1]
-    lo_i, hi_i = 0, 0
-    lo_v, hi_v = np.inf, -np.inf
+    proj = np.empty(n)
+    mid = 0.0
     for i in range(n):
         p = 0.0
         for j in range(d):
             p += points[rows[i], j] * axis[j]
-        if p < lo_v:
-            lo_v, lo_i = p, i
-        if p > hi_v:
-            hi_v, hi_i = p, i
-    c0 = y[lo_i].copy()
-    c1 = y[hi_i].copy()
+        proj[i] = p
+        mid += p
+    mid /= n
+    c0 = np.zeros(d)
+    c1 = np.zeros(d)
+    n1 = 0
+    for i in range(n):
+        if proj[i] > mid:
+            n1 += 1
+            for j in range(d):
+                c1[j] += y[i, j]
+        else:
+            for j in range(d):
+                c0[j] += y[i, j]
+    for j in range(d):
+        c0[j] /= max(n - n1, 1)
+        c1[j] /= max(n1, 1)
     second = np.zeros(n, np.bool_)
     new = np.zeros(n, np.bool_)
     s0 = np.empty(d)
@@ -433,8 +450,8 @@ def _halves(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.ndarra
     """The 2-means split (:func:`_two_means`) of a node's ``rows`` (whitened points ``y``):
     the number n0 of the first half's rows, with ``work`` = the first half's rows then the
     second's, each in the order of ``rows`` (a stable partition). When 2-means leaves a half
-    fewer than ``leaf`` or d + 1 rows (its start, the row farthest along ``axis``, lies in a
-    small group apart from the rest, as at the tip of a curved ridge), the rows are split at
+    fewer than ``leaf`` or d + 1 rows (a small group apart from the rest, as at the tip of a
+    curved ridge, kept alone), the rows are split at
     their median along ``axis`` instead (:func:`_median_split`), so that one stray group
     does not keep the node, and every node under it, whole; -1 when even that leaves a half
     too small (a node of fewer than 2 ``leaf`` rows, which :func:`_splittable` never splits)."""

