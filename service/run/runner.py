@@ -24,7 +24,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 from distributed import Client
 
-from abcns import Population, Result, RunEnd, SpecError, StopReason
+from abcns import NSSettings, Population, Result, RunEnd, SpecError, StopReason
 from abcns.executor import SerialExecutor
 from abcns.filling import Budget
 from abcns.run import algorithm_name, consume, iterate
@@ -311,6 +311,20 @@ def _existing_store(path: Path, key: str, owned: bool) -> Store | None:
     return store
 
 
+def _within_store(job: Job, store: Store | None) -> Job:
+    """The job with at most as many ellipsoids per model as ``store`` holds room for: a store
+    written before the default grew with the particles (8 for any number; now one per 64
+    particles, ``abcns.settings.PARTICLES_PER_ELLIPSOID``) resumes under its own cap, where the
+    new default would make bounds it cannot hold. A spec that sets ``max_ellipsoids`` is
+    left as it is (its own number sized the store)."""
+    settings = job.settings
+    held = None if store is None else store.attrs.get("max_ellipsoids")
+    if held is None or not isinstance(settings, NSSettings) or settings.max_ellipsoids is not None \
+            or settings.n_ellipsoids <= int(held):
+        return job
+    return replace(job, settings=replace(settings, max_ellipsoids=int(held)))
+
+
 def lock_path(store_path: Path) -> Path:
     """The file a run on a store of the service's holds locked (:func:`store_lock`)."""
     path = Path(store_path)
@@ -385,6 +399,7 @@ def _run_job(
     key = job_key(spec, job.seed, dhash)
     store_path = Path(store_path)
     store = _existing_store(store_path, key, owned_store)
+    job = _within_store(job, store)
     # a finished run records why it stopped with its status; a store "finished" with no stop
     # reason (a status change that a killed process cut, before it was one write) is resumed:
     # the run ends again where it did and says why (read as it is, its result would say
