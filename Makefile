@@ -9,9 +9,8 @@ DEV := $(VENV)/.installed-dev
 # setuptools' note that an editable install's folders shadow same-named ones is about this
 # very checkout; nothing to act on
 PIP := PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip
-# pytest processes of `make test`: one more than the 2-core machine it is measured on has cores, so that
-# one file's waits (a container build, a service starting) leave no core idle
-TEST_PROCESSES ?= 3
+# pytest processes of `make test` (one per core of the 2-core machine it is measured on)
+TEST_PROCESSES ?= 2
 
 .PHONY: demo test browser bench bench-peers clean
 
