@@ -55,6 +55,7 @@ from service.http.jobs import JobManager, JobRecord, NoSpace, QueueFull
 from service.http.schemas import PAGE_MAX, Health, JobCreated, JobInfo, LimitsOut, PopulationOut, Status, Summary
 from service.http.settings import Settings
 from service.run.dask_executor import local_cluster
+from service.run.jobs import scheduler_identity
 from service.run.store import Store, StoreError
 from service.spec import JobSpec, samples_read
 
@@ -574,7 +575,7 @@ def _connect(settings: Settings) -> tuple[Client, LocalCluster | None]:
 
 
 def count_workers(client: Client) -> int:
-    return len(client.scheduler_info(n_workers=-1).get("workers", {}))
+    return len(scheduler_identity(client).get("workers", {}))
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

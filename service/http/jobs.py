@@ -66,6 +66,7 @@ from service.run.jobs import (
     prepare_cluster,
     run_one,
     scheduler_id,
+    scheduler_identity,
     spread_next,
 )
 from service.run.runner import Progress, local_population_s, run_job, summary, wait_for_store_lock
@@ -677,7 +678,7 @@ class JobManager:
         if self.client is None:
             return []
         try:
-            info = self.client.scheduler_info(n_workers=-1)
+            info = scheduler_identity(self.client)
             slots = job_workers(self.client, info)
             if scheduler_id(info) != self.prepared_on or (not slots and info.get("workers")):
                 # a scheduler new to this manager (the first look, a restart), or one whose

@@ -163,10 +163,21 @@ def scheduler_id(info: Mapping[str, Any]) -> str:
     return str(info.get("id") or "")
 
 
+def scheduler_identity(client: Client) -> dict[str, Any]:
+    """The scheduler's identity with every worker, asked now. ``Client.scheduler_info`` fetches
+    it and then returns the client's cache, which the client's periodic update may overwrite
+    meanwhile with a copy that lists no worker (distributed 2026.8): `/health` then said 0
+    workers now and then (1 run in 5 of tests/test_submit.py)."""
+    scheduler = client.scheduler
+    if scheduler is None:  # a client never connected, or closed
+        raise RuntimeError("the Dask client is not connected")
+    return client.sync(scheduler.identity, n_workers=-1)
+
+
 def job_workers(client: Client, info: Mapping[str, Any] | None = None) -> dict[str, int]:
     """The workers that have a job slot, and their threads (from ``info``, the scheduler's
-    ``scheduler_info(n_workers=-1)``, when given)."""
-    workers = (info if info is not None else client.scheduler_info(n_workers=-1))["workers"]
+    :func:`scheduler_identity`, when given)."""
+    workers = (info if info is not None else scheduler_identity(client))["workers"]
     return {addr: int(w.get("nthreads", 1)) for addr, w in workers.items()
             if (w.get("resources") or {}).get(JOB_RESOURCE, 0) >= 1}
 
@@ -284,7 +295,7 @@ def queue_full(jobs: int | None, slots: int | None, threads: int) -> bool:
 def cluster_slots(client: Client) -> tuple[int, dict[str, int]]:
     """The cluster's worker threads, and its workers with a job slot and their threads
     (:func:`job_workers`), from one scheduler call."""
-    info = client.scheduler_info(n_workers=-1)
+    info = scheduler_identity(client)
     return sum(int(w.get("nthreads", 1)) for w in info["workers"].values()), job_workers(client, info)
 
 
