@@ -269,22 +269,9 @@ def _two_means(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.nda
     mid /= n
     c0 = np.zeros(d)
     c1 = np.zeros(d)
-    n1 = 0
-    for i in range(n):
-        if proj[i] > mid:
-            n1 += 1
-            for j in range(d):
-                c1[j] += y[i, j]
-        else:
-            for j in range(d):
-                c0[j] += y[i, j]
-    for j in range(d):
-        c0[j] /= max(n - n1, 1)
-        c1[j] /= max(n1, 1)
+    _side_means(y, proj > mid, c0, c1)
     second = np.zeros(n, np.bool_)
     new = np.zeros(n, np.bool_)
-    s0 = np.empty(d)
-    s1 = np.empty(d)
     for it in range(iterations):
         thr = 0.0
         for j in range(d):
@@ -301,24 +288,32 @@ def _two_means(points: np.ndarray, rows: np.ndarray, y: np.ndarray, axis: np.nda
             break
         for i in range(n):
             second[i] = new[i]
-        s0[:] = 0.0
-        s1[:] = 0.0
-        n1 = 0
-        for i in range(n):
-            if second[i]:
-                n1 += 1
-                for j in range(d):
-                    s1[j] += y[i, j]
-            else:
-                for j in range(d):
-                    s0[j] += y[i, j]
-        if n - n1 > 0:
-            for j in range(d):
-                c0[j] = s0[j] / (n - n1)
-        if n1 > 0:
-            for j in range(d):
-                c1[j] = s1[j] / n1
+        _side_means(y, second, c0, c1)
     return second
+
+
+@njit(cache=True, error_model="numpy")
+def _side_means(y: np.ndarray, second: np.ndarray, c0: np.ndarray, c1: np.ndarray) -> None:
+    """The means of the rows of ``y`` outside and inside the mask ``second``, into ``c0`` and
+    ``c1``; a side with no row keeps its value (2-means' start and each Lloyd step)."""
+    n, d = second.shape[0], y.shape[1]
+    s0 = np.zeros(d)
+    s1 = np.zeros(d)
+    n1 = 0
+    for i in range(n):
+        if second[i]:
+            n1 += 1
+            for j in range(d):
+                s1[j] += y[i, j]
+        else:
+            for j in range(d):
+                s0[j] += y[i, j]
+    if n - n1 > 0:
+        for j in range(d):
+            c0[j] = s0[j] / (n - n1)
+    if n1 > 0:
+        for j in range(d):
+            c1[j] = s1[j] / n1
 
 
 @njit(cache=True, error_model="numpy")
