@@ -62,14 +62,19 @@ class StockCluster:
         self.port = free_port()
         self.address = f"tcp://127.0.0.1:{self.port}"
         env = {**os.environ, **cluster_env(), "PYTHONPATH": str(ROOT)}
-        quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "env": env}
+        self.tmp = tmp
+        self.quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "env": env}
         self.procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port", str(self.port),
-                                        "--dashboard-address", ":0"], **quiet)]
-        for _ in range(n_workers):
+                                        "--dashboard-address", ":0"], **self.quiet)]
+        self.start_workers(n_workers)
+
+    def start_workers(self, n: int) -> None:
+        """``n`` more `dask worker` processes (one thread each); returns once the scheduler has them."""
+        for _ in range(n):
             self.procs.append(subprocess.Popen([BIN / "dask", "worker", self.address, "--nthreads", "1", "--nworkers", "1",
-                                                "--no-dashboard", "--local-directory", str(tmp)], **quiet))
+                                                "--no-dashboard", "--local-directory", str(self.tmp)], **self.quiet))
         with Client(self.address, timeout=30) as client:
-            client.wait_for_workers(n_workers, timeout=60)
+            client.wait_for_workers(len(self.procs) - 1, timeout=60)
 
     def worker_pids(self) -> list[int]:
         with Client(self.address, timeout=30) as client:

@@ -34,8 +34,10 @@ cost: ``local_s x min(2, W / (W - 1))`` over ``W`` worker threads. At or below i
 runs **whole** on its worker (``reason`` cheap): ``run_job(..., client=None)`` inside the
 task, the in-process engine, no task per batch, the worker's thread held for the whole job.
 Above it the job **spreads** (``reason`` dear): the task secedes
-(``distributed.worker_client``, which gives the worker's thread back to the cluster and
-rejoins at the end) and hands that client to ``run_job``, so the Dask executor fans the
+(``distributed.secede``: the worker's thread goes back to the cluster, and the task never
+rejoins: rejoining waits for a free thread, which a batch the job dropped at its cancel or
+time budget may hold for as long as a batch runs, and the job would be reported ended only
+then) and hands the worker's client to ``run_job``, so the Dask executor fans the
 job's batches out over every worker with a free thread (and its own per-population rule
 still keeps a population that turns out cheap in the job's process), unless **the queue
 rule** (:func:`queue_full`) says every worker thread runs a job anyway: the jobs running or
@@ -107,7 +109,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from distributed import Client, Future, get_worker, worker_client
+from distributed import Client, Future, get_client, get_worker, secede
 from distributed.diagnostics.plugin import WorkerPlugin
 
 from abcns import Result, SpecError, StopReason
@@ -423,8 +425,9 @@ def run_one(spec: JobSpec, data: dict[str, np.ndarray], store: str, *, seed: int
 def _run_placed(run: Callable[..., Result], placement: dict, released: Callable[[], bool], key: str,
                 emit: Callable[..., None], path: Path) -> tuple[dict, Result]:
     """Run the job where it is placed: whole here (``run(None)``, the in-process engine), or
-    spread from here (the task secedes: ``distributed.worker_client`` gives the worker's
-    thread to the batches). A job placed whole by the queue rule spreads once the caller
+    spread from here (the task secedes, never to rejoin: the worker's thread goes to the
+    batches, and the loop ends with its task without waiting for a thread, which a batch it
+    dropped may hold). A job placed whole by the queue rule spreads once the caller
     asks (:func:`ask_to_spread`: no job waits, a slot is free): its whole run stops at its
     next batch (the rows of the population being filled are dropped, as at a turn's end)
     and resumes from its store spread, bit-identical (the resume contract); the new
@@ -442,8 +445,9 @@ def _run_placed(run: Callable[..., Result], placement: dict, released: Callable[
     if placement["mode"] == "whole":  # asked to spread, before its run or during it
         placement = {**placement, "mode": "spread", "reason": "idle", "whole_populations": _populations(path)}
         emit("start", placement=placement)
-    with worker_client() as client:
-        return placement, run(client, cancel=released, placement=placement)
+    client = get_client()
+    secede()
+    return placement, run(client, cancel=released, placement=placement)
 
 
 def _populations(path: Path) -> int:
