@@ -68,11 +68,12 @@ class StockCluster:
                                         "--dashboard-address", ":0"], **self.quiet)]
         self.start_workers(n_workers)
 
-    def start_workers(self, n: int) -> None:
-        """``n`` more `dask worker` processes (one thread each); returns once the scheduler has them."""
+    def start_workers(self, n: int, threads: int = 1) -> None:
+        """``n`` more `dask worker` processes of ``threads`` threads; returns once the scheduler has them."""
         for _ in range(n):
-            self.procs.append(subprocess.Popen([BIN / "dask", "worker", self.address, "--nthreads", "1", "--nworkers", "1",
-                                                "--no-dashboard", "--local-directory", str(self.tmp)], **self.quiet))
+            self.procs.append(subprocess.Popen([BIN / "dask", "worker", self.address, "--nthreads", str(threads),
+                                                "--nworkers", "1", "--no-dashboard", "--local-directory", str(self.tmp)],
+                                               **self.quiet))
         with Client(self.address, timeout=30) as client:
             client.wait_for_workers(len(self.procs) - 1, timeout=60)
 

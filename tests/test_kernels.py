@@ -403,3 +403,17 @@ def test_bouc_wen_z_bound_flags_a_too_coarse_integration(backend):
         out = unguarded.simulate(p)
         assert out.status[0] == OK and np.all(np.isfinite(out.values))  # what the bound catches
     assert BoucWen.z_bound(np.array([-1.0]), np.array([5.0]), np.array([1.0]), np.array([1.0]))[0] == np.inf
+
+
+def test_the_simulating_kernels_release_the_gil():
+    """A batch runs in a Dask worker's thread for up to minutes (tests/test_http_holds.py's
+    R.3: ~20-90 s). Holding the GIL, it stalled the worker's event loop and the job loop
+    seceded in the same process: a job ended by its time budget was reported ended ~16 s
+    later. Every kernel a batch calls from Python (``*_run``) is compiled with nogil."""
+    from numba.core.registry import CPUDispatcher
+
+    from worker import kernels, restoring_kernels
+
+    runs = {f"{mod.__name__}.{name}": f.targetoptions.get("nogil") for mod in (kernels, restoring_kernels)
+            for name, f in vars(mod).items() if isinstance(f, CPUDispatcher) and name.endswith("_run")}
+    assert len(runs) == 6 and all(runs.values()), runs

@@ -97,9 +97,13 @@ class _JitOptions(TypedDict):
     cache: bool
     fastmath: set[str]
     error_model: Literal["python", "numpy"]
+    nogil: bool
 
 
-_JIT: _JitOptions = {"cache": True, "fastmath": _FM, "error_model": "numpy"}
+# nogil: a batch runs for up to minutes in a Dask worker's thread; holding the GIL, it froze
+# the worker's event loop (heartbeats, results) and a job loop in the same process (its time
+# budget and cancel) until it ended
+_JIT: _JitOptions = {"cache": True, "fastmath": _FM, "error_model": "numpy", "nogil": True}
 
 
 # --------------------------------------------------------------------------- shared
