@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 
+import httpx
 import pytest
 from http_helpers import settle
 
@@ -19,6 +21,13 @@ from benchmarks.harness import Service, StockCluster
 # tests/test_executor_contract.py that say so evaluate populations here, and one runs a job
 # with the default.
 os.environ.setdefault("ABCNS_LOCAL_POPULATION_S", "0")
+
+# `httpx.get` and its kin build a client per call, and each client its TLS context (the CA
+# bundle read and parsed): ~26 ms of CPU per request, though every request here is plain
+# HTTP to 127.0.0.1; the tests' polls make thousands. One context, made once, serves them
+# all (contexts are shared safely); the tests' requests are otherwise unchanged.
+_ssl_context = functools.lru_cache(maxsize=None)(httpx._transports.default.create_ssl_context)
+httpx._transports.default.create_ssl_context = _ssl_context
 
 # The files that take longest (seconds of one pytest process, measured on the shared 2-core VM
 # under load, 2026-11-29, less what issue X 5's cuts took from test_study and test_service_jobs;

@@ -122,7 +122,7 @@ def test_demo_installs_the_runtime_dependencies_only_and_test_the_dev_extra():
         return done.stdout
 
     demo, test = commands("demo"), commands("test")
-    assert "pip install --quiet -e .\n" in demo and "[dev]" not in demo
+    assert "pip install --quiet --no-compile -e '.'\n" in demo and "[dev]" not in demo
     assert "-e '.[dev]'" in test and "python -m pytest" in test
 
 
