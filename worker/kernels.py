@@ -100,9 +100,9 @@ class _JitOptions(TypedDict):
     nogil: bool
 
 
-# nogil: a batch runs for up to minutes in a Dask worker's thread; holding the GIL, it froze
+# nogil: a batch runs for up to minutes in a Dask worker's thread; holding the GIL, it stalled
 # the worker's event loop (heartbeats, results) and a job loop in the same process (its time
-# budget and cancel) until it ended
+# budget and cancel) while it ran
 _JIT: _JitOptions = {"cache": True, "fastmath": _FM, "error_model": "numpy", "nogil": True}
 
 
