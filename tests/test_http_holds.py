@@ -16,6 +16,7 @@ import select
 import signal
 import socket
 import struct
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -57,9 +58,9 @@ def ended(service: Service, job_id: str) -> dict | None:
     return info if info["status"] in TERMINAL else None
 
 
-def kill(cluster: StockCluster) -> None:
+def kill(procs: list[subprocess.Popen]) -> None:
     """SIGKILL: a worker still runs a dropped batch, and nothing need wait for it."""
-    for p in cluster.procs:
+    for p in procs:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait()
@@ -185,9 +186,7 @@ def test_the_time_budget_and_a_cancel_end_a_job_while_its_batch_runs(tmp_path):
             # its dropped batches would hold both workers (and two cores the other tests need)
             # for a batch's time: in their place one worker of two threads, where the next
             # job's loop runs and both its batches (the loop secedes: its thread runs one)
-            for worker in cluster.procs[1:]:
-                os.killpg(worker.pid, signal.SIGKILL)
-                worker.wait()
+            kill(cluster.procs[1:])
             del cluster.procs[1:]
             cluster.start_workers(1, threads=2)
             spec["stop"]["max_seconds"] = 3
@@ -212,7 +211,7 @@ def test_the_time_budget_and_a_cancel_end_a_job_while_its_batch_runs(tmp_path):
             assert result["wall_time_s"] is not None and result["wall_time_s"] < 30, result
     finally:
         service.close()
-        kill(cluster)
+        kill(cluster.procs)
 
 
 # ---------------------------------------------------------------------------- R.4
