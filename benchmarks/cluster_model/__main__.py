@@ -50,6 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     q.add_argument("--dispatch-ms", type=float, default=None, help="from a slot freeing to the next job's start")
     q.add_argument("--turn-s", type=float, default=30.0, help="the service's turns (0: none)")
     q.add_argument("--skip-validation", action="store_true")
+    q.add_argument("--share", action="store_true", help="each spread job's tasks in flight sized on its share of "
+                   "the worker threads (a design, not built)")
     args = parser.parse_args(argv)
     if args.command == "queue":
         from benchmarks.cluster_model.queue import DISPATCH_S, QUEUES, print_queue
@@ -58,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         ok = True if args.skip_validation else print_queue_validation()
         queues = QUEUES if args.trace is None else [(args.trace, args.sleep_ms)]
         dispatch = DISPATCH_S if args.dispatch_ms is None else args.dispatch_ms / 1e3
-        print_queue(args.workers, args.jobs, queues, dispatch, args.turn_s or None)
+        print_queue(args.workers, args.jobs, queues, dispatch, args.turn_s or None, args.share)
         return 0 if ok else 1
 
     if args.command == "validate":

@@ -42,7 +42,7 @@ import heapq
 import itertools
 import math
 from collections import deque
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -238,6 +238,9 @@ class Replay:
         shares (``benchmarks.cluster_model.queue``: many jobs on one cluster); its runner's
         process and its client's streams are its own."""
         self.trace, self.W, self.sim_s, self.c, self.design = trace, workers, sim_seconds, costs, design
+        # the worker threads the executor sizes its tasks in flight and their size
+        # on: the cluster's (DaskExecutor.n_workers); a queue may give each job its share
+        self.threads: Callable[[], int] = lambda: self.W
         self.env = simpy.Environment() if cluster is None else cluster.env
         self.runner = _Process(self.env, costs.quantum, gil=costs.convoy)
         own = design.scheduler == "own"
@@ -458,14 +461,14 @@ class Replay:
             yield from self.sched_cpu(self.c.sched_call)
             yield self.env.timeout(self.c.latency)
             self.threads_at = self.env.now
-        return self.W
+        return self.threads()
 
     def group_size(self, need: int, consumed: int, forced: int | None) -> int:
         """``DaskExecutor.group_size`` itself (it reads ``batch_seconds`` and :meth:`time_cap`),
         or the design's size."""
         if forced is not None:
             return forced
-        return DaskExecutor.group_size(self, need, consumed, self.W)  # type: ignore[arg-type]
+        return DaskExecutor.group_size(self, need, consumed, self.threads())  # type: ignore[arg-type]
 
     def time_cap(self) -> int:
         """A replay has no time budget (``DaskExecutor.time_cap`` without one)."""

@@ -87,14 +87,18 @@ class QueueReplay(Replay):
     placement rule decides from the trace, and a spread job replays its trace); ``pilot_s``:
     the placement's pilot (None: as :func:`pilot` says for the trace's batches); ``spread``:
     every job spreads whatever the rule says (a job alone as ``benchmarks.scale`` runs it);
+    ``share``: each spread job's executor sizes its tasks in flight and their size
+    on its share of the worker threads (the threads over the spread jobs running, at least
+    one) instead of the whole cluster's (a design, not built: docs/benchmarks.md);
     ``contention_s``: CPU seconds per job of the processes besides the workers (the caller or
     the service, the scheduler), added to each whole job's time: on a machine with no core
     to spare (as many workers as cores) that CPU is taken from the workers' cores."""
 
     def __init__(self, trace: Trace, jobs: int, workers: int, sim_seconds: float, costs: Costs,
                  dispatch_s: float = 0.0, turn_s: float | None = None, whole_s: list[list[float]] | None = None,
-                 pilot_s: float | None = None, spread: bool = False, contention_s: float = 0.0):
+                 pilot_s: float | None = None, spread: bool = False, contention_s: float = 0.0, share: bool = False):
         super().__init__(trace, workers, sim_seconds, costs, Design(scheduler="own"))
+        self.share = share
         self.generation = itertools.count()
         self.n_jobs, self.dispatch_s, self.turn_s, self.whole_s = jobs, dispatch_s, turn_s, whole_s
         self.contention_s = contention_s
@@ -163,6 +167,8 @@ class QueueReplay(Replay):
                 yield from self.on_worker(w, self.pilot_s)
             run = Replay(self.trace, self.W, self.sim_s, self.c, Design(scheduler="own"), cluster=self)
             run.first, run.turn_asked = first, turn[0]
+            if self.share:
+                run.threads = lambda: max(1, self.W // max(1, sum(r is not None for r, _, _ in self.running.values())))
             self.running[job] = (run, self.running[job][1], turn)
             self.env.process(run.writer())
             yield from run.main()
@@ -242,14 +248,15 @@ QUEUES = [("evidence-1000-warm", 2.0), ("evidence-1000-warm", 20.0)]
 
 
 def print_queue(workers: list[int], jobs: list[int] | None, queues: list[tuple[str, float]], dispatch_s: float,
-                turn_s: float | None) -> None:
+                turn_s: float | None, share: bool = False) -> None:
     """The predicted utilization of queues of spread jobs (each a replay of a trace) at each
     worker count, as many jobs as workers unless ``jobs`` says (one per worker count)."""
     from benchmarks.cluster_model.study import design_costs
 
     costs = design_costs()
     print(f"costs: {costs.name}; own scheduler; dispatch {1e3 * dispatch_s:g} ms a job; turns "
-          f"{'none' if turn_s is None else f'{turn_s:g} s'}; the jobs' loops each on a worker's slot")
+          f"{'none' if turn_s is None else f'{turn_s:g} s'}; the jobs' loops each on a worker's slot; tasks in flight "
+          f"sized on {'each job' + chr(39) + 's share of' if share else 'all'} the worker threads")
     print("| trace | ms / simulation | workers | jobs | utilization | one job alone | wall s | starts | pilot s | "
           "idle | other work | task overhead | scheduler busy |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
@@ -257,7 +264,7 @@ def print_queue(workers: list[int], jobs: list[int] | None, queues: list[tuple[s
         trace = Trace.load(name)
         for i, w in enumerate(workers):
             n = jobs[i] if jobs else w
-            out = queue(trace, n, w, ms / 1e3, costs, dispatch_s=dispatch_s, turn_s=turn_s)
+            out = queue(trace, n, w, ms / 1e3, costs, dispatch_s=dispatch_s, turn_s=turn_s, share=share)
             alone = queue(trace, 1, w, ms / 1e3, costs, pilot_s=0.0, spread=True).utilization
             sh = {k: v / (w * out.wall) for k, v in out.time.items()}
             print(f"| {name} | {ms:g} | {w} | {n} | **{out.utilization:.2f}** | {alone:.2f} | {out.wall:.1f} | "
