@@ -16,14 +16,17 @@ TEST_PROCESSES ?= 2
 
 # the venv with this checkout installed (editable) and the extra $(1); bytecode compiled on every
 # core after pip (which compiles one file at a time: ~20 s of its ~34 s on 2 cores), as every
-# process of the suite would otherwise compile its imports again where PYTHONDONTWRITEBYTECODE is set
+# process of the suite would otherwise compile its imports again where PYTHONDONTWRITEBYTECODE is
+# set; the packages' own test folders left out (30 % of the files, none imported: 12.8 -> 8.0 s)
 define INSTALL
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or: make PYTHON=python3)"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 	$(PIP) install --quiet --upgrade pip
 	$(PIP) install --quiet --no-compile -e '.$(1)'
-	$(BIN)/python -m compileall -q -j 0 "$$($(BIN)/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
+	$(BIN)/python -c "$$COMPILE"
 endef
+export COMPILE := import compileall, re, sysconfig; p = sysconfig.get_paths()['purelib']; \
+  raise SystemExit(not compileall.compile_dir(p, quiet=1, workers=0, rx=re.compile(re.escape(p) + r'/(.*/)?tests?/')))
 
 $(RUNTIME): pyproject.toml
 	$(call INSTALL,)
