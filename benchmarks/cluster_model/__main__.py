@@ -50,8 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     q.add_argument("--dispatch-ms", type=float, default=None, help="from a slot freeing to the next job's start")
     q.add_argument("--turn-s", type=float, default=30.0, help="the service's turns (0: none)")
     q.add_argument("--skip-validation", action="store_true")
-    q.add_argument("--share", action="store_true", help="each spread job's tasks in flight sized on its share of "
-                   "the worker threads (a design, not built)")
+    q.add_argument("--share", type=float, default=None, metavar="EXPONENT",
+                   help="each spread job's tasks in flight sized on its share of the worker threads, its tasks up to "
+                   "(threads / share)^EXPONENT x MAX_TASK_SECONDS (a design, not built)")
     args = parser.parse_args(argv)
     if args.command == "queue":
         from benchmarks.cluster_model.queue import DISPATCH_S, QUEUES, print_queue

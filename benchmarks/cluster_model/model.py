@@ -50,7 +50,7 @@ import simpy
 
 from benchmarks.cluster_model.costs import Costs
 from benchmarks.cluster_model.trace import PopulationTrace, Trace
-from service.run.dask_executor import IN_FLIGHT_PER_THREAD, NEED_MARGIN, DaskExecutor
+from service.run.dask_executor import IN_FLIGHT_PER_THREAD, MAX_TASK_SECONDS, NEED_MARGIN, DaskExecutor
 
 #: Dask's worker-saturation 1.1 on a single-threaded worker: ceil(1.1 x 1) tasks at a time
 WORKER_SLOTS = 2
@@ -238,9 +238,11 @@ class Replay:
         shares (``benchmarks.cluster_model.queue``: many jobs on one cluster); its runner's
         process and its client's streams are its own."""
         self.trace, self.W, self.sim_s, self.c, self.design = trace, workers, sim_seconds, costs, design
-        # the worker threads the executor sizes its tasks in flight and their size
-        # on: the cluster's (DaskExecutor.n_workers); a queue may give each job its share
+        # the worker threads the executor sizes its tasks in flight and their size on: the
+        # cluster's (DaskExecutor.n_workers); a queue may give each job its share, and its tasks
+        # up to MAX_TASK_SECONDS x (W / share)^task_exponent of compute time
         self.threads: Callable[[], int] = lambda: self.W
+        self.task_exponent = 0.0
         self.env = simpy.Environment() if cluster is None else cluster.env
         self.runner = _Process(self.env, costs.quantum, gil=costs.convoy)
         own = design.scheduler == "own"
@@ -468,7 +470,9 @@ class Replay:
         or the design's size."""
         if forced is not None:
             return forced
-        return DaskExecutor.group_size(self, need, consumed, self.threads())  # type: ignore[arg-type]
+        threads = self.threads()
+        longest = MAX_TASK_SECONDS * (self.W / threads) ** self.task_exponent
+        return DaskExecutor.group_size(self, need, consumed, threads, longest)  # type: ignore[arg-type]
 
     def time_cap(self) -> int:
         """A replay has no time budget (``DaskExecutor.time_cap`` without one)."""

@@ -190,16 +190,17 @@ class DaskExecutor:
             self._threads = (now, max(1, sum(self.client.nthreads().values())))
         return self._threads[1]
 
-    def group_size(self, need: int, consumed: int, n_workers: int) -> int:
+    def group_size(self, need: int, consumed: int, n_workers: int, max_task_s: float = MAX_TASK_SECONDS) -> int:
         """Batches in the next task, given the batches expected and those consumed so far;
         one until a batch's compute time has been measured (a job's first tasks measure it),
-        and no more than fit into the run's seconds left (:meth:`time_cap`)."""
+        and no more than fit into the run's seconds left (:meth:`time_cap`) or into
+        ``max_task_s`` of compute time."""
         if self.batch_seconds is None:
             return 1
         need = max(need, consumed)
         size = math.ceil(need / (2 * n_workers))
         if self.batch_seconds > 0:
-            most = max(1, int(MAX_TASK_SECONDS / self.batch_seconds))
+            most = max(1, int(max_task_s / self.batch_seconds))
             # the floor of a task's compute time, but never so large that fewer tasks than
             # workers cover the need: a cheap population is shared by every worker, each its
             # part in one task (a floor of 20 ms made one task of a whole population, and a
