@@ -165,19 +165,24 @@ def test_the_service_readies_a_fresh_cluster_for_jobs_before_any_is_submitted(pr
 def test_the_service_runs_a_dear_job_whole_while_jobs_fill_the_workers_and_spreads_it_when_a_slot_frees(
         cluster, tmp_path):
     """The queue rule in the service (ABCNS_LOCAL_POPULATION_S=1e-7 s: every population is
-    dear), on the shared cluster's 2 single-threaded workers, no --max-running: jobs a (2
-    populations), b (10) and c (40), each of 2,000 particles, submitted at once. c starts only when a slot frees (a's),
-    while b runs: 2 jobs for 2 slots and 2 threads, so c runs whole (reason queue; before:
-    spread). When b ends, no job waits and b's slot is free: c is asked to spread, and says
-    so in a second `placed` event (reason idle). Every job ends bit-identical to its spec
-    run alone. c is long enough to outlast the dispatcher's next look after b's end (within
-    1 s): with 16 populations of 500 particles (~2 ms of simulation each) c sometimes ended
-    first, 1 run in 7, and was never asked; and a outlasts the three submissions: a of 2
-    populations of 500 sometimes ended before c came, so b spread and c was placed spread."""
+    dear), on the shared cluster's 2 single-threaded workers, no --max-running: jobs a (4
+    populations of 2,000 particles), b (10 of 2,000) and c (100 of 4,000), submitted at once. c starts only
+    when a slot frees, while another job runs: 2 jobs for 2 slots and 2 threads, so c runs whole
+    (reason queue; before: spread). When that job ends, no job waits and its slot is free: c is
+    asked to spread, and says so in a second `placed` event (reason idle). Every job ends
+    bit-identical to its spec run alone. c is long enough to outlast the dispatcher's next look
+    after the other job's end (within 1 s) whichever way a was placed: a may be placed when it
+    alone has reached the service (`jobs` 1: spread, 3.2 s for its 4 populations), then b
+    whole (queue), c on b's slot, and c must outlast a by the look: c of 40 populations of
+    2,000 ended 0.13 s before a (a fresh clone, 2026-12-05), of 100 of 2,000 0.37 s after it,
+    unasked (a submitted and placed before b and c, 2 runs of 2), of 100 of 4,000 asked
+    ~0.2 s after a's end and ran ~4 s more (2 of 2); c of 16 of 500 ended first 1 run in 7;
+    and a outlasts the three submissions: a of 2 populations of 500 sometimes ended before c
+    came, so b spread and c was placed spread."""
     service = Service(tmp_path / "jobs", cluster.address, max_running=None, env={"ABCNS_LOCAL_POPULATION_S": "1e-7"})
     try:
         ids = [submit(service, seed, populations=n, particles=k, floor=False)
-               for seed, n, k in ((6, 4, 2000), (7, 10, 2000), (8, 40, 2000))]
+               for seed, n, k in ((6, 4, 2000), (7, 10, 2000), (8, 100, 4000))]
         events = {job_id: follow(service.url, job_id) for job_id in ids}
         for job_id in ids:
             assert events[job_id][-1]["event"] == "finished", events[job_id][-3:]
