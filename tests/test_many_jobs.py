@@ -291,12 +291,13 @@ def test_dear_jobs_run_whole_while_every_thread_has_one_and_the_last_spreads_whe
     """Two dear jobs (``local_s`` 1e-7 s) on 2 single-threaded workers through run_jobs:
     each is placed whole by the queue rule (2 jobs, 2 slots, 2 threads), where each spread
     before. When the short one (200 particles, 3 populations) ends, no job waits and a slot
-    is free: the long one (1000 particles, 15 populations: ~5x longer) is asked to spread,
+    is free: the long one (2000 particles, 20 populations; with 1000 and 15, ~5x the short
+    one's time, it once ended unasked, the suite in reverse on a fresh clone, 2026-12-05) is asked to spread,
     stops its whole run at its next batch and resumes from its store spread (a second
     start event; the store's placement says so, with the populations it made whole). Both
     results equal, bit for bit, their runs alone in this process."""
     specs = [write_spec(tmp_path / "specs", 1, name="short"),
-             write_spec(tmp_path / "specs", 2, name="long", particles=1000, populations=15)]
+             write_spec(tmp_path / "specs", 2, name="long", particles=2000, populations=20)]
     starts: dict[int, list[dict]] = {0: [], 1: []}
 
     def on_event(i: int, event: dict) -> None:
@@ -311,6 +312,6 @@ def test_dear_jobs_run_whole_while_every_thread_has_one_and_the_last_spreads_whe
     assert len(starts[0]) == 1, starts[0]
     assert [(p["mode"], p["reason"]) for p in starts[1]] == [("whole", "queue"), ("spread", "idle")], starts[1]
     moved = Store.open(jobs[1].store).attrs["run"]["placement"]
-    assert moved == starts[1][1] == outcomes[1].placement and 0 <= moved["whole_populations"] < 15, moved
+    assert moved == starts[1][1] == outcomes[1].placement and 0 <= moved["whole_populations"] < 20, moved
     for spec, job in zip(specs, jobs, strict=True):
         assert_same_store(alone(spec, tmp_path / f"alone-{spec.stem}.zarr"), job.store)
