@@ -150,14 +150,14 @@ def test_spread_jobs_fill_each_other_s_barriers():
 
 
 def test_a_job_s_share_of_the_threads_sizes_only_its_tasks_in_flight():
-    """The ``share`` design (each spread job's executor sized on the worker threads over the
+    """The share design (each spread job's executor sized on the worker threads over the
     spread jobs running, its tasks up to (threads / share)^exponent x MAX_TASK_SECONDS): one
     job alone has all of them, so the same replay to the last bit (whatever the exponent);
     four jobs on 8 workers at 20 ms a simulation each keep 2 threads' tasks in flight, so
     less surplus at their populations' ends than with the whole cluster's (docs/benchmarks.md,
     "A queue of jobs": 0.12 -> 0.03 of the workers' time at 14 workers)."""
     trace = Trace.load("evidence-1000-warm")
-    one, shared = (queue(trace, 1, 8, 0.002, design_costs(), pilot_s=0.0, share=s) for s in (None, 0.5))
+    one, shared = (queue(trace, 1, 8, 0.002, design_costs(), pilot_s=0.0, share_exponent=x) for x in (None, 0.5))
     assert shared.wall == one.wall and shared.utilization == one.utilization
-    whole, share = (queue(trace, 4, 8, 0.020, design_costs(), share=s) for s in (None, 0.0))
+    whole, share = (queue(trace, 4, 8, 0.020, design_costs(), share_exponent=x) for x in (None, 0.0))
     assert share.time["other work"] < 0.5 * whole.time["other work"]

@@ -291,9 +291,9 @@ def test_dear_jobs_run_whole_while_every_thread_has_one_and_the_last_spreads_whe
     """Two dear jobs (``local_s`` 1e-7 s) on 2 single-threaded workers through run_jobs:
     each is placed whole by the queue rule (2 jobs, 2 slots, 2 threads), where each spread
     before. When the short one (200 particles, 3 populations) ends, no job waits and a slot
-    is free: the long one (2000 particles, 20 populations; with 1000 and 15, ~5x the short
-    one's time, it once ended unasked, the suite in reverse on a fresh clone, 2026-12-05) is asked to spread,
-    stops its whole run at its next batch and resumes from its store spread (a second
+    is free: the long one (2000 particles, 20 populations) is asked to spread (with 1000
+    and 15, ~5x the short one's time, it once ended unasked: the suite in reverse, a fresh
+    clone, 2026-12-05), stops its whole run at its next batch and resumes from its store spread (a second
     start event; the store's placement says so, with the populations it made whole). Both
     results equal, bit for bit, their runs alone in this process."""
     specs = [write_spec(tmp_path / "specs", 1, name="short"),

@@ -87,10 +87,10 @@ class QueueReplay(Replay):
     placement rule decides from the trace, and a spread job replays its trace); ``pilot_s``:
     the placement's pilot (None: as :func:`pilot` says for the trace's batches); ``spread``:
     every job spreads whatever the rule says (a job alone as ``benchmarks.scale`` runs it);
-    ``share``: None, or each spread job's executor sizes its tasks in flight and their size
-    on its share of the worker threads (the threads over the spread jobs running, at least
+    ``share_exponent``: None, or each spread job's executor sizes its tasks in flight and their
+    size on its share of the worker threads (the threads over the spread jobs running, at least
     one) instead of the whole cluster's, its tasks up to ``MAX_TASK_SECONDS`` x (threads /
-    share)^``share`` of compute time (a design, not built: docs/benchmarks.md);
+    share)^``share_exponent`` of compute time (a design, not built: docs/benchmarks.md);
     ``contention_s``: CPU seconds per job of the processes besides the workers (the caller or
     the service, the scheduler), added to each whole job's time: on a machine with no core
     to spare (as many workers as cores) that CPU is taken from the workers' cores."""
@@ -98,9 +98,9 @@ class QueueReplay(Replay):
     def __init__(self, trace: Trace, jobs: int, workers: int, sim_seconds: float, costs: Costs,
                  dispatch_s: float = 0.0, turn_s: float | None = None, whole_s: list[list[float]] | None = None,
                  pilot_s: float | None = None, spread: bool = False, contention_s: float = 0.0,
-                 share: float | None = None):
+                 share_exponent: float | None = None):
         super().__init__(trace, workers, sim_seconds, costs, Design(scheduler="own"))
-        self.share = share
+        self.share_exponent = share_exponent
         self.generation = itertools.count()
         self.n_jobs, self.dispatch_s, self.turn_s, self.whole_s = jobs, dispatch_s, turn_s, whole_s
         self.contention_s = contention_s
@@ -169,9 +169,9 @@ class QueueReplay(Replay):
                 yield from self.on_worker(w, self.pilot_s)
             run = Replay(self.trace, self.W, self.sim_s, self.c, Design(scheduler="own"), cluster=self)
             run.first, run.turn_asked = first, turn[0]
-            if self.share is not None:
+            if self.share_exponent is not None:
                 run.threads = lambda: max(1, self.W // max(1, sum(r is not None for r, _, _ in self.running.values())))
-                run.task_exponent = self.share
+                run.task_exponent = self.share_exponent
             self.running[job] = (run, self.running[job][1], turn)
             self.env.process(run.writer())
             yield from run.main()
@@ -251,7 +251,7 @@ QUEUES = [("evidence-1000-warm", 2.0), ("evidence-1000-warm", 20.0)]
 
 
 def print_queue(workers: list[int], jobs: list[int] | None, queues: list[tuple[str, float]], dispatch_s: float,
-                turn_s: float | None, share: float | None = None) -> None:
+                turn_s: float | None, share_exponent: float | None = None) -> None:
     """The predicted utilization of queues of spread jobs (each a replay of a trace) at each
     worker count, as many jobs as workers unless ``jobs`` says (one per worker count)."""
     from benchmarks.cluster_model.study import design_costs
@@ -259,8 +259,8 @@ def print_queue(workers: list[int], jobs: list[int] | None, queues: list[tuple[s
     costs = design_costs()
     print(f"costs: {costs.name}; own scheduler; dispatch {1e3 * dispatch_s:g} ms a job; turns "
           f"{'none' if turn_s is None else f'{turn_s:g} s'}; the jobs' loops each on a worker's slot; tasks in flight "
-          + (f"sized on each job's share of the worker threads, tasks up to (threads / share)^{share:g} x "
-             f"{MAX_TASK_SECONDS:g} s" if share is not None else "sized on all the worker threads"))
+          + (f"sized on each job's share of the worker threads, tasks up to (threads / share)^{share_exponent:g} x "
+             f"{MAX_TASK_SECONDS:g} s" if share_exponent is not None else "sized on all the worker threads"))
     print("| trace | ms / simulation | workers | jobs | utilization | one job alone | wall s | starts | pilot s | "
           "idle | other work | task overhead | scheduler busy |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
@@ -268,7 +268,7 @@ def print_queue(workers: list[int], jobs: list[int] | None, queues: list[tuple[s
         trace = Trace.load(name)
         for i, w in enumerate(workers):
             n = jobs[i] if jobs else w
-            out = queue(trace, n, w, ms / 1e3, costs, dispatch_s=dispatch_s, turn_s=turn_s, share=share)
+            out = queue(trace, n, w, ms / 1e3, costs, dispatch_s=dispatch_s, turn_s=turn_s, share_exponent=share_exponent)
             alone = queue(trace, 1, w, ms / 1e3, costs, pilot_s=0.0, spread=True).utilization
             sh = {k: v / (w * out.wall) for k, v in out.time.items()}
             print(f"| {name} | {ms:g} | {w} | {n} | **{out.utilization:.2f}** | {alone:.2f} | {out.wall:.1f} | "
