@@ -295,25 +295,33 @@ def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.rando
 
 
 class Frame:
-    """The coordinates a model's bound lives in: its unit prior box ``(theta - low) / width``
+    """The coordinates a model's bound lives in: its unit prior box ``(u - low) / width``
     (so that a condition-number cap and a volume mean the same for every parameter), or the
-    raw parameters (the paper variant: ``unit=False``, no arithmetic on the way). The box
-    and its volume are the model's (``Model.low``, ``Model.high``, ``Model.in_prior``'s
-    test, ``Model.log_prior_volume``), held as arrays for the proposals' loops."""
+    raw coordinates ``u`` (the paper variant: ``unit=False``, no arithmetic on the way), where
+    ``u`` is theta in the coordinates its prior is uniform in (``Model.to_coordinates``: log
+    theta for a log-uniform prior, theta itself otherwise) and ``low``, ``width`` are the
+    prior's there. The box test is the model's (``Model.in_prior``'s, on theta), and the box's
+    volume ``Model.log_prior_volume``; all held as arrays for the proposals' loops."""
 
     def __init__(self, model: Model, unit: bool):
         self.unit = unit
-        self.low = model.low
-        self.high = model.high
-        self.width = self.high - self.low
+        self.model_low = model.low
+        self.model_high = model.high
+        #: the model's own map to the prior's coordinates, when any prior is log-uniform
+        self.coordinates = model if model.log_columns.any() else None
+        self.low = np.array([p.coordinate_low for p in model.priors.values()])
+        self.width = np.array([p.coordinate_width for p in model.priors.values()])
+        self.high = self.low + self.width if self.coordinates else model.high
         #: log volume of the prior box in these coordinates
         self.log_box_volume = 0.0 if unit else model.log_prior_volume()
 
     def to_frame(self, theta: np.ndarray) -> np.ndarray:
-        return (theta - self.low) / self.width if self.unit else theta
+        u = self.coordinates.to_coordinates(theta) if self.coordinates else theta
+        return (u - self.low) / self.width if self.unit else u
 
     def from_frame(self, x: np.ndarray) -> np.ndarray:
-        return self.low + self.width * x if self.unit else x
+        u = self.low + self.width * x if self.unit else x
+        return self.coordinates.from_coordinates(u) if self.coordinates else u
 
     @property
     def box(self) -> tuple[np.ndarray, np.ndarray]:
@@ -324,7 +332,7 @@ class Frame:
     def in_prior(self, theta: np.ndarray) -> np.ndarray:
         """Which rows of ``theta`` (raw parameters) lie inside the prior box: ``Model.in_prior``
         (``priors.in_box``) on the arrays held here."""
-        return in_box(theta, self.low, self.high)
+        return in_box(theta, self.model_low, self.model_high)
 
     def box_ellipsoid(self) -> ell.Ellipsoid:
         """The ellipsoid through the prior box's corners (the first fallback shape)."""

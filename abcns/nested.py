@@ -189,7 +189,8 @@ def finish_population(
         frame = frames[m]
         points = frame.to_frame(theta[rows, : model.n_dim])
         prev_bound = previous.ellipsoids[m] if previous is not None else ()
-        bound = variant.bound(points, theta[np.sort(keep), : model.n_dim], _fallback(prev_bound, frame, settings))
+        fitted = frame.to_frame(theta[np.sort(keep), : model.n_dim])  # the paper variant's fit
+        bound = variant.bound(points, fitted, _fallback(prev_bound, frame, settings))
         notes += [f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)" for e in bound if e.note]
         bounds.append(bound)
         geometry_jobs.append(_geometry_job(bound, frame, points, is_new[rows],

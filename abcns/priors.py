@@ -1,4 +1,5 @@
-"""Uniform priors and candidate models (a named parameter space with fixed values)."""
+"""Uniform and log-uniform priors and candidate models (a named parameter space with fixed
+values)."""
 
 from __future__ import annotations
 
@@ -15,10 +16,17 @@ from abcns.errors import InvalidSetting
 @dataclass(frozen=True)
 class Uniform:
     """Uniform prior U(low, high) on one parameter; finite bounds, low < high, and a finite
-    width (``high - low``, which sampling and the prior volume use)."""
+    width (``high - low``, which sampling and the prior volume use).
+
+    ``log``: uniform in log(theta) instead (log-uniform, scale-free: each decade of [low, high]
+    holds the same prior mass), which needs low > 0. The bounds stay in the parameter's own
+    units; :attr:`coordinate_low` and :attr:`coordinate_width` are those of the coordinate the
+    prior is uniform in (log theta here), which sampling, the bounds' frame and the prior
+    volume use."""
 
     low: float
     high: float
+    log: bool = False
 
     def __post_init__(self) -> None:
         for name in ("low", "high"):
@@ -31,12 +39,46 @@ class Uniform:
             raise InvalidSetting(("low",), f"must be below high, got low={self.low!r} >= high={self.high!r}")
         if not math.isfinite(float(self.high) - float(self.low)):  # [-1e308, 1e308]: sampling would give inf
             raise InvalidSetting(("high",), f"the width high - low overflows a float, got [{self.low!r}, {self.high!r}]")
+        if not isinstance(self.log, bool):
+            raise InvalidSetting(("log",), f"must be true or false, got {self.log!r}")
+        if self.log and not self.low > 0:
+            raise InvalidSetting(("low",), f"a log-uniform prior needs low > 0, got {self.low!r}")
         object.__setattr__(self, "low", float(self.low))
         object.__setattr__(self, "high", float(self.high))
 
     @property
     def width(self) -> float:
         return self.high - self.low
+
+    @property
+    def coordinate_low(self) -> float:
+        """The low end in the coordinate the prior is uniform in: ``low``, or log(low)."""
+        return math.log(self.low) if self.log else self.low
+
+    @property
+    def coordinate_width(self) -> float:
+        """The width in that coordinate: ``high - low``, or log(high / low)."""
+        return math.log(self.high) - math.log(self.low) if self.log else self.width
+
+    def pair(self) -> list[Any]:
+        """The spec's form: ``[low, high]``, or ``[low, high, "log"]``."""
+        return [self.low, self.high, "log"] if self.log else [self.low, self.high]
+
+    @classmethod
+    def parse(cls, value: Any) -> Uniform:
+        """A prior from the spec's form, ``[low, high]`` or ``[low, high, "log"]``."""
+        if isinstance(value, Uniform):
+            return value
+        if isinstance(value, (list, tuple)) and len(value) == 3:
+            low, high, scale = value
+            if scale != "log":
+                raise InvalidSetting((), f"the third entry of a prior is \"log\" (log-uniform), got {scale!r}")
+            return cls(low, high, log=True)
+        try:
+            low, high = value
+        except (TypeError, ValueError):
+            raise InvalidSetting((), f"must be [low, high] or [low, high, \"log\"], got {value!r}") from None
+        return cls(low, high)
 
 
 def in_box(theta: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
@@ -53,7 +95,8 @@ def in_box(theta: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Model:
-    """A candidate model: its free parameters with uniform priors, and fixed values.
+    """A candidate model: its free parameters with uniform (or log-uniform) priors, and fixed
+    values.
 
     ``priors`` keeps the order given; that order is the column order of the parameter
     vectors the algorithm proposes for this model. ``fixed`` holds parameters of the
@@ -75,18 +118,10 @@ class Model:
         # unchecked input (YAML, JSON, Python): a [low, high] pair is accepted too, validated below
         given: Mapping[str, Any] = self.priors
         for key, value in given.items():
-            where = ("priors", key)
-            if isinstance(value, Uniform):
-                priors[key] = value
-                continue
             try:
-                low, high = value
-            except (TypeError, ValueError):
-                raise InvalidSetting(where, f"must be [low, high], got {value!r}") from None
-            try:
-                priors[key] = Uniform(low, high)
+                priors[key] = Uniform.parse(value)
             except InvalidSetting as err:
-                raise InvalidSetting(where, err.message) from None
+                raise InvalidSetting(("priors", key), err.message) from None
         fixed: dict[str, float] = {}
         for key, number in self.fixed.items():
             where = ("fixed", key)
@@ -119,22 +154,62 @@ class Model:
     def high(self) -> np.ndarray:
         return np.array([p.high for p in self.priors.values()])
 
+    @property
+    def log_columns(self) -> np.ndarray:
+        """Which parameters have a log-uniform prior (bool, n_dim)."""
+        return np.array([p.log for p in self.priors.values()])
+
+    def to_coordinates(self, theta: np.ndarray) -> np.ndarray:
+        """``theta`` (..., n_dim) in the coordinates the prior is uniform in: log of the
+        log-uniform parameters' columns; ``theta`` itself when there are none."""
+        logs = self.log_columns
+        if not logs.any():
+            return theta
+        out = np.array(theta, dtype=float)
+        out[..., logs] = np.log(out[..., logs])
+        return out
+
+    def from_coordinates(self, u: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`to_coordinates`."""
+        logs = self.log_columns
+        if not logs.any():
+            return u
+        out = np.array(u, dtype=float)
+        out[..., logs] = np.exp(out[..., logs])
+        return out
+
     def sample_prior(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """``n`` draws from the prior, shape (n, n_dim)."""
-        return self.low + (self.high - self.low) * rng.random((n, self.n_dim))
+        if not self.log_columns.any():
+            return self.low + (self.high - self.low) * rng.random((n, self.n_dim))
+        low = np.array([p.coordinate_low for p in self.priors.values()])
+        width = np.array([p.coordinate_width for p in self.priors.values()])
+        return self.from_coordinates(low + width * rng.random((n, self.n_dim)))
 
     def in_prior(self, theta: np.ndarray) -> np.ndarray:
         """Boolean mask of the rows of ``theta`` (n, n_dim) inside the prior box (:func:`in_box`)."""
         return in_box(theta, self.low, self.high)
 
     def log_prior_volume(self) -> float:
-        """log of the prior box's volume, the sum of the log widths ``high - low``."""
-        return float(np.sum(np.log(self.high - self.low)))
+        """log of the prior box's volume in the coordinates the prior is uniform in
+        (:meth:`to_coordinates`): the sum of the log widths ``high - low`` (log(high / low) for a
+        log-uniform prior)."""
+        return float(np.sum(np.log([p.coordinate_width for p in self.priors.values()])))
+
+    def log_prior_density(self, theta: np.ndarray) -> np.ndarray:
+        """The prior's log density at each row of ``theta`` (n, n_dim) inside the box, in the
+        parameters' own units: ``-log_prior_volume()``, less log(theta) of each log-uniform
+        parameter (the Jacobian of d log theta / d theta)."""
+        out = np.full(np.shape(theta)[0], -self.log_prior_volume())
+        logs = self.log_columns
+        if logs.any():
+            out -= np.sum(np.log(np.asarray(theta)[:, logs]), axis=1)
+        return out
 
     @classmethod
     def from_dict(cls, desc: Mapping[str, Any]) -> Model:
         """The model a dict describes: :meth:`config_dict`'s form (``config`` kept as it is) or
-        a job spec's (``name``, ``simulator``, ``priors`` as [low, high], ``fixed``; the
+        a job spec's (``name``, ``simulator``, ``priors`` as [low, high] or [low, high, "log"], ``fixed``; the
         simulator's name kept as ``config``). InvalidSetting names the field (``priors.k``)."""
         config = desc.get("config") or ({"simulator": desc["simulator"]} if "simulator" in desc else {})
         return cls(desc["name"], desc["priors"], desc.get("fixed") or {}, config=config)
@@ -143,7 +218,7 @@ class Model:
         """JSON-able, the inverse of :meth:`from_dict`."""
         return {
             "name": self.name,
-            "priors": {k: [p.low, p.high] for k, p in self.priors.items()},
+            "priors": {k: p.pair() for k, p in self.priors.items()},
             "fixed": dict(self.fixed),
             **({"config": dict(self.config)} if self.config else {}),
         }

@@ -119,7 +119,7 @@ def _log_weights(models: Sequence[Model], filled: Filled, kernels: Sequence[Kern
             kernel = kernels[m]
             assert kernel is not None  # proposed, so p_model[m] > 0
             x = filled.theta[rows, : model.n_dim]
-            log_w[rows] = (-np.log(n_models) - model.log_prior_volume() + log_box_mass[m]
+            log_w[rows] = (-np.log(n_models) + model.log_prior_density(x) + log_box_mass[m]
                            - np.log(p_model[m]) - kernel.log_density(x))
     return log_w
 

@@ -89,7 +89,8 @@ class Paper:
         return quotas, deaths(alive_now, alive_now & (quotas == 0), ev.NO_PARTICLES)
 
     def bound(self, points: np.ndarray, survivors: np.ndarray, fallback: ell.Ellipsoid) -> bd.Union:
-        """One ellipsoid fitted to the survivors (raw units), enlarged by f0."""
+        """One ellipsoid fitted to the survivors (raw units: log theta for a log-uniform prior),
+        enlarged by f0."""
         return tuple(ell.fit_many([survivors], fallback, enlargement=self.settings.enlargement))
 
     #: the bound is not a fit of every point below eps_{t+1}: its coverage is the share it holds

@@ -50,14 +50,17 @@ Window = tuple[int, int]
 
 
 def _prior_pair(value: Any) -> Any:
-    """A prior is ``[low, high]``: a wrong shape is reported at the prior's own name
-    (``models[0].priors.k``), not at a missing tuple element (``...priors.k[1]``)."""
-    if not isinstance(value, (list, tuple)) or len(value) != 2:
-        raise ValueError(f"a prior is [low, high], got {value!r}"[:200])
-    return value
+    """A prior is ``[low, high]`` (uniform) or ``[low, high, "log"]`` (log-uniform): a wrong
+    shape is reported at the prior's own name (``models[0].priors.k``), not at a missing tuple
+    element (``...priors.k[1]``)."""
+    if not isinstance(value, (list, tuple)) or len(value) not in (2, 3):
+        raise ValueError(f'a prior is [low, high] or [low, high, "log"], got {value!r}'[:200])
+    if len(value) == 3 and value[2] != "log":
+        raise ValueError(f'the third entry of a prior is "log" (log-uniform), got {value[2]!r}'[:200])
+    return tuple(value)
 
 
-Prior = Annotated[tuple[float, float], BeforeValidator(_prior_pair)]
+Prior = Annotated[tuple[float, float] | tuple[float, float, Literal["log"]], BeforeValidator(_prior_pair)]
 
 
 class _Strict(BaseModel):

@@ -114,3 +114,34 @@ def line_and_disc_region(m, eps, n, rng, x0=0.3, y0=0.6):
 def balls_4_and_5_region(m, eps, n, rng):
     """n points uniform in model m's accepted ball of :func:`balls_4_and_5` (eps <= 0.5)."""
     return _uniform_ball(np.full(4 + m, 0.5), eps / 2 if m == 0 else eps, n, rng)
+
+
+def uniform_and_log(x0=0.1, low=0.01, high=1.0):
+    """One deterministic distance ``|x - x0|`` under two priors on x: U(low, high) and
+    log-uniform on [low, high] (``[low, high, "log"]``)."""
+    models = [Model("uniform", {"x": (low, high)}), Model("log", {"x": (low, high, "log")})]
+
+    def dist(theta, rng):
+        return np.abs(theta[:, 0] - x0), np.full(theta.shape[0], OK, np.int8)
+
+    return models, per_model([dist, dist])
+
+
+def uniform_and_log_window(eps, x0=0.1, low=0.01, high=1.0):
+    """The accepted interval of x at eps: [x0 - eps, x0 + eps] within the prior's bounds."""
+    return max(x0 - eps, low), min(x0 + eps, high)
+
+
+def uniform_and_log_log_evidence(eps, low=0.01, high=1.0):
+    """Exact log Z of :func:`uniform_and_log`: the accepted interval's prior mass under each."""
+    a, b = uniform_and_log_window(eps, low=low, high=high)
+    return np.log([(b - a) / (high - low), np.log(b / a) / np.log(high / low)])
+
+
+def uniform_and_log_region(m, eps, n, rng, low=0.01, high=1.0):
+    """n draws of model m's accepted x at eps, in its unit prior box (log x's for the log prior)."""
+    a, b = uniform_and_log_window(eps, low=low, high=high)
+    if m == 0:
+        return ((a + (b - a) * rng.random(n) - low) / (high - low))[:, None]
+    lo, hi = (np.log(v / low) / np.log(high / low) for v in (a, b))
+    return (lo + (hi - lo) * rng.random(n))[:, None]

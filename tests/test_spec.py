@@ -58,6 +58,9 @@ def refuse(raw, base, field, match=None):
         (lambda r: r["models"][0]["priors"].update(k3=[0, 1]), "models[0].fixed.k3"),
         (lambda r: r["models"][0]["priors"].update(c=[1, 0]), "models[0].priors.c"),
         (lambda r: r["models"][0]["priors"].update(q=[0, 1]), "models[0].priors.q"),
+        (lambda r: r["models"][0]["priors"].update(c=[0, 1, "log"]), "models[0].priors.c"),
+        (lambda r: r["models"][0]["priors"].update(c=[0.1, 1, "ln"]), "models[0].priors.c"),
+        (lambda r: r["models"][0]["priors"].update(c=[0.1, 1, "log", 2]), "models[0].priors.c"),
         (lambda r: r["data"].update(fit=[400, 900]), "data.fit"),
         (lambda r: r["data"].update(test=[-1, 10]), "data.test"),
         (lambda r: r["data"].update(observed="missing.npy"), "data.observed"),
@@ -73,6 +76,15 @@ def test_malformed_specs_name_the_field(raw, mutate, field):
     bad = copy.deepcopy(raw)
     mutate(bad)
     refuse(bad, SPEC.parent, field)
+
+
+def test_a_log_uniform_prior_is_read_and_refused_naming_the_field(raw):
+    """``[low, high, "log"]``: a log-uniform prior, which needs low > 0 (the message says so)."""
+    raw["models"][0]["priors"]["c"] = [0.01, 1, "log"]
+    job = build(parse(raw), SPEC.parent)
+    assert job.models[0].priors["c"].log and not job.models[0].priors["k"].log
+    raw["models"][0]["priors"]["c"] = [0, 1, "log"]
+    refuse(raw, SPEC.parent, "models[0].priors.c", match="log-uniform prior needs low > 0")
 
 
 def test_observed_with_nan_and_length_mismatch(raw, tmp_path):

@@ -654,18 +654,24 @@ def test_zarrs_warning_about_a_half_written_metadata_file_is_ignored_by_dataset_
 
 
 # ---------------------------------------------------------------- P.7, Q.13: geometry, xarray, per-model views
-def line_and_disc_store(path: Path, variant: str, n_populations: int = 4) -> Store:
+def line_and_disc_store(path: Path, variant: str, n_populations: int = 4, log: bool = False) -> Store:
     """A real run of tests.closed_form.line_and_disc (models of 1 and 2 parameters on the unit
     box, shifted and scaled so the unit prior box and the parameters differ), appended
-    population by population, with the spec the runner stores (its models and sampler)."""
+    population by population, with the spec the runner stores (its models and sampler).
+    ``log``: every prior log-uniform (boxes [2, 7] and [0.5, 60.5]), the distances those of
+    log theta's unit box."""
     models, evaluate = line_and_disc()
-    low, width = np.array([2.0, -30.0]), np.array([5.0, 60.0])  # prior boxes [2, 7] and [-30, 30]
-    models = [abcns.Model(m.name, {p: (low[j], low[j] + width[j]) for j, p in enumerate(m.parameter_names)})
-              for m in models]
+    low, width = np.array([2.0, 0.5 if log else -30.0]), np.array([5.0, 60.0])  # prior boxes [2, 7] and [-30, 30]
+    models = [abcns.Model(m.name, {p: (low[j], low[j] + width[j], "log") if log else (low[j], low[j] + width[j])
+                                   for j, p in enumerate(m.parameter_names)}) for m in models]
     inner = evaluate
 
     def evaluate_raw(batch):  # the closed-form distances on the unit box
-        unit = (batch.theta - low[: batch.theta.shape[1]]) / width[: batch.theta.shape[1]]
+        d = batch.theta.shape[1]
+        if log:
+            unit = np.log(batch.theta / low[:d]) / np.log1p(width[:d] / low[:d])
+        else:
+            unit = (batch.theta - low[:d]) / width[:d]
         return inner(replace(batch, theta=unit))
 
     settings = NSSettings(particles=300, epsilon_initial=0.5, batch_size=100, variant=variant)
@@ -678,15 +684,17 @@ def line_and_disc_store(path: Path, variant: str, n_populations: int = 4) -> Sto
     return store
 
 
+@pytest.mark.parametrize("log", [False, True], ids=["uniform", "log-uniform"])
 @pytest.mark.parametrize("variant", ["evidence", "paper"])
-def test_the_ellipsoids_are_what_their_description_says(tmp_path, variant):
+def test_the_ellipsoids_are_what_their_description_says(tmp_path, variant, log):
     """P.7: the store said ``{x : (x - c)^T A (x - c) <= 1}`` while it stores the scaled
     covariance (the inverse convention), and in the default variant centre and matrix are in
     each model's unit prior box with nothing saying so. Read the descriptions, map the
     particles as they say, and the survivors of each population lie in its ellipsoids (the
     paper variant's one ellipsoid holds every survivor by construction; the evidence
-    variant's union holds every point but far outliers: at least 95 %)."""
-    store = line_and_disc_store(tmp_path / "g.zarr", variant)
+    variant's union holds every point but far outliers: at least 95 %). With log-uniform
+    priors the descriptions name the parameters whose log theta the frame holds."""
+    store = line_and_disc_store(tmp_path / "g.zarr", variant, log=log)
     ds = xr.open_zarr(store.path)
     convention = "{x : (x - c)^T M^-1 (x - c) <= 1}"
     assert convention in ds["ellipsoid_matrix"].attrs["description"]
@@ -695,14 +703,19 @@ def test_the_ellipsoids_are_what_their_description_says(tmp_path, variant):
     assert frame == {"evidence": "unit prior box", "paper": "parameters"}[variant]
     unit = "x = (theta - prior_low) / prior_width"
     assert (unit in ds["ellipsoid_matrix"].attrs["description"]) == (frame == "unit prior box")
-    assert ds["prior_low"].sel(model="disc").values.tolist() == [2.0, -30.0]
+    named = "for line.a, disc.a, disc.b (log-uniform priors) log theta in place of theta"
+    assert (named in ds["ellipsoid_matrix"].attrs["description"]) == log
+    assert ds["prior_low"].sel(model="disc").values.tolist() == [2.0, 0.5 if log else -30.0]
     assert float(ds["prior_width"].sel(model="line", parameter="a")) == 5.0
     for name in ("line", "disc"):
         view = model_view(ds, name)
         for t in ds["population"].values[:-1]:
             row = view.sel(population=t)
             theta = row["theta"].values[row["survivor"].values]
-            x = (theta - row["prior_low"].values) / row["prior_width"].values if frame == "unit prior box" else theta
+            low, width = row["prior_low"].values, row["prior_width"].values
+            if log:
+                theta, low, width = np.log(theta), np.log(low), np.log1p(width / low)
+            x = (theta - low) / width if frame == "unit prior box" else theta
             inside = np.zeros(x.shape[0], bool)
             for e in range(ds.sizes["ellipsoid"]):
                 c, m = row["ellipsoid_centre"].values[e], row["ellipsoid_matrix"].values[e]

@@ -31,7 +31,8 @@ def expect(field, fn, match=None):
 @pytest.mark.parametrize(
     ("prior", "field"),
     [((1.0, 0.0), "priors.c"), ((0.0, np.inf), "priors.c"), ((np.nan, 1.0), "priors.c"),
-     ((2.0, 2.0), "priors.c"), ("x", "priors.c")],
+     ((2.0, 2.0), "priors.c"), ("x", "priors.c"), ((0.0, 1.0, "log"), "priors.c"), ((-1.0, 1.0, "log"), "priors.c"),
+     ((0.1, 1.0, "ln"), "priors.c"), ((0.1, 1.0, "log", 1), "priors.c")],
 )
 def test_bad_priors(prior, field):
     expect(field, lambda: Model("m", {"c": prior}))

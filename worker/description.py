@@ -25,12 +25,13 @@ from worker.simulators import Simulator
 @dataclass(frozen=True)
 class ModelDescription:
     """One candidate model: the registered simulator's name (or ``package.module:factory``
-    where imports are allowed), the priors ``{name: (low, high)}``, fixed values, and the
+    where imports are allowed), the priors ``{name: (low, high)}`` (``(low, high, "log")``:
+    log-uniform), fixed values, and the
     integrator's RK4 ``substeps`` per sample (None: chosen from the priors) and ``output``."""
 
     name: str
     simulator: str
-    priors: Mapping[str, tuple[float, float]]
+    priors: Mapping[str, tuple[Any, ...]]
     fixed: Mapping[str, float] = field(default_factory=dict)
     substeps: int | None = None
     output: str = "displacement"
@@ -58,7 +59,7 @@ MODEL_FIELDS = frozenset({"name", "simulator", "priors", "fixed", "substeps", "o
 
 def model_of(desc: ModelDescription, index: int) -> Model:
     """The :class:`abcns.Model` of the job's model ``index`` (errors at ``("models", index, ...)``)."""
-    priors: dict[str, Any] = dict(desc.priors)  # [low, high] pairs: Model checks them
+    priors: dict[str, Any] = dict(desc.priors)  # [low, high] or [low, high, "log"]: Model checks them
     try:
         return Model(desc.name, priors, dict(desc.fixed), config={"simulator": desc.simulator})
     except InvalidSetting as err:
@@ -69,7 +70,7 @@ def parameter_bounds(desc: ModelDescription, factory: Any) -> dict[str, tuple[fl
     """Each simulator parameter's range in the model: its prior, or its fixed or default value."""
     b = {k: (float(v), float(v)) for k, v in getattr(factory, "defaults", {}).items()}
     b.update({k: (float(v), float(v)) for k, v in desc.fixed.items()})
-    b.update({k: (float(lo), float(hi)) for k, (lo, hi) in desc.priors.items()})
+    b.update({k: (float(prior[0]), float(prior[1])) for k, prior in desc.priors.items()})
     return b
 
 

@@ -87,7 +87,7 @@ def check_request(spec: JobSpec, request: StudyRequest) -> None:
             raise SpecError(field, f"is not a free parameter of {request.truth or 'any model'} (those have priors: "
                                    f"{', '.join(sorted({p for m in candidates for p in m.priors}))})")
         for m in having:
-            low, high = m.priors[name]
+            low, high = m.priors[name][:2]
             if not low <= value <= high:
                 raise SpecError(field, f"{value:.6g} lies outside the prior [{low:.6g}, {high:.6g}] of model "
                                        f"{m.name!r}: a truth the priors exclude cannot be recovered")

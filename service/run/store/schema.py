@@ -32,6 +32,9 @@ convention: M is the scaled covariance, not its inverse). ``x`` is in the frame 
 algorithm fits the bounds in: ``"unit prior box"`` (ABC-NS's evidence variant, the default):
 ``x = (theta - prior_low) / prior_width`` per parameter, so a centre of 0.5 is the middle of
 the prior; ``"parameters"`` (the paper variant): ``x = theta``, in the parameters' own units;
+in both, a parameter whose prior the spec gives as log-uniform (``[low, high, "log"]``) has
+log theta in place of theta, log(prior_low) and log(1 + prior_width / prior_low) in place of
+prior_low and prior_width (the two descriptions name those parameters);
 None for the baselines, which store no ellipsoids.
 
 Parameters (``theta``, the priors) are in the units of the simulator's equations for the
@@ -256,6 +259,16 @@ def _priors(spec: Mapping[str, Any], model_names: Sequence[str], union: Sequence
     return low, width
 
 
+def _log_text(spec: Mapping[str, Any]) -> str:
+    """What the frame's text adds for the parameters with a log-uniform prior (none: nothing)."""
+    logs = [f"{m.get('name')}.{key}" for m in spec.get("models") or () if isinstance(m, Mapping)
+            for key, bounds in (m.get("priors") or {}).items() if len(bounds) == 3 and bounds[2] == "log"]
+    if not logs:
+        return ""
+    return (f"; for {', '.join(logs)} (log-uniform priors) log theta in place of theta, and log(prior_low) and "
+            "log(1 + prior_width / prior_low) in place of prior_low and prior_width")
+
+
 def _distance_units(spec: Mapping[str, Any]) -> str:
     distance = spec.get("distance", "nmse")
     name = distance.get("name", "nmse") if isinstance(distance, Mapping) else distance
@@ -275,10 +288,10 @@ def create_arrays(group: zarr.Group, spec: Mapping[str, Any], frame: str | None,
     sizes = {_N: n_particles, _M: len(model_names), _E: max_ellipsoids, _D: len(union), _DB: len(union)}
     units = _distance_units(spec)
     prior_low, prior_width = _priors(spec, model_names, union)
+    frame_text = _FRAME_TEXT[frame] + (_log_text(spec) if frame else "")
 
     def meta(v: Variable) -> dict[str, Any]:
-        out = {"long_name": v.long_name, "description": v.description.replace("{frame}", _FRAME_TEXT[frame])
-               or v.long_name}
+        out = {"long_name": v.long_name, "description": v.description.replace("{frame}", frame_text) or v.long_name}
         if v.units is not None:
             out["units"] = v.units.format(distance_units=units)
         if v.name == "model_index":
