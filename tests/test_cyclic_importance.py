@@ -39,7 +39,8 @@ def test_a_failed_simulation_has_likelihood_zero():
 class Toy:
     """An ``exact`` with a quadratic sum of squares in 2 parameters (a linear model's), a
     posterior correlated at 0.8 and cut by the box on one side: the interface importance
-    sampling uses (names, low, width, observed, rss, log_marginal)."""
+    sampling uses (names, low, width, observed, rss, log_marginal, and the map between the
+    parameters and the prior's coordinates: the identity for these uniform priors)."""
 
     names = ("a", "b", "sigma")
     low, width = np.array([0.0, -1.0]), np.array([1.0, 2.0])
@@ -56,6 +57,12 @@ class Toy:
 
     def log_marginal(self, params: np.ndarray) -> np.ndarray:
         return -0.5 * self.observed.size * np.log(self.rss(params))
+
+    def natural(self, u: np.ndarray) -> np.ndarray:
+        return u
+
+    def coordinates(self, mean: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return mean, sd
 
 
 def toy_by_grid(toy: Toy) -> tuple[float, float]:

@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.exact_bayes import gaussian_loglike, model_probabilities, run_dynesty
-from examples.cyclic_tests.run import SPECIMENS, read_specimen, run_specimen, spec_for
+from examples.cyclic_tests.run import MODELS, SPECIMENS, read_specimen, run_specimen, spec_for
 
 #: the noise std's log-uniform prior (scaled load units)
 SIGMA_LOW, SIGMA_HIGH = 1e-3, 0.5
@@ -56,7 +56,10 @@ class GaussianRestoring:
 
     ``theta``: the model's free parameters (its prior order), then sigma;
     ``loglike``: log N(observed[window] | simulated[window], sigma^2 I), -inf where the
-    simulation fails (abcns rejects those too)."""
+    simulation fails (abcns rejects those too). ``low`` and ``width`` are the prior box's in
+    the coordinates the prior is uniform in (``Model.to_coordinates``: log theta for a
+    log-uniform prior), which :meth:`rss`, :meth:`log_marginal` and the chains and importance
+    sampling work in; :meth:`natural` maps back."""
 
     def __init__(self, model: Any, simulator: Any, observed: np.ndarray, window: tuple[int, int]):
         from worker.compose import full_parameters
@@ -66,12 +69,23 @@ class GaussianRestoring:
         self.window = window
         self.observed = np.asarray(observed[window[0]:window[1]], dtype=float)
         self.names = [*model.priors, "sigma"]
-        self.low = np.array([p.low for p in model.priors.values()])
-        self.width = np.array([p.width for p in model.priors.values()])
+        self.model = model
+        self.low = np.array([p.coordinate_low for p in model.priors.values()])
+        self.width = np.array([p.coordinate_width for p in model.priors.values()])
+
+    def natural(self, u: np.ndarray) -> np.ndarray:
+        """Points in the prior's coordinates, in the parameters' own units."""
+        return self.model.from_coordinates(u)
+
+    def coordinates(self, mean: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A mean and sd in the parameters' units, in the prior's coordinates (sd / mean for
+        log theta: the delta method)."""
+        logs = self.model.log_columns
+        return self.model.to_coordinates(mean), np.where(logs, sd / np.where(logs, mean, 1.0), sd)
 
     def prior_transform(self, u: np.ndarray) -> np.ndarray:
         sigma = SIGMA_LOW * (SIGMA_HIGH / SIGMA_LOW) ** u[-1]
-        return np.append(self.low + u[:-1] * self.width, sigma)
+        return np.append(self.natural(self.low + u[:-1] * self.width), sigma)
 
     def residual(self, params: np.ndarray) -> np.ndarray | None:
         """simulated - observed on the window at the model's parameters ``params`` (no
@@ -86,19 +100,21 @@ class GaussianRestoring:
         return -np.inf if r is None else gaussian_loglike(r, float(theta[-1]))
 
     def rss(self, params: np.ndarray) -> np.ndarray:
-        """The sum of squared residuals of a batch of the model's parameters (k, d), one
-        batch simulation; inf outside the prior box or where the simulation fails."""
+        """The sum of squared residuals of a batch of the model's parameters (k, d) in the
+        prior's coordinates, one batch simulation; inf outside the prior box or where the
+        simulation fails."""
         params = np.atleast_2d(params)
         out = np.full(params.shape[0], np.inf)
         inside = np.all((params >= self.low) & (params <= self.low + self.width), axis=1)
         if np.any(inside):
-            sim = self.simulator.simulate(self.expand(params[inside]))
+            sim = self.simulator.simulate(self.expand(self.natural(params[inside])))
             r = sim.values[:, self.window[0]:self.window[1]] - self.observed
             out[inside] = np.where(sim.status == self.ok, np.sum(r**2, axis=1), np.inf)
         return out
 
     def log_marginal(self, params: np.ndarray) -> np.ndarray:
-        """The log posterior (up to a constant) of a batch of the model's parameters (k, d),
+        """The log posterior (up to a constant) of a batch of the model's parameters (k, d; in
+        the prior's coordinates, where the prior is uniform),
         sigma integrated out under Jeffreys' prior (the log-uniform one, its bounds far from
         the posterior's sigma): -(n / 2) log(sum of squared residuals), -inf outside the
         prior box or where the simulation fails. The target of :func:`metropolis`."""
@@ -156,11 +172,12 @@ def split_rhat(chain: np.ndarray) -> np.ndarray:
 def chains(exact: GaussianRestoring, posterior: dict, steps: int, seed: int) -> tuple[np.ndarray, dict]:
     """:data:`CHAINS` chains of :func:`metropolis` on ``exact.log_marginal``, started
     over-dispersed at N(mean, (2 sd)^2) of ``posterior`` (a summary: dynesty's, abcns's;
-    clipped into the prior box): their second halves (steps / 2, chains, d), and the split
-    R-hat per parameter and the acceptance."""
+    clipped into the prior box; both in the prior's coordinates, :meth:`GaussianRestoring.coordinates`):
+    their second halves (steps / 2, chains, d; in those coordinates), and the split R-hat per
+    parameter and the acceptance."""
     rng = np.random.default_rng(seed)
     names = exact.names[:-1]
-    mean, sd = (np.array([posterior[n][k] for n in names]) for k in ("mean", "std"))
+    mean, sd = exact.coordinates(*(np.array([posterior[n][k] for n in names]) for k in ("mean", "std")))
     starts = np.clip(mean + 2 * sd * rng.standard_normal((CHAINS, len(names))), exact.low, exact.low + exact.width)
     chain, acceptance = metropolis(exact.log_marginal, starts, steps, rng)
     second = chain[steps // 2:]
@@ -174,7 +191,8 @@ def mcmc_check(exact: GaussianRestoring, posterior: dict, steps: int, seed: int)
     from abcns.result import posterior_summary
 
     second, info = chains(exact, posterior, steps, seed)
-    return {"posterior": posterior_summary(second.reshape(-1, second.shape[-1]), None, exact.names[:-1]), **info}
+    return {"posterior": posterior_summary(exact.natural(second.reshape(-1, second.shape[-1])), None, exact.names[:-1]),
+            **info}
 
 
 def with_mcmc(folder: Path, answer: dict, steps: int) -> dict:
@@ -207,9 +225,10 @@ def solve(exact: GaussianRestoring, method: argparse.Namespace, seed: int, start
         return run_dynesty(exact, method.nlive, seed, method.sample)
     from examples.cyclic_tests.importance import importance_answer
 
-    if start is None:
-        start = {n: {"mean": lo + w / 2, "std": w / 4} for n, lo, w in
-                 zip(exact.names[:-1], exact.low, exact.width, strict=True)}
+    if start is None:  # the box's middle in the prior's coordinates, in the parameters' units
+        mid = exact.natural(exact.low + exact.width / 2)
+        sd = np.where(exact.model.log_columns, mid * exact.width / 4, exact.width / 4)
+        start = {n: {"mean": m, "std": s} for n, m, s in zip(exact.names[:-1], mid, sd, strict=True)}
     return importance_answer(exact, start, method.mcmc or 4000, method.draws, seed)
 
 
@@ -245,13 +264,14 @@ def diagnosed(folder: Path, stored: dict) -> dict:
     return stored
 
 
-def abcns_summary(folder: Path, name: str, seed: int, out: Path) -> dict:
-    """run.py's summary of specimen ``name``: its JSON when there, else made now. A model
+def abcns_summary(folder: Path, name: str, seed: int, out: Path, only: list[str] | None = None) -> dict:
+    """run.py's summary of specimen ``name`` (``only``: of the run of these models,
+    ``<name>-bw-bwbn-bwbn_log-seed<N>.json``): its JSON when there, else made now. A model
     the joint run left without a posterior (p ~ 0) takes the one of its run alone
     (``run.py --model bw``: ``<name>-bw-seed<N>.json``) when that is there, in
     ``summary["alone"]``."""
-    path = out / f"{name}-seed{seed}.json"
-    summary = json.loads(path.read_text()) if path.is_file() else run_specimen(folder, name, seed, None, out)
+    path = out / f"{name}{'-'.join(['', *only]) if only else ''}-seed{seed}.json"
+    summary = json.loads(path.read_text()) if path.is_file() else run_specimen(folder, name, seed, None, out, only)
     summary["alone"] = {}
     for model in summary.get("model_probabilities") or {}:
         alone = out / f"{name}-{model}-seed{seed}.json"
@@ -319,7 +339,7 @@ def starts(args: argparse.Namespace, name: str) -> dict | None:
     sampling needs somewhere to start its chains; None for dynesty."""
     if args.sample != "importance":
         return None
-    summary = abcns_summary(args.data, name, args.seed, args.abcns)
+    summary = abcns_summary(args.data, name, args.seed, args.abcns, args.model)
     return {**summary["alone"], **(summary.get("posterior") or {})}
 
 
@@ -333,7 +353,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="dynesty's proposal (rwalk: BWBN's 12 dimensions fill the ellipsoids badly for unif), "
                              "or importance sampling instead of dynesty (importance.py)")
     parser.add_argument("--draws", type=int, default=50_000, help="--sample importance: its draws per model")
-    parser.add_argument("--model", action="append", choices=("bw", "bwbn"),
+    parser.add_argument("--model", action="append", choices=MODELS,
                         help="run only this model (repeatable): each model's log Z alone")
     parser.add_argument("--mcmc", type=int, default=0, metavar="STEPS",
                         help="also run 16 Metropolis chains of STEPS steps per model (the second exact method)")
@@ -356,7 +376,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"\n### {name}, seed {args.seed}, {how}\n")
         if args.out is not None:  # after each specimen: a long run keeps what it has
             args.out.write_text(json.dumps(answers, indent=1))
-        print("\n".join(report(exact, abcns_summary(args.data, name, args.seed, args.abcns))), flush=True)
+        print("\n".join(report(exact, abcns_summary(args.data, name, args.seed, args.abcns, args.model))), flush=True)
 
 
 if __name__ == "__main__":

@@ -70,8 +70,9 @@ def log_evidence(log_weights: np.ndarray) -> tuple[float, float, float]:
 
 
 def draw(exact: Any, proposal: Any, draws: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``draws`` points from ``proposal``: the points (N, d), their log importance weights and
-    their sums of squared residuals (inf outside the box or failed)."""
+    """``draws`` points from ``proposal``: the points (N, d; in the prior's coordinates, where it
+    is uniform), their log importance weights and their sums of squared residuals (inf outside
+    the box or failed)."""
     from examples.cyclic_tests.exact import SIGMA_HIGH, SIGMA_LOW
 
     log_prior = -float(np.sum(np.log(exact.width)))
@@ -106,7 +107,7 @@ def importance_answer(exact: Any, start: dict, steps: int, draws: int, seed: int
     ok = np.isfinite(log_w)
     # sigma given theta: sigma^2 ~ inverse gamma(n / 2, rss / 2) (the prior's cut far from it)
     sigma = np.sqrt(rss[ok] / (2 * rng.gamma(exact.observed.size / 2, size=int(ok.sum()))))
-    samples = np.column_stack([theta[ok], sigma])
+    samples = np.column_stack([exact.natural(theta[ok]), sigma])
     return {"log_z": log_z, "log_z_err": se, "ess": ess, "method": "importance", "draws": draws,
             "posterior": posterior_summary(samples, np.exp(log_w[ok] - log_w[ok].max()), exact.names),
             "quarters": [log_evidence(q)[0] for q in np.array_split(log_w, 4)], "chains": info,

@@ -29,6 +29,8 @@ from worker.registry import get
 
 HERE = Path(__file__).resolve().parent
 SPECIMENS = ("daniel", "kunnath", "gill", "chiu", "sharma")
+MODELS = ("bw", "bwbn", "bwbn_log")  # models.yaml's
+DEFAULT_MODELS = ("bw", "bwbn")
 
 
 def read_specimen(folder: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -44,11 +46,10 @@ def read_specimen(folder: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def spec_for(x: np.ndarray, force: np.ndarray, seed: int, particles: int | None, only: list[str] | None = None) -> dict:
-    """models.yaml over the (scaled) records; ``only``: keep these models (e.g. one alone, to
-    see its own best fit)."""
+    """models.yaml over the (scaled) records, with its :data:`DEFAULT_MODELS` or ``only`` these
+    (e.g. one alone, to see its own best fit; or bwbn_log beside them)."""
     raw = yaml.safe_load((HERE / "models.yaml").read_text())
-    if only:
-        raw["models"] = [m for m in raw["models"] if m["name"] in only]
+    raw["models"] = [m for m in raw["models"] if m["name"] in (only or DEFAULT_MODELS)]
     raw["data"].update(input=x.tolist(), observed=force.tolist())
     raw["seed"] = seed
     if particles is not None:
@@ -119,7 +120,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--particles", type=int, default=None)
     parser.add_argument("--out", type=Path, default=Path("out/cyclic_tests"))
-    parser.add_argument("--model", action="append", choices=("bw", "bwbn"), help="run only this model (repeatable)")
+    parser.add_argument("--model", action="append", choices=MODELS,
+                        help=f"run this model (repeatable; default: {' and '.join(DEFAULT_MODELS)})")
     args = parser.parse_args(argv)
     for name in args.specimen:
         s = run_specimen(args.data, name, args.seed, args.particles, args.out, args.model)
