@@ -44,7 +44,7 @@ from abcns import likelihood
 from abcns.executor import Executor
 from abcns.filling import Budget, Filled, Filling, Stopped, draw_inside, fill, population_rng
 from abcns.noise import Floor, Noise, Standing, Tracker, standing, standings, waited_for
-from abcns.priors import Model
+from abcns.priors import Model, same_models
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
 from abcns.result import Population, RunEnd
 from abcns.settings import NSSettings, StopReason, StopRules
@@ -174,6 +174,7 @@ def finish_population(
 
     weights = np.zeros_like(raw)
     survivors = np.zeros(which.shape[0], dtype=bool)
+    copies = same_models(models) if variant.cross_validated else [[] for _ in models]
     bounds: list[bd.Union] = []
     geometry_jobs: list[Geometry | None] = []
     for m, model in enumerate(models):
@@ -187,13 +188,13 @@ def finish_population(
         keep = rng.choice(rows, size=int(quotas[m]), replace=False, p=weights[rows])
         survivors[keep] = True
         frame = frames[m]
-        points = frame.to_frame(theta[rows, : model.n_dim])
+        points, new = _fitted_points(model, frame, theta, rows, is_new, np.flatnonzero(np.isin(which, copies[m]) & positive))
         prev_bound = previous.ellipsoids[m] if previous is not None else ()
         fitted = frame.to_frame(theta[np.sort(keep), : model.n_dim])  # the paper variant's fit
         bound = variant.bound(points, fitted, _fallback(prev_bound, frame, settings))
         notes += [f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)" for e in bound if e.note]
         bounds.append(bound)
-        geometry_jobs.append(_geometry_job(bound, frame, points, is_new[rows],
+        geometry_jobs.append(_geometry_job(bound, frame, points, new,
                                            settings.enlargement if variant.cross_validated else None))
 
     acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
@@ -253,6 +254,20 @@ def _fallback(previous_bound: bd.Union, frame: bd.Frame, settings: NSSettings) -
         return frame.box_ellipsoid()
     largest = max(previous_bound, key=lambda e: e.log_volume)
     return ell.from_matrix(largest.centre, largest.matrix / settings.enlargement)
+
+
+def _fitted_points(model: Model, frame: bd.Frame, theta: np.ndarray, rows: np.ndarray, is_new: np.ndarray,
+                   copies: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points model m's bound is fitted to, in its frame, and which of them test its
+    coverage: its particles below the next tolerance (``rows``; its new ones test), then those
+    of the models it is the same model as (``copies``' rows) inside its prior box, which
+    never test (drawn under another prior, they are not uniform in m's region)."""
+    points = frame.to_frame(theta[rows, : model.n_dim])
+    if not copies.size:
+        return points, is_new[rows]
+    other = theta[copies, : model.n_dim]
+    other = other[model.in_prior(other)]
+    return np.vstack([points, frame.to_frame(other)]), np.concatenate([is_new[rows], np.zeros(other.shape[0], bool)])
 
 
 def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, new: np.ndarray,

@@ -4,7 +4,7 @@ values)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -93,6 +93,13 @@ def in_box(theta: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
     return compiled.in_box(np.ascontiguousarray(x.reshape(-1, x.shape[-1])), low, high).reshape(x.shape[:-1])
 
 
+def same_models(models: Sequence[Model]) -> list[list[int]]:
+    """For each model, the other models it is the same model as (``Model.same_model_as``,
+    either way round, and the other copies of the same one)."""
+    key = [m.same_model_as or m.name for m in models]
+    return [[j for j in range(len(models)) if j != i and key[j] == key[i]] for i in range(len(models))]
+
+
 @dataclass(frozen=True)
 class Model:
     """A candidate model: its free parameters with uniform (or log-uniform) priors, and fixed
@@ -102,18 +109,29 @@ class Model:
     vectors the algorithm proposes for this model. ``fixed`` holds parameters of the
     simulator that are not inferred. ``config`` is free JSON-able provenance (the
     simulator's name and options), never interpreted by the algorithm.
+
+    ``same_model_as``: the name of another model of the run that this one is, under other
+    priors (the same simulator, parameters and fixed values; ``abcns.run.check_models``).
+    Declared side by side, the two are one model under an equal mixture of their priors, and
+    ABC-NS's evidence variant fits each one's bound to the particles of both (each inside its
+    own prior box): a region one prior's volume hides from its particles is still proposed
+    from, once the other's particles have found it.
     """
 
     name: str
     priors: Mapping[str, Uniform]
     fixed: Mapping[str, float] = field(default_factory=dict)
     config: Mapping[str, object] = field(default_factory=dict)
+    same_model_as: str | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
             raise InvalidSetting(("name",), "a model needs a non-empty name")
         if not self.priors:
             raise InvalidSetting(("priors",), "a model needs at least one free parameter")
+        if self.same_model_as is not None and (not isinstance(self.same_model_as, str) or not self.same_model_as
+                                               or self.same_model_as == self.name):
+            raise InvalidSetting(("same_model_as",), f"must name another model of the run, got {self.same_model_as!r}")
         priors: dict[str, Uniform] = {}
         # unchecked input (YAML, JSON, Python): a [low, high] pair is accepted too, validated below
         given: Mapping[str, Any] = self.priors
@@ -212,7 +230,8 @@ class Model:
         a job spec's (``name``, ``simulator``, ``priors`` as [low, high] or [low, high, "log"], ``fixed``; the
         simulator's name kept as ``config``). InvalidSetting names the field (``priors.k``)."""
         config = desc.get("config") or ({"simulator": desc["simulator"]} if "simulator" in desc else {})
-        return cls(desc["name"], desc["priors"], desc.get("fixed") or {}, config=config)
+        return cls(desc["name"], desc["priors"], desc.get("fixed") or {}, config=config,
+                   same_model_as=desc.get("same_model_as"))
 
     def config_dict(self) -> dict:
         """JSON-able, the inverse of :meth:`from_dict`."""
@@ -221,4 +240,5 @@ class Model:
             "priors": {k: p.pair() for k, p in self.priors.items()},
             "fixed": dict(self.fixed),
             **({"config": dict(self.config)} if self.config else {}),
+            **({"same_model_as": self.same_model_as} if self.same_model_as is not None else {}),
         }

@@ -30,6 +30,19 @@ def check_models(models: Sequence[Model]) -> tuple[Model, ...]:
     for i, name in enumerate(names):
         if name in names[:i]:
             raise InvalidSetting(("models", i, "name"), f"duplicate model name {name!r}")
+    for i, model in enumerate(models):
+        if model.same_model_as is None:
+            continue
+        where = ("models", i, "same_model_as")
+        if model.same_model_as not in names:
+            raise InvalidSetting(where, f"names no model of the run: {model.same_model_as!r} (models: {', '.join(names)})")
+        first = models[names.index(model.same_model_as)]
+        if first.same_model_as is not None:
+            raise InvalidSetting(where, f"{first.name!r} is itself the same model as {first.same_model_as!r}: name that one")
+        for what in ("parameter_names", "fixed", "config"):
+            if getattr(model, what) != getattr(first, what):
+                raise InvalidSetting(where, f"{model.name!r} and {first.name!r} differ in {what.replace('_', ' ')} "
+                                            f"({getattr(model, what)} against {getattr(first, what)}): only the priors may")
     return models
 
 

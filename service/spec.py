@@ -127,6 +127,7 @@ class ModelSpec(_Strict):
     fixed: dict[str, float] = {}
     priors: dict[str, Prior]
     integrator: IntegratorSpec = IntegratorSpec()
+    same_model_as: str | None = None
 
 
 class DistanceSpec(_Strict):
@@ -465,10 +466,22 @@ def load_array(source: str | list[float], base_dir: Path | None, field: str) -> 
     return arr
 
 
+def check_copies(spec: JobSpec) -> None:
+    """A model declared ``same_model_as`` another has its integrator too (the simulator, its
+    parameters and fixed values: ``abcns.run.check_models``)."""
+    named = {m.name: m for m in spec.models}
+    for i, model in enumerate(spec.models):
+        first = named.get(model.same_model_as or "")
+        if first is not None and model.integrator != first.integrator:
+            raise SpecError(f"models[{i}].same_model_as", f"{model.name!r} and {first.name!r} differ in their integrator "
+                                                          f"({model.integrator} against {first.integrator}): only the "
+                                                          "priors may")
+
+
 def model_description(model: ModelSpec) -> ModelDescription:
     """A spec's model as a worker builds it."""
     return ModelDescription(model.name, model.simulator, dict(model.priors), dict(model.fixed),
-                            model.integrator.substeps, model.integrator.output)
+                            model.integrator.substeps, model.integrator.output, model.same_model_as)
 
 
 def description(spec: JobSpec) -> JobDescription:
@@ -746,7 +759,8 @@ def build(spec: JobSpec, base_dir: Path | None = None, allow_import: bool = Fals
         evaluate = evaluator(models, simulators, distance)  # checks the records' lengths: before a window that misses
         if data.test is not None:
             check_window(data.test, observed.size, "test")
-        check_models(models)  # duplicate names
+        check_models(models)  # duplicate names, same_model_as
+        check_copies(spec)
         check_physical(distance)
         settings = spec.sampler.settings()
         settings.check_particles(models)

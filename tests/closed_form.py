@@ -145,3 +145,39 @@ def uniform_and_log_region(m, eps, n, rng, low=0.01, high=1.0):
         return ((a + (b - a) * rng.random(n) - low) / (high - low))[:, None]
     lo, hi = (np.log(v / low) / np.log(high / low) for v in (a, b))
     return (lo + (hi - lo) * rng.random(n))[:, None]
+
+
+
+def needle(x_needle=0.0003, slope=1000.0, x_broad=0.7, offset=0.05):
+    """A distance with two basins on x in [1e-4, 1]: a broad one, ``|x - x_broad| + offset``,
+    and a needle, ``slope |x - x_needle|``, the only one below ``offset``. Under U(1e-4, 1) the
+    needle holds 2 eps / slope of the prior at eps, 1/500 of the broad basin's at eps 0.1;
+    under the log-uniform prior on the same range, a third. Models ``uniform`` and ``log``
+    (``same_model_as`` uniform) over that one distance. Returns (models, evaluate, the exact
+    log Z of each at eps, region(m, eps, n, rng): n draws of model m's accepted x in its
+    unit prior box)."""
+    low, high = 1e-4, 1.0
+    models = [Model("uniform", {"x": (low, high)}), Model("log", {"x": (low, high, "log")}, same_model_as="uniform")]
+
+    def dist(theta, rng):
+        x = theta[:, 0]
+        return np.minimum(np.abs(x - x_broad) + offset, slope * np.abs(x - x_needle)), np.full(x.shape[0], OK, np.int8)
+
+    def pieces(m, eps):
+        """Model m's accepted intervals at eps, in its unit prior box."""
+        out = [(max(x_needle - eps / slope, low), x_needle + eps / slope)]
+        if eps > offset:
+            out.append((x_broad - (eps - offset), min(x_broad + (eps - offset), high)))
+        if m == 0:
+            return [((a - low) / (high - low), (b - low) / (high - low)) for a, b in out]
+        return [(np.log(a / low) / np.log(high / low), np.log(b / low) / np.log(high / low)) for a, b in out]
+
+    def log_evidence(eps):
+        return np.log([sum(b - a for a, b in pieces(m, eps)) for m in (0, 1)])
+
+    def region(m, eps, n, rng):
+        ends = np.array(pieces(m, eps))
+        which = rng.choice(len(ends), size=n, p=(ends[:, 1] - ends[:, 0]) / np.sum(ends[:, 1] - ends[:, 0]))
+        return (ends[which, 0] + (ends[which, 1] - ends[which, 0]) * rng.random(n))[:, None]
+
+    return models, per_model([dist, dist]), log_evidence, region

@@ -59,6 +59,8 @@ def refuse(raw, base, field, match=None):
         (lambda r: r["models"][0]["priors"].update(c=[1, 0]), "models[0].priors.c"),
         (lambda r: r["models"][0]["priors"].update(q=[0, 1]), "models[0].priors.q"),
         (lambda r: r["models"][0]["priors"].update(c=[0, 1, "log"]), "models[0].priors.c"),
+        (lambda r: r["models"][1].update(same_model_as="nope"), "models[1].same_model_as"),
+        (lambda r: r["models"][1].update(same_model_as=r["models"][0]["name"]), "models[1].same_model_as"),
         (lambda r: r["models"][0]["priors"].update(c=[0.1, 1, "ln"]), "models[0].priors.c"),
         (lambda r: r["models"][0]["priors"].update(c=[0.1, 1, "log", 2]), "models[0].priors.c"),
         (lambda r: r["data"].update(fit=[400, 900]), "data.fit"),
@@ -85,6 +87,19 @@ def test_a_log_uniform_prior_is_read_and_refused_naming_the_field(raw):
     assert job.models[0].priors["c"].log and not job.models[0].priors["k"].log
     raw["models"][0]["priors"]["c"] = [0, 1, "log"]
     refuse(raw, SPEC.parent, "models[0].priors.c", match="log-uniform prior needs low > 0")
+
+
+def test_a_model_declared_the_same_as_another_is_read_and_checked(raw):
+    """``same_model_as``: the model under other priors; its simulator, fixed values and
+    integrator must be the other's (the message names the field)."""
+    copy_of = copy.deepcopy(raw["models"][0])
+    copy_of.update(name="again", same_model_as=copy_of["name"])
+    copy_of["priors"] = {k: [lo if lo > 0 else 0.001, hi, "log"] for k, (lo, hi) in copy_of["priors"].items()}
+    raw["models"].append(copy_of)
+    job = build(parse(raw), SPEC.parent)
+    assert job.models[2].same_model_as == raw["models"][0]["name"]
+    copy_of["integrator"] = {**copy_of.get("integrator", {}), "substeps": 7}
+    refuse(raw, SPEC.parent, "models[2].same_model_as", match="integrator")
 
 
 def test_observed_with_nan_and_length_mismatch(raw, tmp_path):

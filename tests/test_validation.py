@@ -43,6 +43,29 @@ def test_uniform_itself_names_its_bound():
     expect("high", lambda: Uniform(0, float("inf")))
 
 
+@pytest.mark.parametrize(
+    ("other", "match"),
+    [(Model("b", {"c": (0, 1)}, same_model_as="x"), "names no model of the run"),
+     (Model("b", {"k": (0, 1)}, same_model_as="a"), "differ in parameter names"),
+     (Model("b", {"c": (0, 1)}, {"k": 1.0}, same_model_as="a"), "differ in fixed"),
+     (Model("b", {"c": (0, 1)}, config={"simulator": "other"}, same_model_as="a"), "differ in config")],
+)
+def test_a_model_the_same_as_another_differs_from_it_in_its_priors_alone(other, match):
+    from abcns.run import check_models
+
+    expect("models[1].same_model_as", lambda: check_models([Model("a", {"c": (1, 2, "log")}), other]), match)
+
+
+def test_same_model_as_names_the_first_of_its_copies_not_itself():
+    from abcns.run import check_models
+
+    a, b = Model("a", {"c": (0, 1)}), Model("b", {"c": (0, 2)}, same_model_as="a")
+    expect("models[2].same_model_as", lambda: check_models([a, b, Model("c", {"c": (0, 3)}, same_model_as="b")]),
+           "itself the same model as 'a'")
+    expect("same_model_as", lambda: Model("a", {"c": (0, 1)}, same_model_as="a"))
+    assert len(check_models([a, b, Model("c", {"c": (0, 3)}, same_model_as="a")])) == 3
+
+
 def test_prior_on_a_fixed_parameter():
     expect("fixed.c", lambda: Model("m", {"c": (0, 1)}, {"c": 0.5}))
 

@@ -26,8 +26,8 @@ from worker.simulators import Simulator
 class ModelDescription:
     """One candidate model: the registered simulator's name (or ``package.module:factory``
     where imports are allowed), the priors ``{name: (low, high)}`` (``(low, high, "log")``:
-    log-uniform), fixed values, and the
-    integrator's RK4 ``substeps`` per sample (None: chosen from the priors) and ``output``."""
+    log-uniform), fixed values, the integrator's RK4 ``substeps`` per sample (None: chosen
+    from the priors) and ``output``, and ``same_model_as`` (:class:`abcns.Model`'s)."""
 
     name: str
     simulator: str
@@ -35,6 +35,7 @@ class ModelDescription:
     fixed: Mapping[str, float] = field(default_factory=dict)
     substeps: int | None = None
     output: str = "displacement"
+    same_model_as: str | None = None
 
 
 @dataclass(frozen=True)
@@ -61,7 +62,8 @@ def model_of(desc: ModelDescription, index: int) -> Model:
     """The :class:`abcns.Model` of the job's model ``index`` (errors at ``("models", index, ...)``)."""
     priors: dict[str, Any] = dict(desc.priors)  # [low, high] or [low, high, "log"]: Model checks them
     try:
-        return Model(desc.name, priors, dict(desc.fixed), config={"simulator": desc.simulator})
+        return Model(desc.name, priors, dict(desc.fixed), config={"simulator": desc.simulator},
+                     same_model_as=desc.same_model_as)
     except InvalidSetting as err:
         raise err.within("models", index) from None
 

@@ -232,6 +232,14 @@ def solve(exact: GaussianRestoring, method: argparse.Namespace, seed: int, start
     return importance_answer(exact, start, method.mcmc or 4000, method.draws, seed)
 
 
+def start_of(model: Any, starts: dict) -> dict | None:
+    """abcns's posterior of ``model`` from ``starts``; where the run left it none, that of a
+    model over the same parameters (bwbn's from bwbn_log's: the same model under another
+    prior, whose best fits are its best fits), else None."""
+    twins = [s for s in starts.values() if set(s) == set(model.priors)]
+    return starts.get(model.name) or (twins[0] if twins else None)
+
+
 def exact_specimen(folder: Path, name: str, seed: int, method: argparse.Namespace, only: list[str] | None = None,
                    starts: dict | None = None) -> dict:
     """Every model's (``only``: these models') exact answer (:func:`solve`; ``starts``: abcns's
@@ -242,7 +250,7 @@ def exact_specimen(folder: Path, name: str, seed: int, method: argparse.Namespac
     models = {}
     for model, simulator in zip(job.models, job.simulators, strict=True):
         exact = GaussianRestoring(model, simulator, job.observed, window)
-        models[model.name] = solve(exact, method, seed, (starts or {}).get(model.name))
+        models[model.name] = solve(exact, method, seed, start_of(model, starts or {}))
         models[model.name]["at_mean"] = exact.diagnose(models[model.name]["posterior"])
         print(f"  {name} {model.name}: log Z {models[model.name]['log_z']:.2f} ± {models[model.name]['log_z_err']:.2f}, "
               f"{models[model.name]['n_evaluations']:,} evaluations, {models[model.name]['wall_s']:.0f} s", flush=True)
