@@ -180,20 +180,18 @@ class Model:
     def to_coordinates(self, theta: np.ndarray) -> np.ndarray:
         """``theta`` (..., n_dim) in the coordinates the prior is uniform in: log of the
         log-uniform parameters' columns; ``theta`` itself when there are none."""
-        logs = self.log_columns
-        if not logs.any():
-            return theta
-        out = np.array(theta, dtype=float)
-        out[..., logs] = np.log(out[..., logs])
-        return out
+        return self._log_columns_through(theta, np.log)
 
     def from_coordinates(self, u: np.ndarray) -> np.ndarray:
         """The inverse of :meth:`to_coordinates`."""
+        return self._log_columns_through(u, np.exp)
+
+    def _log_columns_through(self, x: np.ndarray, f: Any) -> np.ndarray:
         logs = self.log_columns
         if not logs.any():
-            return u
-        out = np.array(u, dtype=float)
-        out[..., logs] = np.exp(out[..., logs])
+            return x
+        out = np.array(x, dtype=float)
+        out[..., logs] = f(out[..., logs])
         return out
 
     def sample_prior(self, n: int, rng: np.random.Generator) -> np.ndarray:
