@@ -197,11 +197,12 @@ class ExactModel:
         self.start, self.observed = start, np.asarray(observed[start:stop], dtype=float)
         self.sigma = float(sigma)
         self.names = list(model.priors)
-        self.low = np.array([p.low for p in model.priors.values()])
-        self.width = np.array([p.width for p in model.priors.values()])
+        self.model = model
+        self.low = np.array([p.coordinate_low for p in model.priors.values()])  # log theta's for a log-uniform prior
+        self.width = np.array([p.coordinate_width for p in model.priors.values()])
 
     def prior_transform(self, u: np.ndarray) -> np.ndarray:
-        return self.low + u * self.width
+        return self.model.from_coordinates(self.low + u * self.width)
 
     def loglike(self, theta: np.ndarray) -> float:
         out = self.sim.simulate(self.expand(theta))

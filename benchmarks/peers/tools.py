@@ -80,8 +80,8 @@ def run_pyabc(case: Case, seed: int, db_dir: str | None = None) -> dict:
     logging.getLogger("ABC").setLevel(logging.ERROR)
     cases.SEED[0] = seed
     np.random.seed(seed)  # noqa: NPY002  pyABC draws from numpy's global state (its workers reseed themselves)
-    priors = [pyabc.Distribution(**{p: pyabc.RV("uniform", u.low, u.width) for p, u in m.priors.items()})
-              for m in case.models]
+    priors = [pyabc.Distribution(**{p: pyabc.RV("loguniform", u.low, u.high) if u.log else pyabc.RV("uniform", u.low, u.width)
+                                    for p, u in m.priors.items()}) for m in case.models]
     models = [cases.pyabc_model(case, i) for i in range(len(case.models))]
     tmp = tempfile.TemporaryDirectory(dir=db_dir, prefix="pyabc-")
     db = f"sqlite:///{os.path.join(tmp.name, f'run-{case.key}-{seed}.db')}"
