@@ -135,3 +135,15 @@ def test_bad_simulator_data():
     expect("dt", lambda: Duffing(np.ones(5), 0.0))
     expect("substeps", lambda: Duffing(np.ones(5), 0.01, substeps=0))
     expect("observed", lambda: GAndK(1))
+
+
+def test_a_log_uniform_prior_and_same_model_as_survive_the_stored_form():
+    """What a store keeps of a model (config_dict, read back by from_dict on resume) holds
+    the log-uniform priors and same_model_as; a model without them keeps its former form."""
+    model = Model("b", {"c": (0.01, 1, "log"), "k": (0, 2)}, {"m": 1.0}, config={"simulator": "duffing"},
+                  same_model_as="a")
+    assert model.config_dict()["priors"] == {"c": [0.01, 1.0, "log"], "k": [0.0, 2.0]}
+    assert Model.from_dict(model.config_dict()) == model
+    assert Model.from_dict({"name": "b", "simulator": "duffing", "priors": {"c": [0.01, 1, "log"]},
+                            "same_model_as": "a"}).same_model_as == "a"
+    assert "same_model_as" not in Model("a", {"c": (0, 1)}).config_dict()
