@@ -50,6 +50,10 @@ def spec_for(x: np.ndarray, force: np.ndarray, seed: int, particles: int | None,
     (e.g. one alone, to see its own best fit; or bwbn_log beside them)."""
     raw = yaml.safe_load((HERE / "models.yaml").read_text())
     raw["models"] = [m for m in raw["models"] if m["name"] in (only or DEFAULT_MODELS)]
+    kept = {m["name"] for m in raw["models"]}
+    for m in raw["models"]:  # a copy run without the model it copies is a model of its own
+        if m.get("same_model_as") not in kept:
+            m.pop("same_model_as", None)
     raw["data"].update(input=x.tolist(), observed=force.tolist())
     raw["seed"] = seed
     if particles is not None:
