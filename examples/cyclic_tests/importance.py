@@ -57,8 +57,9 @@ def t_proposal(samples: np.ndarray, weights: np.ndarray | None = None) -> Any:
     mean = np.average(samples, axis=0, weights=weights)
     cov = np.cov(samples.T, aweights=weights) * INFLATE**2
     # a direction the samples never moved in (chains stuck at a bound of the box) would make it
-    # singular: the least of 1e-12 of its largest variance there keeps it a distribution
-    cov += np.eye(cov.shape[0]) * 1e-12 * max(float(np.max(np.diag(cov))), 1e-300)
+    # singular: 1e-9 of the largest variance added to each keeps it a distribution (scipy takes an
+    # eigenvalue below ~2e-10 of the largest for zero)
+    cov += np.eye(cov.shape[0]) * 1e-9 * max(float(np.max(np.diag(cov))), 1e-300)
     return multivariate_t(loc=mean, shape=cov * (DF - 2) / DF, df=DF)
 
 
