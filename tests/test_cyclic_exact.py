@@ -108,3 +108,20 @@ def test_the_bwbn_priors_hold_kunnaths_best_fit_with_room():
         prior = bwbn.priors[name]
         assert prior.low + 0.01 * prior.width < value < prior.high - 0.01 * prior.width, name
     assert bwbn.priors["psi"].low < 0.05 and bwbn.priors["lambda"].low > 0 and bwbn.priors["q"].high < 1
+
+
+def test_the_log_copy_is_bwbn_with_its_six_positive_scales_log_uniform():
+    """Issue Y: models.yaml's bwbn_log, run beside bw and bwbn by default, is bwbn
+    (``same_model_as``) with log-uniform priors on delta_nu, delta_eta, p, q, psi and lambda
+    over the same upper ends (lower ends above 0), the rest as bwbn's; run without bwbn it is
+    a model of its own."""
+    x = np.sin(np.linspace(0, 6, 50))
+    assert [m.name for m in build(parse(spec_for(x, x, 1, None))).models] == ["bw", "bwbn", "bwbn_log"]
+    uniform, log = build(parse(spec_for(x, x, 1, None, ["bwbn", "bwbn_log"]))).models
+    assert log.parameter_names == uniform.parameter_names and log.fixed == uniform.fixed
+    assert log.same_model_as == "bwbn" and uniform.same_model_as is None
+    assert {n for n, p in log.priors.items() if p.log} == {"delta_nu", "delta_eta", "p", "q", "psi", "lambda"}
+    for name, prior in log.priors.items():
+        assert prior.high == uniform.priors[name].high
+        assert prior.low == uniform.priors[name].low if not prior.log else 0 < prior.low <= 0.1 * prior.high
+    assert build(parse(spec_for(x, x, 1, None, ["bwbn_log"]))).models[0].same_model_as is None

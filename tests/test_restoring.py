@@ -244,7 +244,7 @@ def test_the_cyclic_example_reads_both_layouts_and_builds(tmp_path):
         xs, fs = cyclic.read_specimen(tmp_path, name)
         np.testing.assert_allclose(xs, x, rtol=1e-12)
         job = build(parse(cyclic.spec_for(xs / np.max(np.abs(xs)), fs / np.max(np.abs(fs)), 1, 100)))
-        assert [m.name for m in job.models] == ["bw", "bwbn"]
+        assert [m.name for m in job.models] == ["bw", "bwbn", "bwbn_log"]
     with pytest.raises(SystemExit, match=r"README\.md says where"):
         cyclic.read_specimen(tmp_path, "chiu")
 

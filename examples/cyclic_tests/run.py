@@ -30,7 +30,7 @@ from worker.registry import get
 HERE = Path(__file__).resolve().parent
 SPECIMENS = ("daniel", "kunnath", "gill", "chiu", "sharma")
 MODELS = ("bw", "bwbn", "bwbn_log")  # models.yaml's
-DEFAULT_MODELS = ("bw", "bwbn")
+DEFAULT_MODELS = MODELS  # BW against BWBN under both priors (README.md, "Two priors")
 
 
 def read_specimen(folder: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -125,7 +125,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--particles", type=int, default=None)
     parser.add_argument("--out", type=Path, default=Path("out/cyclic_tests"))
     parser.add_argument("--model", action="append", choices=MODELS,
-                        help=f"run this model (repeatable; default: {' and '.join(DEFAULT_MODELS)})")
+                        help=f"run this model (repeatable; default: {', '.join(DEFAULT_MODELS)})")
     args = parser.parse_args(argv)
     for name in args.specimen:
         s = run_specimen(args.data, name, args.seed, args.particles, args.out, args.model)
