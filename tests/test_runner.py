@@ -142,16 +142,26 @@ def test_a_store_written_under_the_former_ellipsoid_cap_resumes_under_it(tmp_pat
     of particles, and a store has room for its own job's cap; now 1,000 particles bound with up
     to 16. §4.1 (1,000 particles) stopped after a few populations under the former default
     resumes to its 10th under the store's 8 (before: "population 4: 15 ellipsoids for model 0;
-    the store holds 8", as the new default bounds it with more)."""
+    the store holds 8", as the new default bounds it with more). The first run is cancelled
+    once its loop has handed 2 populations to the store's writer (counted there, in the run's
+    own thread: the writer's progress callback, which waits for the store to be made, once came
+    after all 10 on a fresh clone)."""
     import abcns.settings
     from benchmarks.harness import duffing_spec
 
     spec, path = parse(duffing_spec(max_populations=10, particles=1000, noise_floor=False)), tmp_path / "s.zarr"
-    seen: list = []
-    monkeypatch.setenv("ABCNS_STORE_INTERVAL_S", "0")  # one append, and one progress call, per population
+    handed: list = []
+    put = runner.PopulationWriter.put
+
+    def counted(self, progress, info):
+        handed.append(progress.population.t)
+        put(self, progress, info)
+
+    monkeypatch.setenv("ABCNS_STORE_INTERVAL_S", "0")  # one append per population
     with monkeypatch.context() as former:
         former.setattr(abcns.settings, "PARTICLES_PER_ELLIPSOID", 10**6)  # the former default: 8
-        run_job(spec, None, path, None, on_population=seen.append, cancel=lambda: len(seen) >= 2)
+        former.setattr(runner.PopulationWriter, "put", counted)
+        run_job(spec, None, path, None, cancel=lambda: len(handed) >= 2)
     assert Store.open(path).attrs["max_ellipsoids"] == 8 and 2 <= Store.open(path).n_populations < 10
     result = run_job(spec, None, path, None)
     assert len(result.populations) == 10
