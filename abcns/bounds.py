@@ -309,9 +309,8 @@ class Frame:
         self.model_high = model.high
         #: the model's own map to the prior's coordinates, when any prior is log-uniform
         self.coordinates = model if model.log_columns.any() else None
-        self.low = np.array([p.coordinate_low for p in model.priors.values()])
-        self.width = np.array([p.coordinate_width for p in model.priors.values()])
-        self.high = self.low + self.width if self.coordinates else model.high
+        self.low, self.high = model.coordinate_low, model.to_coordinates(model.high)
+        self.width = self.high - self.low
         #: log volume of the prior box in these coordinates
         self.log_box_volume = 0.0 if unit else model.log_prior_volume()
 

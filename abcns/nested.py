@@ -188,10 +188,10 @@ def finish_population(
         keep = rng.choice(rows, size=int(quotas[m]), replace=False, p=weights[rows])
         survivors[keep] = True
         frame = frames[m]
-        points, new = _fitted_points(model, frame, theta, rows, is_new, np.flatnonzero(np.isin(which, copies[m]) & positive))
+        others = np.flatnonzero(np.isin(which, copies[m]) & positive) if copies[m] else None
+        points, new = _fitted_points(model, frame, theta, rows, is_new, others)
         prev_bound = previous.ellipsoids[m] if previous is not None else ()
-        fitted = frame.to_frame(theta[np.sort(keep), : model.n_dim])  # the paper variant's fit
-        bound = variant.bound(points, fitted, _fallback(prev_bound, frame, settings))
+        bound = variant.bound(points, theta[np.sort(keep), : model.n_dim], frame, _fallback(prev_bound, frame, settings))
         notes += [f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)" for e in bound if e.note]
         bounds.append(bound)
         geometry_jobs.append(_geometry_job(bound, frame, points, new,
@@ -257,15 +257,16 @@ def _fallback(previous_bound: bd.Union, frame: bd.Frame, settings: NSSettings) -
 
 
 def _fitted_points(model: Model, frame: bd.Frame, theta: np.ndarray, rows: np.ndarray, is_new: np.ndarray,
-                   copies: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                   others: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """The points model m's bound is fitted to, in its frame, and which of them test its
     coverage: its particles below the next tolerance (``rows``; its new ones test), then those
-    of the models it is the same model as (``copies``' rows) inside its prior box, which
-    never test (drawn under another prior, they are not uniform in m's region)."""
+    of the models it is the same model as (``others``, their rows; None: it has none) inside
+    its prior box, which never test (drawn under another prior, they are not uniform in m's
+    region)."""
     points = frame.to_frame(theta[rows, : model.n_dim])
-    if not copies.size:
+    if others is None or not others.size:
         return points, is_new[rows]
-    other = theta[copies, : model.n_dim]
+    other = theta[others, : model.n_dim]
     other = other[model.in_prior(other)]
     return np.vstack([points, frame.to_frame(other)]), np.concatenate([is_new[rows], np.zeros(other.shape[0], bool)])
 

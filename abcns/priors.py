@@ -20,9 +20,7 @@ class Uniform:
 
     ``log``: uniform in log(theta) instead (log-uniform, scale-free: each decade of [low, high]
     holds the same prior mass), which needs low > 0. The bounds stay in the parameter's own
-    units; :attr:`coordinate_low` and :attr:`coordinate_width` are those of the coordinate the
-    prior is uniform in (log theta here), which sampling, the bounds' frame and the prior
-    volume use."""
+    units (:meth:`Model.to_coordinates` maps to the coordinate the prior is uniform in)."""
 
     low: float
     high: float
@@ -49,16 +47,6 @@ class Uniform:
     @property
     def width(self) -> float:
         return self.high - self.low
-
-    @property
-    def coordinate_low(self) -> float:
-        """The low end in the coordinate the prior is uniform in: ``low``, or log(low)."""
-        return math.log(self.low) if self.log else self.low
-
-    @property
-    def coordinate_width(self) -> float:
-        """The width in that coordinate: ``high - low``, or log(high / low)."""
-        return math.log(self.high) - math.log(self.low) if self.log else self.width
 
     def pair(self) -> list[Any]:
         """The spec's form: ``[low, high]``, or ``[low, high, "log"]``."""
@@ -194,13 +182,19 @@ class Model:
         out[..., logs] = f(out[..., logs])
         return out
 
+    @property
+    def coordinate_low(self) -> np.ndarray:
+        """The prior box's low ends in the coordinates the prior is uniform in."""
+        return self.to_coordinates(self.low)
+
+    @property
+    def coordinate_width(self) -> np.ndarray:
+        """The prior box's widths in those coordinates: ``high - low``, or log(high / low)."""
+        return self.to_coordinates(self.high) - self.coordinate_low
+
     def sample_prior(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        """``n`` draws from the prior, shape (n, n_dim)."""
-        if not self.log_columns.any():
-            return self.low + (self.high - self.low) * rng.random((n, self.n_dim))
-        low = np.array([p.coordinate_low for p in self.priors.values()])
-        width = np.array([p.coordinate_width for p in self.priors.values()])
-        return self.from_coordinates(low + width * rng.random((n, self.n_dim)))
+        """``n`` draws from the prior, shape (n, n_dim): uniform in its coordinates."""
+        return self.from_coordinates(self.coordinate_low + self.coordinate_width * rng.random((n, self.n_dim)))
 
     def in_prior(self, theta: np.ndarray) -> np.ndarray:
         """Boolean mask of the rows of ``theta`` (n, n_dim) inside the prior box (:func:`in_box`)."""
@@ -210,7 +204,7 @@ class Model:
         """log of the prior box's volume in the coordinates the prior is uniform in
         (:meth:`to_coordinates`): the sum of the log widths ``high - low`` (log(high / low) for a
         log-uniform prior)."""
-        return float(np.sum(np.log([p.coordinate_width for p in self.priors.values()])))
+        return float(np.sum(np.log(self.coordinate_width)))
 
     def log_prior_density(self, theta: np.ndarray) -> np.ndarray:
         """The prior's log density at each row of ``theta`` (n, n_dim) inside the box, in the

@@ -88,10 +88,10 @@ class Paper:
         quotas = survivor_quotas(self.settings.n_survivors, counts, capacity)
         return quotas, deaths(alive_now, alive_now & (quotas == 0), ev.NO_PARTICLES)
 
-    def bound(self, points: np.ndarray, survivors: np.ndarray, fallback: ell.Ellipsoid) -> bd.Union:
-        """One ellipsoid fitted to the survivors (raw units: log theta for a log-uniform prior),
-        enlarged by f0."""
-        return tuple(ell.fit_many([survivors], fallback, enlargement=self.settings.enlargement))
+    def bound(self, points: np.ndarray, survivors: np.ndarray, frame: bd.Frame, fallback: ell.Ellipsoid) -> bd.Union:
+        """One ellipsoid fitted to the survivors (theta) in ``frame`` (the raw coordinates: log
+        theta for a log-uniform prior), enlarged by f0."""
+        return tuple(ell.fit_many([frame.to_frame(survivors)], fallback, enlargement=self.settings.enlargement))
 
     #: the bound is not a fit of every point below eps_{t+1}: its coverage is the share it holds
     cross_validated = False
@@ -144,8 +144,9 @@ class Evidence:
         floor = np.array([bd.min_points(m.n_dim) for m in models])
         return _floored_quotas(s.n_survivors, shares, np.where(alive_next, capacity, 0), floor), death
 
-    def bound(self, points: np.ndarray, survivors: np.ndarray, fallback: ell.Ellipsoid) -> bd.Union:
-        """A union of ellipsoids fitted to every particle below eps_{t+1} (unit box)."""
+    def bound(self, points: np.ndarray, survivors: np.ndarray, frame: bd.Frame, fallback: ell.Ellipsoid) -> bd.Union:
+        """A union of ellipsoids fitted to every particle below eps_{t+1} (``points``, already in
+        the unit box)."""
         return bd.fit_union(points, self.settings.enlargement, self.settings.n_ellipsoids, fallback)
 
     #: the bound is a fit of every point below eps_{t+1}: its coverage is cross-validated

@@ -198,8 +198,7 @@ class ExactModel:
         self.sigma = float(sigma)
         self.names = list(model.priors)
         self.model = model
-        self.low = np.array([p.coordinate_low for p in model.priors.values()])  # log theta's for a log-uniform prior
-        self.width = np.array([p.coordinate_width for p in model.priors.values()])
+        self.low, self.width = model.coordinate_low, model.coordinate_width  # log theta's for a log-uniform prior
 
     def prior_transform(self, u: np.ndarray) -> np.ndarray:
         return self.model.from_coordinates(self.low + u * self.width)

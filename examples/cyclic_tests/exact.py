@@ -70,8 +70,7 @@ class GaussianRestoring:
         self.observed = np.asarray(observed[window[0]:window[1]], dtype=float)
         self.names = [*model.priors, "sigma"]
         self.model = model
-        self.low = np.array([p.coordinate_low for p in model.priors.values()])
-        self.width = np.array([p.coordinate_width for p in model.priors.values()])
+        self.low, self.width = model.coordinate_low, model.coordinate_width
 
     def natural(self, u: np.ndarray) -> np.ndarray:
         """Points in the prior's coordinates, in the parameters' own units."""

@@ -80,7 +80,7 @@ def parameter_shift(job: Job, m: int, theta: np.ndarray, window: tuple[int, int]
     expand, (a, b) = full_parameters(model, sim), window
     steps = STEP * np.array([u.high - u.low for u in model.priors.values()])
     logs = model.log_columns  # a log-uniform prior's step is relative: STEP of its width in log theta
-    steps[logs] = theta[logs] * np.expm1(STEP * np.array([u.coordinate_width for u in model.priors.values()])[logs])
+    steps[logs] = theta[logs] * np.expm1(STEP * model.coordinate_width[logs])
     rows = np.vstack([theta, theta + np.diag(steps)])
     out = sim.simulate(expand(rows), np.random.default_rng(job.seed))
     if np.any(out.status != OK):

@@ -77,6 +77,7 @@ import zarr
 
 from abcns.evidence import Evidence
 from abcns.noise import Floor
+from abcns.priors import Uniform
 
 FORMAT_VERSION = 4  # 4: the noise floor per population (floor_*), simulations and failures per model
 CHUNK_BYTES = 64 * 1024
@@ -262,7 +263,7 @@ def _priors(spec: Mapping[str, Any], model_names: Sequence[str], union: Sequence
 def _log_text(spec: Mapping[str, Any]) -> str:
     """What the frame's text adds for the parameters with a log-uniform prior (none: nothing)."""
     logs = [f"{m.get('name')}.{key}" for m in spec.get("models") or () if isinstance(m, Mapping)
-            for key, bounds in (m.get("priors") or {}).items() if len(bounds) == 3 and bounds[2] == "log"]
+            for key, bounds in (m.get("priors") or {}).items() if Uniform.parse(bounds).log]
     if not logs:
         return ""
     return (f"; for {', '.join(logs)} (log-uniform priors) log theta in place of theta, and log(prior_low) and "
