@@ -165,6 +165,17 @@ def allocation(p: np.ndarray, acceptance: np.ndarray, alive: np.ndarray, floor: 
     return out / out.sum()
 
 
+def alive(counts: np.ndarray, n_proposed: np.ndarray, previous: Evidence | None) -> np.ndarray:
+    """The models alive in a population: those with particles in it, and those alive after
+    the previous population that proposed in it. A model alive after a population has
+    survivors in the next, unless it is a copy held by its twin's particles
+    (``abcns.nested``, "relayed"), which has only the new particles it is given."""
+    out = np.asarray(counts) > 0
+    if previous is not None:
+        out |= (previous.death == ALIVE) & (np.asarray(n_proposed) > 0)
+    return out
+
+
 @dataclass(frozen=True)
 class Estimate:
     """One population's evidence estimate (:func:`estimate`), per model: log Z at eps_t and
@@ -190,7 +201,7 @@ def estimate(which: np.ndarray, distances: np.ndarray, is_new: np.ndarray, epsil
     exactly). docs/design.md, "The evidence's standard error", derives every term."""
     n_models = n_proposed.shape[0]
     counts = np.bincount(which, minlength=n_models)
-    alive_now = counts > 0
+    alive_now = alive(counts, n_proposed, previous)
     if previous is None:
         log_z, var_z = log_share(n_accepted, n_proposed)
         cover, var_c, w_pred = np.ones(n_models), np.zeros(n_models), np.zeros(n_models)

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import time
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass
@@ -157,35 +158,32 @@ def finish_population(
     assert previous is None or previous_evidence is not None
     found, eps_next, est, kept = _next(epsilon, which, distances, is_new, n_proposed, n_accepted, previous_evidence,
                                        settings.n_drop, lower, holding)
+    copies = same_models(models) if variant.cross_validated else [[] for _ in models]
+    est, relayed = _relayed(models, copies, which, theta, distances < eps_next, is_new, est)
     raw = ns_weights(distances, epsilon, eps_next, settings.weights)
     counts, positive = np.bincount(which, minlength=n_models), raw > 0
     capacity = np.bincount(which, weights=positive, minlength=n_models).astype(np.int64)
-    alive_now = counts > 0
+    alive_now = ev.alive(counts, n_proposed, previous_evidence)
 
     quotas, death = variant.survive(models, est, counts, capacity, alive_now, previous_evidence, spared)
     alive_next = death == ev.ALIVE
     failed = (death != ev.ALIVE) & (n_proposed > 0) & (filled.failures(n_models) == n_proposed)
     death = np.where(failed, ev.SIMULATIONS_FAILED, death)
-    notes = [f"population {t}: {models[m].name} dies ({ev.DEATH_RULES[int(death[m])]}; p = {est.p_next[m]:.3g} at "
-             "the next tolerance)" for m in map(int, np.flatnonzero(alive_now & ~alive_next))]
-    if quotas.sum() < settings.n_survivors:
-        notes.append(f"population {t}: only {quotas.sum()} survivors (ties at eps_next, or few particles of the "
-                     "alive models below it); the next population draws more new particles")
-
+    notes = _survival_notes(t, models, est, death, alive_now & ~alive_next, int(quotas.sum()), settings.n_survivors,
+                            [(m, copies[m]) for m in relayed])
     weights = np.zeros_like(raw)
     survivors = np.zeros(which.shape[0], dtype=bool)
-    copies = same_models(models) if variant.cross_validated else [[] for _ in models]
     bounds: list[bd.Union] = []
     geometry_jobs: list[Geometry | None] = []
     for m, model in enumerate(models):
         rows = np.flatnonzero((which == m) & positive)
         if rows.size:
             weights[rows] = raw[rows] / raw[rows].sum()
-        if not alive_next[m] or quotas[m] == 0:
+        if not alive_next[m] or (quotas[m] == 0 and m not in relayed):
             bounds.append(())
             geometry_jobs.append(None)
             continue
-        keep = rng.choice(rows, size=int(quotas[m]), replace=False, p=weights[rows])
+        keep = rng.choice(rows, size=int(quotas[m]), replace=False, p=weights[rows]) if quotas[m] else rows[:0]
         survivors[keep] = True
         frame = frames[m]
         others = np.flatnonzero(np.isin(which, copies[m]) & positive) if copies[m] else None
@@ -207,6 +205,21 @@ def finish_population(
     notes += _tolerance_notes(t, models, float(distances[0]), found, eps_next, kept)
     return Step(eps_next, weights, survivors, tuple(bounds), probabilities, notes, counted, tuple(geometry_jobs),
                 tied=found is None, kept=tuple(kept))
+
+
+def _survival_notes(t: int, models: Sequence[Model], est: ev.Estimate, death: np.ndarray, dying: np.ndarray,
+                    n_kept: int, n_survivors: int, relayed: list[tuple[int, list[int]]]) -> list[str]:
+    """What population t's survival step says: the ``relayed`` copies (with their twins), the
+    ``dying`` models and why, and a shortfall of survivors (``n_kept`` of ``n_survivors``)."""
+    notes = [f"population {t}: {models[m].name} has no particle below the next tolerance; its evidence there is read "
+             f"from the particles of {', '.join(models[j].name for j in twins)} (the same model) inside its prior "
+             "box, and its bound fitted to them" for m, twins in relayed]
+    notes += [f"population {t}: {models[m].name} dies ({ev.DEATH_RULES[int(death[m])]}; p = {est.p_next[m]:.3g} at "
+              "the next tolerance)" for m in map(int, np.flatnonzero(dying))]
+    if n_kept < n_survivors:
+        notes.append(f"population {t}: only {n_kept} survivors (ties at eps_next, or few particles of the "
+                     "alive models below it); the next population draws more new particles")
+    return notes
 
 
 def _tolerance_notes(t: int, models: Sequence[Model], first: float, found: float | None, eps_next: float,
@@ -245,6 +258,43 @@ def _next(epsilon: float, which: np.ndarray, distances: np.ndarray, is_new: np.n
     if not kept:
         return found, eps_next, est, []
     return found, raised, ev.estimate(which, distances, is_new, raised, n_proposed, n_accepted, previous), kept
+
+
+def _relayed(models: Sequence[Model], copies: Sequence[Sequence[int]], which: np.ndarray, theta: np.ndarray,
+             below: np.ndarray, is_new: np.ndarray, est: ev.Estimate) -> tuple[ev.Estimate, list[int]]:
+    """(the estimate, the models it relays): a model alive now with no particle ``below`` the
+    next tolerance (no prediction there) whose copies (``copies``, :func:`same_models`) have
+    particles below it inside its prior box takes its prediction from theirs. The same model
+    under prior p_m has Z_m = Z_j E_j[p_m / p_j] for any copy j (its ABC posterior at eps_next
+    under p_j); E_j is the mean over j's new particles below eps_next (uniform in j's region
+    there, as the prediction's share takes them; all of j's particles below it if none is new),
+    its log's variance the delta method's, var(ratio) / (n mean^2) (one particle in m's box
+    among n: about 1). Several copies are combined by inverse variance."""
+    log_next, var_next, relayed = est.log_z_next.copy(), est.var_next.copy(), []
+    for m, twins in enumerate(copies):
+        if not twins or np.isfinite(est.log_z_next[m]) or not np.isfinite(est.log_z[m]):
+            continue
+        model = models[m]
+        for j in twins:
+            rows = np.flatnonzero((which == j) & below & is_new)
+            rows = rows if rows.size else np.flatnonzero((which == j) & below)
+            x = theta[rows, : model.n_dim]
+            inside = model.in_prior(x)
+            if not inside.any():
+                continue
+            log_ratio = model.log_prior_density(x[inside]) - models[j].log_prior_density(x[inside])
+            top = float(log_ratio.max())
+            ratio = np.zeros(rows.size)
+            ratio[inside] = np.exp(log_ratio - top)
+            mean = float(ratio.mean())
+            log_next[m], var_next[m] = ev.combine(log_next[m], var_next[m], est.log_z_next[j] + top + math.log(mean),
+                                                  est.var_next[j] + float(ratio.var()) / (rows.size * mean**2))
+        if np.isfinite(log_next[m]):
+            relayed.append(m)
+    if not relayed:
+        return est, relayed
+    p_next, se_next = ev.probabilities(log_next, np.sqrt(var_next))
+    return dataclasses.replace(est, log_z_next=log_next, var_next=var_next, p_next=p_next, se_next=se_next), relayed
 
 
 def _fallback(previous_bound: bd.Union, frame: bd.Frame, settings: NSSettings) -> ell.Ellipsoid:

@@ -110,7 +110,8 @@ class Evidence:
     """Model probabilities from each model's evidence: survivors and proposals follow the
     probability predicted at eps_{t+1} (survivors at least 2 (d + 1) each while a model has
     them; proposals p / acceptance with a floor per alive model); a model dies when it has no
-    particle below eps_{t+1}, or when its probability plus three standard errors there falls
+    particle below eps_{t+1} (a copy, ``same_model_as``, not while its twins have particles
+    there inside its prior box), or when its probability plus three standard errors there falls
     below ``min_model_probability`` in two populations in a row; bounds are unions of
     ellipsoids fitted in the unit prior box to every particle below eps_{t+1}. With a noise
     floor, a model the likelihood reading still gives a share is spared
@@ -125,11 +126,14 @@ class Evidence:
         likelihood reading keeps from death by probability (:func:`abcns.likelihood.spared`),
         asked only when a model would die by it."""
         s = self.settings
-        death = deaths(alive_now, alive_now & (capacity == 0), ev.NO_PARTICLES)
+        # no prediction at eps_next: no particle below it (a copy's may be relayed from its
+        # twin's particles, abcns.nested._relayed)
+        predicted = np.isfinite(est.log_z_next)
+        death = deaths(alive_now, alive_now & ~predicted, ev.NO_PARTICLES)
         # by probability only when the previous population's prediction was below the threshold
         # too: one population's error bar can be wrong (a few in a thousand beyond 3 standard
         # errors), and death is for good
-        improbable = alive_now & (capacity > 0) & (est.p_next + 3 * est.se_next < s.death_probability)
+        improbable = alive_now & predicted & (est.p_next + 3 * est.se_next < s.death_probability)
         if previous_evidence is not None:
             p_was, se_was = ev.probabilities(previous_evidence.log_z_next, previous_evidence.log_z_next_se)
             improbable &= p_was + 3 * se_was < s.death_probability
