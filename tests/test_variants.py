@@ -44,9 +44,19 @@ def test_an_unmeasured_coverage_leaves_log_z_to_the_prediction():
 
 
 def test_a_model_without_particles_has_no_evidence():
+    """Dead after the previous population (it proposes nothing), or at the first population
+    with no accepted particle; but a model alive after the previous population that proposed
+    and has no particle (a copy relayed by its twin's particles: no survivors) is alive, its
+    log Z the previous prediction (its direct estimate unmeasured: no coverage of its own)."""
     which, d = np.array([0, 0, 0]), np.array([0.1, 0.2, 0.3])
-    est = ev.estimate(which, d, np.ones(3, bool), 0.25, np.array([10, 10]), np.array([3, 0]), previous_evidence())
+    dead = previous_evidence(death=np.array([ev.ALIVE, ev.NO_PARTICLES]))
+    est = ev.estimate(which, d, np.ones(3, bool), 0.25, np.array([10, 0]), np.array([3, 0]), dead)
     assert est.log_z[1] == -np.inf and est.p_now[1] == 0.0 and est.p_next[1] == 0.0
+    est = ev.estimate(which, d, np.ones(3, bool), 0.25, np.array([10, 10]), np.array([3, 0]), None)
+    assert est.log_z[1] == -np.inf and est.p_now[1] == 0.0 and est.p_next[1] == 0.0
+    relayed = previous_evidence(n_coverage=np.array([100, 0]))
+    est = ev.estimate(which, d, np.ones(3, bool), 0.25, np.array([10, 10]), np.array([3, 0]), relayed)
+    assert est.log_z[1] == np.log(0.1) and est.p_now[1] > 0 and est.p_next[1] == 0.0
 
 
 def estimate_with(p_next, se_next=(0.0, 0.0)) -> ev.Estimate:

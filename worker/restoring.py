@@ -32,8 +32,10 @@ Velocity rule: the viscous term uses ``v_i = (x[i+1] - x[i-1]) / (2 dt)`` (centr
 differences, one-sided ``(x[1] - x[0]) / dt`` and ``(x[-1] - x[-2]) / dt`` at the ends;
 ``numpy.gradient``); the hysteretic state sees the displacement moving on a straight line
 between samples (first-order hold) and is integrated in ``x`` itself (the models are rate
-independent): ``substeps`` classical RK4 steps of ``dz/dx`` per sample step. With ``c = 0``
-(the default) the sample interval plays no role at all, as for quasi-static tests.
+independent): classical RK4 steps of ``dz/dx``, at least ``substeps`` per sample step, more
+where a particle's stiffness or pinching notch needs them (the step control of
+:mod:`worker.restoring_kernels`). With ``c = 0`` (the default) the sample interval plays no
+role at all, as for quasi-static tests.
 """
 
 from __future__ import annotations
@@ -50,6 +52,17 @@ NONNEGATIVE = Range(0.0, math.inf)
 POSITIVE_OPEN = Range(0.0, math.inf, low_open=True)
 #: the exponent n: real, 0.5..10 (|z|^n by pow; past 10 the loops are a step function)
 EXPONENT = Range(0.5, 10.0)
+
+
+def _stiffness(az: np.ndarray, zu: np.ndarray, n: np.ndarray, nu: np.ndarray | float, beta: np.ndarray,
+               gamma: np.ndarray) -> np.ndarray:
+    """(numpy reference) ``restoring_kernels._stiffness``: ``nu n a^(n - 1) (beta + |gamma|)``
+    at ``a = max(|z|, |z_u|)``, ``nu (beta + |gamma|)`` for n = 1 or a state of no scale."""
+    b = nu * (beta + np.abs(gamma))
+    a = np.maximum(az, np.abs(zu))
+    with np.errstate(all="ignore"):
+        scaled = n * b * a ** (n - 1.0)
+    return np.where(n == 1.0, b, np.where((a > 0) & np.isfinite(a), scaled, n * b))
 
 
 def _displacement(x) -> np.ndarray:
@@ -83,7 +96,8 @@ class _Restoring(Oscillator):
         return self.force
 
     def _method(self) -> dict:
-        return {"substeps": self.substeps, "integration": "RK4 in x, displacement linear between samples",
+        return {"substeps": self.substeps, "integration": "RK4 in x, displacement linear between samples, at least "
+                "substeps steps per sample, more where a particle's rate asks (|dx| L <= 1)",
                 "velocity": "central differences (numpy.gradient)"}
 
     def config(self) -> dict:
@@ -123,16 +137,38 @@ class _Restoring(Oscillator):
                     state = self._rk4_numpy(p, state, x[i + 1] - x[i])
         return SimOutput(out, np.where(bad, DIVERGED, OK).astype(np.int8))
 
+    def rate(self, p: tuple, state: list[np.ndarray], d: float) -> np.ndarray:
+        """(numpy reference) each particle's rate scale for the step control over a sample
+        step ``d`` (the kernels' ``_bw_rate``, ``_bwbn_rate``)."""
+        raise NotImplementedError
+
     def _rk4_numpy(self, p: tuple, state: list[np.ndarray], d: float) -> list[np.ndarray]:
-        h, s = d / self.substeps, float(np.sign(d))
-        for _ in range(self.substeps):
-            k1 = self.slopes(p, state, s)
-            k2 = self.slopes(p, [a + 0.5 * h * b for a, b in zip(state, k1, strict=True)], s)
-            k3 = self.slopes(p, [a + 0.5 * h * b for a, b in zip(state, k2, strict=True)], s)
-            k4 = self.slopes(p, [a + h * b for a, b in zip(state, k3, strict=True)], s)
-            state = [a + (h / 6.0) * ((b1 + b4) + 2.0 * (b2 + b3)) for a, b1, b2, b3, b4 in zip(state, k1, k2, k3, k4,
+        """One sample step of length ``d``: per particle, the kernels' step count
+        (``restoring_kernels._count``; 0: DIVERGED, the state made NaN)."""
+        from worker.restoring_kernels import KAPPA, MAX_SUBSTEPS
+
+        with np.errstate(all="ignore"):
+            want = abs(d) * self.rate(p, state, d) / KAPPA
+        counts = np.where(want <= MAX_SUBSTEPS, np.maximum(self.substeps, np.ceil(np.nan_to_num(want))), 0).astype(int)
+        out = [a.copy() for a in state]
+        for m in np.unique(counts):
+            sel = counts == m
+            if m == 0:
+                for a in out:
+                    a[sel] = np.nan
+                continue
+            sub, now = tuple(a[sel] for a in p), [a[sel] for a in state]
+            h, s = d / m, float(np.sign(d))
+            for _ in range(m):
+                k1 = self.slopes(sub, now, s)
+                k2 = self.slopes(sub, [a + 0.5 * h * b for a, b in zip(now, k1, strict=True)], s)
+                k3 = self.slopes(sub, [a + 0.5 * h * b for a, b in zip(now, k2, strict=True)], s)
+                k4 = self.slopes(sub, [a + h * b for a, b in zip(now, k3, strict=True)], s)
+                now = [a + (h / 6.0) * ((b1 + b4) + 2.0 * (b2 + b3)) for a, b1, b2, b3, b4 in zip(now, k1, k2, k3, k4,
                                                                                                 strict=True)]
-        return state
+            for a, b in zip(out, now, strict=True):
+                a[sel] = b
+        return out
 
     #: the column of the exponent n in the parameter vector
     n_column = 6
@@ -182,6 +218,12 @@ class BoucWenRestoring(_Restoring):
         z = state[0]
         return [A - np.abs(z) ** n * (beta * np.sign(s * z + (z == 0)) + gamma)]
 
+    def rate(self, p, state, d):
+        _c, _k, _al, A, beta, gamma, n = p
+        bg = beta + gamma
+        zu = np.where(bg > 0, np.abs(A / np.where(bg > 0, bg, 1.0)) ** (1.0 / n), 0.0)
+        return _stiffness(np.abs(state[0]), zu, n, 1.0, beta, gamma)
+
     def _work(self, params):
         params = np.atleast_2d(np.asarray(params, dtype=float))
         parts = self._groups(params, self._kernels_r().BW_ROWS, 3)
@@ -224,6 +266,20 @@ class BWBNRestoring(_Restoring):
         h = 1.0 - z1 * np.exp(-(((s * z - q * zu) / z2) ** 2))
         g = A - nu * np.abs(z) ** n * (beta * np.sign(s * z + (z == 0)) + gamma)
         return [h * g / (1.0 + deta * e), al * z]
+
+    def rate(self, p, state, d):
+        _c, _k, _al, A, beta, gamma, n, dnu, deta, pp, zs, psi, dpsi, lam, q = p
+        z, e = state
+        nu, eta = 1.0 + dnu * e, 1.0 + deta * e
+        az = np.abs(z)
+        zu = (A / (nu * (beta + gamma))) ** (1.0 / n)
+        z1 = zs * (1.0 - np.exp(-pp * e))
+        z2 = (psi + dpsi * e) * (lam + z1)
+        g = np.abs(A) + nu * az**n * (beta + np.abs(gamma))
+        from worker.restoring_kernels import NOTCH_REACH
+
+        near = np.abs(np.sign(d) * z - q * zu) - abs(d) * g / eta < NOTCH_REACH * z2
+        return (_stiffness(az, zu, n, nu, beta, gamma) + np.where(near, z1 / z2 * g, 0.0)) / eta
 
     def _work(self, params):
         params = np.atleast_2d(np.asarray(params, dtype=float))
