@@ -40,6 +40,7 @@ role at all, as for quasi-static tests.
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
@@ -136,6 +137,13 @@ class _Restoring(Oscillator):
                 if i + 1 < x.size and x[i + 1] != x[i]:
                     state = self._rk4_numpy(p, state, x[i + 1] - x[i])
         return SimOutput(out, np.where(bad, DIVERGED, OK).astype(np.int8))
+
+    def finer(self) -> _Restoring:
+        """This simulator at twice the ``substeps`` (the run's check of its own error,
+        ``service/run/model_error.py``)."""
+        out = copy.copy(self)
+        out.substeps = 2 * self.substeps
+        return out
 
     def rate(self, p: tuple, state: list[np.ndarray], d: float) -> np.ndarray:
         """(numpy reference) each particle's rate scale for the step control over a sample

@@ -50,9 +50,13 @@ def shift_level(p: int) -> float:
 def references(sim: Simulator, interpolation: str) -> list[tuple[str, Simulator]]:
     """Finer versions of a built-in RK4 oscillator: twice the substeps (the integration's
     error), and, for a ``linear`` input (one meant continuous), the band-limited input at twice
-    the substeps (the interpolation's error). [] for other simulators."""
+    the substeps (the interpolation's error); of a displacement-driven restoring-force model,
+    twice the substeps. [] for other simulators."""
+    from worker.restoring import _Restoring
     from worker.simulators import BoucWen, Duffing
 
+    if isinstance(sim, _Restoring):
+        return [("integrator.substeps", sim.finer())]
     if not (type(sim) is Duffing or type(sim) is BoucWen):
         return []
     rk4: Duffing | BoucWen = sim
