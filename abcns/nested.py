@@ -170,7 +170,7 @@ def finish_population(
     failed = (death != ev.ALIVE) & (n_proposed > 0) & (filled.failures(n_models) == n_proposed)
     death = np.where(failed, ev.SIMULATIONS_FAILED, death)
     notes = _survival_notes(t, models, est, death, alive_now & ~alive_next, int(quotas.sum()), settings.n_survivors,
-                            [(m, copies[m]) for m in relayed])
+                            [(m, copies[m]) for m in relayed if alive_next[m]])
     weights = np.zeros_like(raw)
     survivors = np.zeros(which.shape[0], dtype=bool)
     bounds: list[bd.Union] = []

@@ -304,13 +304,16 @@ class Result:
         return pop.theta[rows, : self.models[i].n_dim], pop.distances[rows], pop.weights[rows]
 
     def posterior(self, t: int | None = None) -> dict[str, dict]:
-        """{model: {parameter: summary}} of population t (default: the final one)."""
+        """{model: {parameter: summary}} of population t (default: the final one), for the
+        alive models with particles in it (a copy relayed by its twin's particles may have none:
+        ``abcns.nested._relayed``)."""
         out = {}
         for i in self.alive(t):
             theta, _, w = self.particles(i, t)
-            out[self.models[i].name] = posterior_summary(
-                theta, w if self.weighted_posterior else None, self.models[i].parameter_names
-            )
+            if theta.shape[0]:
+                out[self.models[i].name] = posterior_summary(
+                    theta, w if self.weighted_posterior else None, self.models[i].parameter_names
+                )
         return out
 
     def _named(self, values: np.ndarray) -> dict[str, float]:
