@@ -98,7 +98,7 @@ class _Restoring(Oscillator):
 
     def _method(self) -> dict:
         return {"substeps": self.substeps, "integration": "RK4 in x, displacement linear between samples, at least "
-                "substeps steps per sample, more where a particle's rate asks (|dx| L <= 1)",
+                "substeps steps per sample, more where a particle's rate asks (worker.restoring_kernels, step control)",
                 "velocity": "central differences (numpy.gradient)"}
 
     def config(self) -> dict:
@@ -152,7 +152,7 @@ class _Restoring(Oscillator):
 
     def _rk4_numpy(self, p: tuple, state: list[np.ndarray], d: float) -> list[np.ndarray]:
         """One sample step of length ``d``: per particle, the kernels' step count
-        (``restoring_kernels._count``; 0: DIVERGED, the state made NaN)."""
+        (``restoring_kernels._steps_taken``; 0: DIVERGED, the state made NaN)."""
         from worker.restoring_kernels import KAPPA, MAX_SUBSTEPS
 
         with np.errstate(all="ignore"):
@@ -276,6 +276,8 @@ class BWBNRestoring(_Restoring):
         return [h * g / (1.0 + deta * e), al * z]
 
     def rate(self, p, state, d):
+        from worker.restoring_kernels import NOTCH_REACH
+
         _c, _k, _al, A, beta, gamma, n, dnu, deta, pp, zs, psi, dpsi, lam, q = p
         z, e = state
         nu, eta = 1.0 + dnu * e, 1.0 + deta * e
@@ -284,8 +286,6 @@ class BWBNRestoring(_Restoring):
         z1 = zs * (1.0 - np.exp(-pp * e))
         z2 = (psi + dpsi * e) * (lam + z1)
         g = np.abs(A) + nu * az**n * (beta + np.abs(gamma))
-        from worker.restoring_kernels import NOTCH_REACH
-
         near = np.abs(np.sign(d) * z - q * zu) - abs(d) * g / eta < NOTCH_REACH * z2
         return (_stiffness(az, zu, n, nu, beta, gamma) + np.where(near, z1 / z2 * g, 0.0)) / eta
 

@@ -150,18 +150,14 @@ def _bw_slope(z, s, A, beta, gamma, n, n_exp):
 
 
 @njit(inline="always", **_JIT)
-def _bw_rk4(z0, d, m, A, be, ga, ne, n_exp):
-    """z after ``m`` RK4 steps of size ``d / m`` in x from ``z0``."""
-    dx = d / m
+def _bw_rk4(z0, d, dx, A, be, ga, ne, n_exp):
+    """z after one RK4 step of size ``dx`` in x from ``z0`` (``d``: the sample step, its sign)."""
     hh = 0.5 * dx
-    h6 = dx / 6.0
-    for _ in range(m):
-        q1 = _bw_slope(z0, d, A, be, ga, ne, n_exp)
-        q2 = _bw_slope(z0 + hh * q1, d, A, be, ga, ne, n_exp)
-        q3 = _bw_slope(z0 + hh * q2, d, A, be, ga, ne, n_exp)
-        q4 = _bw_slope(z0 + dx * q3, d, A, be, ga, ne, n_exp)
-        z0 = z0 + h6 * ((q1 + q4) + 2.0 * (q2 + q3))
-    return z0
+    q1 = _bw_slope(z0, d, A, be, ga, ne, n_exp)
+    q2 = _bw_slope(z0 + hh * q1, d, A, be, ga, ne, n_exp)
+    q3 = _bw_slope(z0 + hh * q2, d, A, be, ga, ne, n_exp)
+    q4 = _bw_slope(z0 + dx * q3, d, A, be, ga, ne, n_exp)
+    return z0 + dx / 6.0 * ((q1 + q4) + 2.0 * (q2 + q3))
 
 
 @njit(**_JIT)
@@ -180,20 +176,19 @@ def _bw_steps(w, n_act, d, substeps, n_exp, want, before):
         want[j] = _steps_wanted(ad, _bw_rate(z[j], A[j], be[j], ga[j], ne[j], n_exp))
         before[j] = z[j]
     dx = d / substeps
-    hh = 0.5 * dx
-    h6 = dx / 6.0
     for _ in range(substeps):
         for j in range(n_act):
-            z0 = z[j]
-            q1 = _bw_slope(z0, d, A[j], be[j], ga[j], ne[j], n_exp)
-            q2 = _bw_slope(z0 + hh * q1, d, A[j], be[j], ga[j], ne[j], n_exp)
-            q3 = _bw_slope(z0 + hh * q2, d, A[j], be[j], ga[j], ne[j], n_exp)
-            q4 = _bw_slope(z0 + dx * q3, d, A[j], be[j], ga[j], ne[j], n_exp)
-            z[j] = z0 + h6 * ((q1 + q4) + 2.0 * (q2 + q3))
+            z[j] = _bw_rk4(z[j], d, dx, A[j], be[j], ga[j], ne[j], n_exp)
     for j in range(n_act):
         if not want[j] <= substeps:
             m = _steps_taken(want[j], substeps)
-            z[j] = _bw_rk4(before[j], d, m, A[j], be[j], ga[j], ne[j], n_exp) if m else np.nan
+            if m == 0:
+                z[j] = np.nan
+                continue
+            zj = before[j]
+            for _ in range(m):
+                zj = _bw_rk4(zj, d, d / m, A[j], be[j], ga[j], ne[j], n_exp)
+            z[j] = zj
 
 
 @njit(**_JIT)
@@ -280,18 +275,15 @@ def _bwbn_rate(z, e, ad, s, pj, n_exp):
 
 
 @njit(inline="always", **_JIT)
-def _bwbn_rk4(z0, e0, d, m, pj, n_exp):
-    """(z, e) after ``m`` RK4 steps of size ``d / m`` in x from (z0, e0)."""
-    dx = d / m
+def _bwbn_rk4(z0, e0, d, dx, pj, n_exp):
+    """(z, e) after one RK4 step of size ``dx`` in x from (z0, e0) (``d``: the sample step)."""
     hh = 0.5 * dx
     h6 = dx / 6.0
-    for _ in range(m):
-        q1, r1 = _bwbn_slopes(z0, e0, d, pj, n_exp)
-        q2, r2 = _bwbn_slopes(z0 + hh * q1, e0 + hh * r1, d, pj, n_exp)
-        q3, r3 = _bwbn_slopes(z0 + hh * q2, e0 + hh * r2, d, pj, n_exp)
-        q4, r4 = _bwbn_slopes(z0 + dx * q3, e0 + dx * r3, d, pj, n_exp)
-        z0, e0 = z0 + h6 * ((q1 + q4) + 2.0 * (q2 + q3)), e0 + h6 * ((r1 + r4) + 2.0 * (r2 + r3))
-    return z0, e0
+    q1, r1 = _bwbn_slopes(z0, e0, d, pj, n_exp)
+    q2, r2 = _bwbn_slopes(z0 + hh * q1, e0 + hh * r1, d, pj, n_exp)
+    q3, r3 = _bwbn_slopes(z0 + hh * q2, e0 + hh * r2, d, pj, n_exp)
+    q4, r4 = _bwbn_slopes(z0 + dx * q3, e0 + dx * r3, d, pj, n_exp)
+    return z0 + h6 * ((q1 + q4) + 2.0 * (q2 + q3)), e0 + h6 * ((r1 + r4) + 2.0 * (r2 + r3))
 
 
 @njit(inline="always", **_JIT)
@@ -314,26 +306,20 @@ def _bwbn_steps(w, n_act, d, substeps, n_exp, want, before):
         before[0, j] = z[j]
         before[1, j] = e[j]
     dx = d / substeps
-    hh = 0.5 * dx
-    h6 = dx / 6.0
     for _ in range(substeps):
         for j in range(n_act):
-            pj = _bwbn_params(w, j)
-            z0 = z[j]
-            e0 = e[j]
-            q1, r1 = _bwbn_slopes(z0, e0, d, pj, n_exp)
-            q2, r2 = _bwbn_slopes(z0 + hh * q1, e0 + hh * r1, d, pj, n_exp)
-            q3, r3 = _bwbn_slopes(z0 + hh * q2, e0 + hh * r2, d, pj, n_exp)
-            q4, r4 = _bwbn_slopes(z0 + dx * q3, e0 + dx * r3, d, pj, n_exp)
-            z[j] = z0 + h6 * ((q1 + q4) + 2.0 * (q2 + q3))
-            e[j] = e0 + h6 * ((r1 + r4) + 2.0 * (r2 + r3))
+            z[j], e[j] = _bwbn_rk4(z[j], e[j], d, dx, _bwbn_params(w, j), n_exp)
     for j in range(n_act):
         if not want[j] <= substeps:
             m = _steps_taken(want[j], substeps)
-            if m:
-                z[j], e[j] = _bwbn_rk4(before[0, j], before[1, j], d, m, _bwbn_params(w, j), n_exp)
-            else:
+            if m == 0:
                 z[j] = np.nan
+                continue
+            zj, ej, pj = before[0, j], before[1, j], _bwbn_params(w, j)
+            for _ in range(m):
+                zj, ej = _bwbn_rk4(zj, ej, d, d / m, pj, n_exp)
+            z[j] = zj
+            e[j] = ej
 
 
 @njit(**_JIT)
