@@ -143,7 +143,8 @@ def _failures(r: Result) -> list[str]:
     """Models whose simulations failed: more than :data:`FAILURE_SHARE` of them, or every one (death rule ``failed``)."""
     out = [f"failures: {f['failed']} of {name}'s {f['simulations']} simulations "
            f"({100 * f['share']:.3g} %) failed or diverged; they count as rejections, so its "
-           "probability and posterior hold only where its simulator works"
+           "probability and posterior hold only where its simulator works (a draw outside a simulator's stated domain, "
+           "such as a restoring-force model's beta + gamma <= 0, counts here)"
            for name, f in r.failures().items() if f["share"] > FAILURE_SHARE]
     died = r.died_at()
     out += [f"failed: every simulation of {name} failed in population {died.get(name, '?')}, so it died "

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from abcns import InvalidSetting, SpecError
-from abcns.executor import OK
+from abcns.executor import DIVERGED, OK
 from benchmarks import restoring as problem
 from service.spec import build, parse
 from worker.restoring import BoucWenRestoring, BWBNRestoring, SpencerMR
@@ -129,9 +129,10 @@ def test_the_velocity_rule_and_rate_independence():
     assert np.max(np.abs(coarse - fine)) < 1e-5 * np.max(np.abs(fine))
 
 
-#: sharma's posterior mean under 4 fixed RK4 steps per sample (the pinching notch zeta_2 ~ 0.009
-#: wide in z), then a wide notch (psi 0.5) and a stiff Bouc-Wen law (beta + |gamma| = 60)
-NARROW = dict(c=0.0, k=-0.497, alpha=3.48, A=1.0, beta=1.72, gamma=-3.88, n=1.0, delta_nu=0.0023, delta_eta=0.605,
+#: sharma's former posterior mean under 4 fixed RK4 steps per sample (the pinching notch zeta_2 ~
+#: 0.009 wide in z) with beta and gamma swapped (it lay outside the domain, beta + gamma = -2.16),
+#: then a wide notch (psi 0.5) and a stiff Bouc-Wen law (beta + |gamma| = 60)
+NARROW = dict(c=0.0, k=-0.497, alpha=3.48, A=1.0, beta=3.88, gamma=-1.72, n=1.0, delta_nu=0.0023, delta_eta=0.605,
               p=7.2, zeta_s=0.899, psi=0.01, delta_psi=0.0, q=0.018, **{"lambda": 0.0063})
 WIDE = {**NARROW, "psi": 0.5, "lambda": 0.2, "q": 0.1}
 STIFF = {**NARROW, "zeta_s": 0.0, "beta": 30.0, "gamma": 30.0}
@@ -141,12 +142,11 @@ STIFF = {**NARROW, "zeta_s": 0.0, "beta": 30.0, "gamma": 30.0}
 def test_the_step_control_resolves_a_narrow_pinching_notch_and_a_stiff_law(backend):
     """The record: the benchmark's sine at 80 samples, scaled to a peak of 1 (steps up to 0.30
     of it: sharma's reach 0.44). At 4 RK4 steps per sample in x, fixed, the notch of width
-    zeta_2 ~ 0.009 in z is jumped over: 6.8 % of the force's peak off 512 steps (measured
-    before the step control), and the stiff law is 14 % off. With the step control each is
-    within 1e-3 of the peak (measured: 2.4e-4 and 1.8e-4; tolerance: the integration error a
+    zeta_2 ~ 0.009 in z is jumped over: 4.3 % of the force's peak off 512 steps (measured with
+    the step control switched off), and the stiff law is 14 % off. With the step control each
+    is within 1e-3 of the peak (measured: 1.3e-4 and 1.8e-4; tolerance: the integration error a
     distance of ~1 % NMSE may carry unnoticed), the wide notch, which needs no more than 4
-    steps, is integrated with 4 exactly as 4 fixed steps would (5.7e-4 off 512), and the
-    numba kernels match the numpy reference to 1e-9 of the peak."""
+    steps, is 5e-5 off, and the numba kernels match the numpy reference to 1e-9 of the peak."""
     x = problem.displacement(80)
     x = x / np.max(np.abs(x))
     p = np.array([[v[k] for k in BWBNRestoring.parameter_names] for v in (NARROW, WIDE, STIFF)])
@@ -157,6 +157,34 @@ def test_the_step_control_resolves_a_narrow_pinching_notch_and_a_stiff_law(backe
     assert np.all(np.max(np.abs(got.values - ref), axis=1) < 1e-3 * peak), np.max(np.abs(got.values - ref), axis=1) / peak
     other = BWBNRestoring(x, 0.01, substeps=4, backend="numpy" if backend == "numba" else "numba").simulate(p).values
     np.testing.assert_allclose(got.values, other, rtol=0, atol=1e-9 * peak.max())
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_a_particle_outside_the_domain_beta_plus_gamma_positive_is_diverged(backend):
+    """beta + gamma <= 0: z has no bound and BWBN's z_u (the pinching's centre) is negative or
+    undefined. Before, such a particle was integrated like any other (chiu's BWBN posterior
+    sat at beta + gamma ~ -5, sharma's needle at -2.05, both with z_u < 0); now it is DIVERGED,
+    never integrated, in trajectories and in the in-kernel NMSE alike, and the particles
+    inside the domain are what they are when simulated alone (bit for bit)."""
+    rng = np.random.default_rng(3)
+    spencer_x = 0.015 * np.sin(2 * np.pi * 2.5 * np.arange(300) / 1000.0)  # Spencer's test (above)
+    for cls, draw, x, dt, substeps in ((BoucWenRestoring, bw_draw, problem.displacement(120), 0.01, 4),
+                                       (BWBNRestoring, bwbn_draw, problem.displacement(120), 0.01, 4),
+                                       (SpencerMR, spencer_draw, spencer_x, 1e-3, 32)):
+        p = draw(rng, 6, np.full(6, 2.0))
+        # the coefficient of either sign (gamma in the Bouc-Wen family, beta in Spencer's) on
+        # the edge and beyond it
+        free, other = (cls.parameter_names.index(k) for k in (("gamma", "beta") if cls is not SpencerMR
+                                                              else ("beta", "gamma")))
+        p[1, free], p[3, free] = -p[1, other], -p[3, other] - 0.5
+        sim = cls(x, dt, substeps=substeps, backend=backend)
+        out = sim.simulate(p)
+        assert out.status.tolist() == [OK, DIVERGED, OK, DIVERGED, OK, OK], (cls.__name__, out.status)
+        assert not np.any(out.values[[1, 3]])
+        inside = [0, 2, 4, 5]
+        np.testing.assert_array_equal(out.values[inside], sim.simulate(p[inside]).values)
+        d, status = sim.distance_nmse(p, out.values[0] * 1.01, 0, x.size)
+        assert status.tolist() == out.status.tolist() and np.all(np.isinf(d[[1, 3]])) and np.all(np.isfinite(d[inside]))
 
 
 def spec(x: np.ndarray, force: np.ndarray) -> dict:
@@ -198,6 +226,8 @@ def test_a_valid_spec_builds(records):
     (lambda s: s["models"].append({"name": "mr", "simulator": "spencer_mr", "fixed": {"n": 2, "c0": 0},
                                    "priors": {k: [0.5, 1] for k in ("alpha", "c1", "k0", "k1", "gamma", "beta", "A")}}),
      "models[2].fixed.c0", "must be a number > 0"),
+    (lambda s: s["models"][1]["priors"].update(gamma=[-3.0, -1.0]), "models[1].priors.gamma",
+     "needs beta + gamma > 0"),
 ])
 def test_bad_input_is_refused_naming_the_field(records, change, field, words):
     raw = spec(*records)

@@ -82,7 +82,8 @@ CASES = {
         "fit of linear (its best distance 1.2); a tolerance below that would separate them"]),
     "failures and failed": (failing(), [
         "failures: 15 of cubic's 500 simulations (3 %) failed or diverged; they count as rejections, so its "
-        "probability and posterior hold only where its simulator works",
+        "probability and posterior hold only where its simulator works (a draw outside a simulator's stated "
+        "domain, such as a restoring-force model's beta + gamma <= 0, counts here)",
         "failed: every simulation of linear failed in population 2, so it died without being compared with the data "
         "(check its fixed values and priors)"]),
 }

@@ -62,6 +62,27 @@ def check_ranges(model: Model, simulator: Simulator, where: tuple = ()) -> None:
                             f"(fixed: {{{key}: ...}}), it cannot have a uniform prior")
         raise InvalidSetting((*where, "priors", key), f"[{prior.low:g}, {prior.high:g}] leaves the valid range of {key} "
                         f"for simulator {simulator.name}: {valid}")
+    pair = getattr(simulator, "bounded_by", None)
+    if pair is not None and all(k in simulator.parameter_names for k in pair):
+        check_domain(model, simulator, pair, where)
+
+
+def check_domain(model: Model, simulator: Simulator, pair: tuple[str, str], where: tuple = ()) -> None:
+    """A restoring-force model whose box holds no point of its domain (the sum of the pair's
+    values positive: ``worker.restoring._Restoring.outside``) is refused, naming the second
+    of the two; a box only partly inside it is the box restricted to the domain."""
+    defaults = getattr(simulator, "defaults", {})
+
+    def highest(key: str) -> tuple[float, str]:
+        if key in model.priors:
+            return float(model.priors[key].high), "priors"
+        return float(model.fixed.get(key, defaults.get(key, np.nan))), "fixed"
+
+    (a, _), (b, field) = highest(pair[0]), highest(pair[1])
+    if not a + b > 0:
+        raise InvalidSetting((*where, field, pair[1]), f"{pair[0]} + {pair[1]} is at most {a + b:g} in this model's "
+                             f"prior box, but simulator {simulator.name} needs {pair[0]} + {pair[1]} > 0 (its "
+                             "hysteretic state is unbounded otherwise)")
 
 
 def full_parameters(model: Model, simulator: Simulator) -> Callable[[np.ndarray], np.ndarray]:

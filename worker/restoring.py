@@ -113,6 +113,48 @@ class _Restoring(Oscillator):
     def z_bound(self, p: tuple) -> np.ndarray:
         return np.full(p[0].shape, np.inf)
 
+    #: the two coefficients whose sum must be positive (:meth:`outside`)
+    bounded_by: tuple[str, str] = ("beta", "gamma")
+
+    def outside(self, params: np.ndarray) -> np.ndarray:
+        """The rows outside the model's domain: the sum of the two coefficients of ``|z|^n``
+        (:attr:`bounded_by`) not positive. There z has no bound (the Bouc-Wen equation is BIBO
+        stable only where it is positive: Ikhouane, Manosa & Rodellar, Syst. Control Lett. 56,
+        2007) and Baber-Noori's ultimate z_u = (A / (nu (beta + gamma)))^(1/n), the centre of
+        the pinching, is negative or undefined. Such a row is DIVERGED at once, never
+        integrated: the prior is the box restricted to the domain (docs/design.md, "Restoring-
+        force models")."""
+        a, b = (self.parameter_names.index(k) for k in self.bounded_by)
+        with np.errstate(invalid="ignore"):
+            return ~(params[:, a] + params[:, b] > 0)
+
+    def _inside_only(self, params: np.ndarray, trajectories: bool, call):
+        """``call`` (params -> (values or distances, status)) on the rows inside the domain;
+        the rows outside are DIVERGED (zero trajectories, infinite distances)."""
+        params = np.atleast_2d(np.asarray(params, dtype=float))
+        out = self.outside(params)
+        if not out.any():
+            return call(params)
+        n = params.shape[0]
+        values = np.zeros((n, self.force.size)) if trajectories else np.full(n, np.inf)
+        status = np.full(n, DIVERGED, dtype=np.int8)
+        inside = np.flatnonzero(~out)
+        if inside.size:
+            values[inside], status[inside] = call(params[inside])
+        return values, status
+
+    def _run(self, params, observed=None, *args):
+        return self._inside_only(params, observed is None, lambda p: super(_Restoring, self)._run(p, observed, *args))
+
+    def simulate(self, params: np.ndarray, rng: np.random.Generator | None = None) -> SimOutput:
+        if self.backend == "numba":
+            return super().simulate(params)
+        return SimOutput(*self._inside_only(params, True, self._numpy_pair))
+
+    def _numpy_pair(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        out = self._simulate_numpy(params)
+        return out.values, out.status
+
     def _simulate_numpy(self, params: np.ndarray) -> SimOutput:
         params = np.atleast_2d(np.asarray(params, dtype=float))
         n = params.shape[0]
