@@ -122,8 +122,8 @@ class _Restoring(Oscillator):
         stable only where it is positive: Ikhouane, Manosa & Rodellar, Syst. Control Lett. 56,
         2007) and Baber-Noori's ultimate z_u = (A / (nu (beta + gamma)))^(1/n), the centre of
         the pinching, is negative or undefined. Such a row is DIVERGED at once, never
-        integrated: the prior is the box restricted to the domain (docs/design.md, "Restoring-
-        force models")."""
+        integrated: the prior is the box restricted to the domain (docs/design.md, "The
+        domain: beta + gamma > 0")."""
         a, b = (self.parameter_names.index(k) for k in self.bounded_by)
         with np.errstate(invalid="ignore"):
             return ~(params[:, a] + params[:, b] > 0)
@@ -143,8 +143,9 @@ class _Restoring(Oscillator):
             values[inside], status[inside] = call(params[inside])
         return values, status
 
-    def _run(self, params, observed=None, *args):
-        return self._inside_only(params, observed is None, lambda p: super(_Restoring, self)._run(p, observed, *args))
+    def _run(self, params, observed=None, *args, **kwargs):
+        return self._inside_only(params, observed is None,
+                                 lambda p: super(_Restoring, self)._run(p, observed, *args, **kwargs))
 
     def simulate(self, params: np.ndarray, rng: np.random.Generator | None = None) -> SimOutput:
         if self.backend == "numba":
