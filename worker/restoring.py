@@ -271,9 +271,7 @@ class BoucWenRestoring(_Restoring):
 
     def rate(self, p, state, d):
         _c, _k, _al, A, beta, gamma, n = p
-        bg = beta + gamma
-        zu = np.where(bg > 0, np.abs(A / np.where(bg > 0, bg, 1.0)) ** (1.0 / n), 0.0)
-        return _stiffness(np.abs(state[0]), zu, n, 1.0, beta, gamma)
+        return _stiffness(np.abs(state[0]), (A / (beta + gamma)) ** (1.0 / n), n, 1.0, beta, gamma)
 
     def _work(self, params):
         params = np.atleast_2d(np.asarray(params, dtype=float))

@@ -137,10 +137,9 @@ def _stiffness(az, zu, n, n_exp, nu, beta, gamma):
 @njit(inline="always", **_JIT)
 def _bw_rate(z, A, beta, gamma, n, n_exp):
     """The Bouc-Wen law's rate scale at ``z`` (:func:`_stiffness`, ``z_u = (A / (beta +
-    gamma))^(1/n)`` where beta + gamma > 0)."""
-    bg = beta + gamma
-    zu = _root(A / bg, n, n_exp) if bg > 0.0 else 0.0
-    return _stiffness(abs(z), zu, n, n_exp, 1.0, beta, gamma)
+    gamma))^(1/n)``; beta + gamma > 0 for every particle that reaches a kernel: the domain,
+    ``worker.restoring._Restoring.outside``)."""
+    return _stiffness(abs(z), _root(A / (beta + gamma), n, n_exp), n, n_exp, 1.0, beta, gamma)
 
 
 @njit(inline="always", **_JIT)
