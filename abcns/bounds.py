@@ -244,23 +244,47 @@ def union_volume(bound: Union, box: tuple[np.ndarray, np.ndarray], n_draws: int,
     return float(_volume_shares(bound)[0] + np.log(mean)), se
 
 
+#: a particle's part in its model's coverage test (:func:`coverage_test`, ``Population.coverage_test``)
+UNTESTED, OUTSIDE, MISSED, HELD = -1, 0, 1, 2
+
+
 def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.random.Generator,
              uniform: np.ndarray | None = None) -> tuple[float, int]:
     """(estimated share of the sampled region that ``bound`` holds, points tested), for a
-    ``bound`` that :func:`fit_union` fitted to ``points``; only the points marked ``uniform``
-    (default all) are tested: those drawn uniformly from the region (a population's new
-    particles; survivors, drawn by weight, crowd its centre and would hide a miss at its edge).
+    ``bound`` that :func:`fit_union` fitted to ``points``: :func:`coverage_of` the
+    :func:`coverage_test`."""
+    return coverage_of(coverage_test(points, bound, enlargement, rng, uniform))
 
-    Cross-validation of the bound as it was fitted, ellipsoid by ellipsoid: each point
-    belongs to the ellipsoid of ``bound`` it lies deepest in (the group that ellipsoid was
-    fitted to); a point outside every ellipsoid is an outlier the fit left out, and is
-    missed. Each group is split at random into halves; each half is fitted by one ellipsoid
-    (enlarged like the bound's), and the tested points of the other halves are tested
-    against the union of those ellipsoids. The share an ellipsoid fitted to n points misses
-    falls like 1/n (d/n around uniform points), so the bound, fitted to twice the points,
-    misses about half of what the half-fits miss: ``coverage = (1 - outliers / n)(1 -
-    missed / 2)``, over the n tested points, ``missed`` the share of the grouped ones the
-    half-fits miss.
+
+def coverage_of(flags: np.ndarray) -> tuple[float, int]:
+    """(coverage, points tested) of the points of a :func:`coverage_test` (any subset of them:
+    those in a smaller region give the bound's coverage of that region). The share an
+    ellipsoid fitted to n points misses falls like 1/n (d/n around uniform points), so the
+    bound, fitted to twice the points of the half-fits, misses about half of what they miss:
+    ``coverage = (1 - outside / n)(1 - missed / 2)``, over the n tested points, ``missed``
+    the share of those inside the bound that the half-fits miss; (1, 0) below 4 points."""
+    flags = np.asarray(flags)
+    n = int(np.count_nonzero(flags != UNTESTED))
+    if n < 4:
+        return 1.0, 0
+    n_in = int(np.count_nonzero(flags >= MISSED))
+    missed = 1.0 - np.count_nonzero(flags == HELD) / n_in if n_in else 0.0
+    return n_in / n * (1.0 - 0.5 * missed), n
+
+
+def coverage_test(points: np.ndarray, bound: Union, enlargement: float, rng: np.random.Generator,
+                  uniform: np.ndarray | None = None) -> np.ndarray:
+    """Each point's part in the cross-validation of ``bound``, as :func:`fit_union` fitted it
+    to ``points``: OUTSIDE, MISSED, HELD, or UNTESTED. Only the points marked ``uniform``
+    (default all) are tested: those drawn uniformly from the region (a population's new
+    particles; survivors, drawn by weight, crowd its centre and would hide a miss at its
+    edge); fewer than 4 and none is.
+
+    Ellipsoid by ellipsoid: each point belongs to the ellipsoid of ``bound`` it lies deepest
+    in (the group that ellipsoid was fitted to); a point outside every ellipsoid is an
+    outlier the fit left out (OUTSIDE). Each group is split at random into halves; each half
+    is fitted by one ellipsoid (enlarged like the bound's), and the tested points of the
+    other halves are tested against the union of those ellipsoids (HELD or MISSED).
 
     Refitting the halves with the same groups tests the bound's own structure: a
     :func:`fit_union` of half the points can split into fewer ellipsoids (fewer points per
@@ -268,9 +292,9 @@ def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.rando
     ~16 points each missed 18 % of itself while fits to its halves, one ellipsoid each, said
     1 %)."""
     uniform = np.ones(points.shape[0], bool) if uniform is None else uniform
-    n = int(np.count_nonzero(uniform))
-    if n < 4:
-        return 1.0, 0
+    flags = np.full(points.shape[0], UNTESTED, np.int8)
+    if np.count_nonzero(uniform) < 4:
+        return flags
     depth = ell.mahalanobis2_each(bound, points)
     group = np.argmin(depth, axis=0)
     inside = depth[group, np.arange(points.shape[0])] <= 1.0 + ell.CONTAINS_SLACK
@@ -280,8 +304,7 @@ def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.rando
         rows = rows[rng.permutation(rows.size)]
         halves[0].append(rows[: rows.size // 2])
         halves[1].append(rows[rows.size // 2 :])
-    n_in = int(np.count_nonzero(inside & uniform))
-    held = 0
+    flags[uniform] = np.where(inside[uniform], MISSED, OUTSIDE)
     for train, test in (halves, halves[::-1]):
         fitted = [(rows, e) for rows, e in zip(train, bound, strict=True) if rows.size]
         fold = tuple(ell.fit_many([points[rows] for rows, _ in fitted], [e for _, e in fitted],
@@ -289,9 +312,8 @@ def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.rando
         rows = np.concatenate(test)
         rows = rows[uniform[rows]]
         if fold and rows.size:
-            held += int(np.count_nonzero(ell.n_containing(fold, points[rows]) > 0))
-    missed = 1.0 - held / n_in if n_in else 0.0
-    return n_in / n * (1.0 - 0.5 * missed), n
+            flags[rows[ell.n_containing(fold, points[rows]) > 0]] = HELD
+    return flags
 
 
 class Frame:

@@ -92,8 +92,9 @@ def geometry_rng(seed: int, t: int) -> np.random.Generator:
 VOLUME_DRAWS = 10_000
 
 
-#: a model's bound geometry (log prior mass, its standard error, coverage, points tested)
-GeometryResult = tuple[float, float, float, int]
+#: a model's bound geometry (log prior mass, its standard error, coverage, points tested, and
+#: each of its particles' part in the coverage test: ``bounds.coverage_test`` codes)
+GeometryResult = tuple[float, float, float, int, np.ndarray]
 #: its measurement, given the population's geometry generator
 Geometry = Callable[[np.random.Generator], GeometryResult]
 
@@ -114,20 +115,25 @@ class Step:
     notes: list[str]
     counted: ev.Evidence  # the evidence but its bounds' geometry (that of a model without a bound)
     geometry_jobs: tuple[Geometry | None, ...]
+    rows: tuple[np.ndarray, ...]  # each model's particles its bound was fitted to (its geometry job's)
     tied: bool = False  # every particle has the same distance: no lower tolerance exists
     kept: tuple[int, ...] = ()  # the models whose thin reading held eps_next up (:func:`abcns.likelihood.kept`)
 
-    def evidence(self, geometry: np.random.Generator) -> ev.Evidence:
-        """The population's evidence bookkeeping, its bounds' geometry measured now with
-        ``geometry`` (used model by model, in model order)."""
+    def evidence(self, geometry: np.random.Generator) -> tuple[ev.Evidence, np.ndarray]:
+        """(the population's evidence bookkeeping, each particle's part in its model's coverage
+        test: ``Population.coverage_test``), its bounds' geometry measured now with ``geometry``
+        (used model by model, in model order)."""
         c = self.counted
         log_volume, log_volume_se, cover, n_cover = (c.log_volume.copy(), c.log_volume_se.copy(), c.coverage.copy(),
                                                      c.n_coverage.copy())
+        tested = np.full(self.weights.shape[0], bd.UNTESTED, np.int8)
         for m, job in enumerate(self.geometry_jobs):
             if job is not None:
-                log_volume[m], log_volume_se[m], cover[m], n_cover[m] = job(geometry)
-        return dataclasses.replace(c, log_volume=log_volume, log_volume_se=log_volume_se, coverage=cover,
-                                   n_coverage=n_cover)
+                log_volume[m], log_volume_se[m], cover[m], n_cover[m], flags = job(geometry)
+                tested[self.rows[m]] = flags[: self.rows[m].size]
+        evidence = dataclasses.replace(c, log_volume=log_volume, log_volume_se=log_volume_se, coverage=cover,
+                                       n_coverage=n_cover)
+        return evidence, tested
 
 
 def finish_population(
@@ -144,7 +150,7 @@ def finish_population(
     settings: NSSettings,
     rng: np.random.Generator,
     lower: float | None = None,
-    spared: Callable[[], np.ndarray | None] | None = None,
+    spared: Callable[[float, np.ndarray, np.ndarray], np.ndarray | None] | None = None,
     holding: Keep | None = None,
 ) -> Step:
     """eps_next (:func:`next_tolerance`, not below ``lower``, raised by ``holding``: :func:`_next`),
@@ -156,8 +162,10 @@ def finish_population(
     n_proposed, n_accepted = filled.counts(n_models)
     previous_evidence = previous.evidence if previous is not None else None
     assert previous is None or previous_evidence is not None
+    tested = None if previous is None or previous.coverage_test is None else \
+        ev.Tested(previous.models, previous.distances, previous.coverage_test)
     found, eps_next, est, kept = _next(epsilon, which, distances, is_new, n_proposed, n_accepted, previous_evidence,
-                                       settings.n_drop, lower, holding)
+                                       tested, settings.n_drop, lower, holding)
     copies = same_models(models) if variant.cross_validated else [[] for _ in models]
     est, relayed = _relayed(models, copies, which, theta, distances < eps_next, is_new, est)
     raw = ns_weights(distances, epsilon, eps_next, settings.weights)
@@ -165,7 +173,8 @@ def finish_population(
     capacity = np.bincount(which, weights=positive, minlength=n_models).astype(np.int64)
     alive_now = ev.alive(counts, n_proposed, previous_evidence)
 
-    quotas, death = variant.survive(models, est, counts, capacity, alive_now, previous_evidence, spared)
+    spare = None if spared is None else functools.partial(spared, eps_next, est.log_z, np.sqrt(est.var_z))
+    quotas, death = variant.survive(models, est, counts, capacity, alive_now, previous_evidence, spare)
     alive_next = death == ev.ALIVE
     failed = (death != ev.ALIVE) & (n_proposed > 0) & (filled.failures(n_models) == n_proposed)
     death = np.where(failed, ev.SIMULATIONS_FAILED, death)
@@ -175,6 +184,7 @@ def finish_population(
     survivors = np.zeros(which.shape[0], dtype=bool)
     bounds: list[bd.Union] = []
     geometry_jobs: list[Geometry | None] = []
+    fitted_rows: list[np.ndarray] = []
     for m, model in enumerate(models):
         rows = np.flatnonzero((which == m) & positive)
         if rows.size:
@@ -182,6 +192,7 @@ def finish_population(
         if not alive_next[m] or (quotas[m] == 0 and m not in relayed):
             bounds.append(())
             geometry_jobs.append(None)
+            fitted_rows.append(rows[:0])
             continue
         keep = rng.choice(rows, size=int(quotas[m]), replace=False, p=weights[rows]) if quotas[m] else rows[:0]
         survivors[keep] = True
@@ -192,6 +203,7 @@ def finish_population(
         bound = variant.bound(points, theta[np.sort(keep), : model.n_dim], frame, _fallback(prev_bound, frame, settings))
         notes += [f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)" for e in bound if e.note]
         bounds.append(bound)
+        fitted_rows.append(rows)
         geometry_jobs.append(_geometry_job(bound, frame, points, new,
                                            settings.enlargement if variant.cross_validated else None))
 
@@ -204,7 +216,7 @@ def finish_population(
                           n_accepted=n_accepted, death=death)
     notes += _tolerance_notes(t, models, float(distances[0]), found, eps_next, kept)
     return Step(eps_next, weights, survivors, tuple(bounds), probabilities, notes, counted, tuple(geometry_jobs),
-                tied=found is None, kept=tuple(kept))
+                tuple(fitted_rows), tied=found is None, kept=tuple(kept))
 
 
 def _survival_notes(t: int, models: Sequence[Model], est: ev.Estimate, death: np.ndarray, dying: np.ndarray,
@@ -243,21 +255,21 @@ Keep = Callable[[float, np.ndarray, np.ndarray], tuple[float, list[int]]]
 
 
 def _next(epsilon: float, which: np.ndarray, distances: np.ndarray, is_new: np.ndarray, n_proposed: np.ndarray,
-          n_accepted: np.ndarray, previous: ev.Evidence | None, n_drop: int, lower: float | None,
-          keep: Keep | None) -> tuple[float | None, float, ev.Estimate, list[int]]:
+          n_accepted: np.ndarray, previous: ev.Evidence | None, tested: ev.Tested | None, n_drop: int,
+          lower: float | None, keep: Keep | None) -> tuple[float | None, float, ev.Estimate, list[int]]:
     """(the tolerance the distances give, :func:`next_tolerance`; eps_next; the evidence
     estimate at it; the models ``keep`` raised eps_next for). ``keep`` is asked with the
     population's log Z (which does not depend on eps_next), and the estimate made again at
     the raised eps_next."""
     found = next_tolerance(distances, n_drop, lower)
     eps_next = epsilon if found is None else found
-    est = ev.estimate(which, distances, is_new, eps_next, n_proposed, n_accepted, previous)
+    est = ev.estimate(which, distances, is_new, eps_next, n_proposed, n_accepted, previous, tested)
     if keep is None or found is None:
         return found, eps_next, est, []
     raised, kept = keep(eps_next, est.log_z, np.sqrt(est.var_z))
     if not kept:
         return found, eps_next, est, []
-    return found, raised, ev.estimate(which, distances, is_new, raised, n_proposed, n_accepted, previous), kept
+    return found, raised, ev.estimate(which, distances, is_new, raised, n_proposed, n_accepted, previous, tested), kept
 
 
 def _relayed(models: Sequence[Model], copies: Sequence[Sequence[int]], which: np.ndarray, theta: np.ndarray,
@@ -331,11 +343,13 @@ def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, new: np.
 
     def measure(geometry: np.random.Generator) -> GeometryResult:
         if enlargement is not None:
-            cover, n_cover = bd.coverage(points, bound, enlargement, geometry, new)
+            flags = bd.coverage_test(points, bound, enlargement, geometry, new)
+            cover, n_cover = bd.coverage_of(flags)
         else:
+            flags = np.full(points.shape[0], bd.UNTESTED, np.int8)
             cover, n_cover = float(np.mean(ell.n_containing(bound, points) > 0)), points.shape[0]
         log_v, log_v_se = bd.union_volume(bound, frame.box, VOLUME_DRAWS, geometry)
-        return log_v - frame.log_box_volume, log_v_se, cover, n_cover
+        return log_v - frame.log_box_volume, log_v_se, cover, n_cover, flags
 
     return measure
 
@@ -486,19 +500,23 @@ class _Run:
         runs ahead starts simulating) before this one's bound geometry is measured."""
         floor = self.floors.after(which, distances)
         lower = floor.decision if self.at_floor and floor is not None else None
-        spared = functools.partial(likelihood.spared, self.shells, [m.n_dim for m in self.models], floor,
-                                   self.settings.death_probability)
+        # this population's record for the reading, given its eps_next and evidence
+        now = functools.partial(likelihood.Record, which[is_new], theta[is_new], distances[is_new], eps)
+
+        def spared(eps_next: float, log_z: np.ndarray, log_z_se: np.ndarray) -> np.ndarray | None:
+            return likelihood.spared(self.shells, [m.n_dim for m in self.models], floor,
+                                     self.settings.death_probability, now(eps_next, log_z, log_z_se))
+
         step = finish_population(self.models, self.frames, t, eps, which, theta, distances, is_new, filled, previous,
                                  self.settings, population_rng(self.seed, t), lower, spared,
-                                 self.keeper(floor, eps, which, theta, distances, is_new))
+                                 self.keeper(floor, now, which, distances))
         self.notes.extend(step.notes)
         self.decisions.append(None if floor is None else floor.decision)
         mark = standing(eps, floor if previous is None else previous.floor)
         if self.first_reached is None and mark is not None and mark.reached:
             self.first_reached = t
         if self.variant.reads_floor:
-            self.shells.append(likelihood.Record(which[is_new], theta[is_new], distances[is_new], eps, step.epsilon_next,
-                                                 step.counted.log_z, step.counted.log_z_se))
+            self.shells.append(now(step.epsilon_next, step.counted.log_z, step.counted.log_z_se))
         held = self.held(t, mark, floor, step.model_probabilities > 0)
         reason = _stop_reason(self.stop, self.at_floor, t, eps, step.epsilon_next, step.tied, mark, self.decisions,
                               bool(held), bool(step.kept))
@@ -513,20 +531,22 @@ class _Run:
         if reason is None and self.budget.reason() is None:
             self.pending = self.start(t + 1, step.epsilon_next, step.bounds, step.counted.allocation,
                                       int(np.count_nonzero(step.survivors)))
+        evidence, tested = step.evidence(geometry_rng(self.seed, t))
         pop = population_from(
             t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, self.budget.elapsed(),
             step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
-            evidence=step.evidence(geometry_rng(self.seed, t)), floor=floor, standing=mark,
+            evidence=evidence, coverage_test=tested, floor=floor, standing=mark,
         )
         return pop, reason
 
-    def keeper(self, floor: Floor | None, eps: float, which: np.ndarray, theta: np.ndarray, distances: np.ndarray,
-               is_new: np.ndarray) -> Keep | None:
+    def keeper(self, floor: Floor | None, now: Callable[..., likelihood.Record], which: np.ndarray,
+               distances: np.ndarray) -> Keep | None:
         """What raises population t's next tolerance for a model that would leave the run on a
         thin reading (:func:`abcns.likelihood.kept`: the reading so far and this population's
-        new particles, accepted at ``eps``); None for a run without a reading. (Death by
-        probability is decided on the reading so far, without this population's particles
-        (:func:`abcns.likelihood.spared`): read with them, the losing cubic-quintic of the
+        record, ``now(eps_next, log_z, log_z_se)``; ``which``, ``distances``: all its particles);
+        None for a run without a reading. (Death by
+        probability takes its probability from the reading so far, without this population's
+        particles (:func:`abcns.likelihood.spared`): read with them, the losing cubic-quintic of the
         exact-Bayes benchmark left one population earlier in seeds 2 and 4, on 10-11
         effective particles, its ln Bayes factor 2.4 and 1.4 nats low, against 0.4 and 0.2.)"""
         if not self.variant.reads_floor or floor is None:
@@ -534,8 +554,7 @@ class _Run:
         dims = [m.n_dim for m in self.models]
 
         def keep(eps_next: float, log_z: np.ndarray, log_z_se: np.ndarray) -> tuple[float, list[int]]:
-            now = likelihood.Record(which[is_new], theta[is_new], distances[is_new], eps, eps_next, log_z, log_z_se)
-            return likelihood.kept([*self.shells, now], dims, floor, which, distances)
+            return likelihood.kept([*self.shells, now(eps_next, log_z, log_z_se)], dims, floor, which, distances)
 
         return keep
 

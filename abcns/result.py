@@ -47,7 +47,11 @@ class Population:
     their distance's noise model, else None). ``standing`` is where ``epsilon`` stands to
     the decision tolerance in force when it was chosen (:class:`abcns.noise.Standing`: set by
     it, above or below it; None without a floor, or where the population was made without the
-    record: :func:`abcns.noise.standings` then gives it from the floors).
+    record: :func:`abcns.noise.standings` then gives it from the floors). ``coverage_test``
+    (ABC-NS, else None) is each particle's part in the cross-validation of its model's new
+    bound (:func:`abcns.bounds.coverage_test`: -1 untested, 0 outside the bound, 1 missed by
+    its half-fits, 2 held), from which the next population's evidence reads the bound's
+    coverage below the next tolerance (:class:`abcns.evidence.Tested`).
     """
 
     t: int
@@ -70,6 +74,7 @@ class Population:
     n_failed_by_model: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     floor: Floor | None = None
     standing: Standing | None = None
+    coverage_test: np.ndarray | None = None
 
     @property
     def acceptance_rate(self) -> float:

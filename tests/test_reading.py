@@ -404,3 +404,33 @@ def test_a_step_a_leaving_model_held_up_is_not_a_stall():
     args = (rules, True, 10, 3.0, 3.0 - 1e-4, False, Standing.ABOVE, [1.0] * 10)
     assert _stop_reason(*args) is StopReason.STALLED
     assert _stop_reason(*args, False, True) is None
+
+
+def test_a_model_is_spared_while_the_population_that_decides_would_thin_its_reading():
+    """Death by probability waits while a model's reading rests on fewer than 2 (d + 1)
+    effective particles (``abcns.likelihood.spared``). It used to ask only the reading without
+    the population that decides, though the model keeps that population's particles: a
+    losing copy of the cyclic tests (gill, seed 1) died on a reading of 25 effective
+    particles that its last population's particles, nearer its best fit, thinned to 3.2
+    (its split against the other copy then off by 0.77 nats, se 0.60). Here a losing
+    one-parameter model (log Z 20 nats below the winner's) has shells of 50 particles of one
+    likelihood (ESS 50 >= 4); a deciding population that brings one particle 20 noise
+    variances nearer the best fit puts nearly all the weight on it (ESS ~1): the model is
+    spared; without that population, or with one like the shells, it is not."""
+    from abcns import likelihood
+    from abcns.noise import METHODS, Floor
+
+    floor = Floor(best=1.0, model=0, n_parameters=1, variance=0.01, method=METHODS.index("stated"), n_samples=100)
+
+    def record(loser: np.ndarray, eps: float, eps_next: float) -> likelihood.Record:
+        d = np.concatenate([np.full(50, 1.0), loser])  # the winner's particles, then the loser's
+        which = np.repeat([0, 1], [50, loser.size])
+        return likelihood.Record(which, np.full((d.size, 1), 0.5), d, eps, eps_next, np.array([0.0, -20.0]),
+                                 np.array([0.1, 0.1]))
+
+    shells = [record(np.full(50, 1.5), 2.0, 1.4)]
+    tight = record(np.array([1.5, 1.5, 1.3]), 1.4, 1.2)
+    like = record(np.full(50, 1.35), 1.4, 1.2)
+    assert not likelihood.spared(shells, [1, 1], floor, 1e-3)[1]
+    assert likelihood.spared(shells, [1, 1], floor, 1e-3, tight)[1]
+    assert not likelihood.spared(shells, [1, 1], floor, 1e-3, like)[1]

@@ -9,7 +9,7 @@ the records read back are derived from it. Every array but the static coordinate
 
 - particle level (population, particle[, parameter]): ``model_index`` (an index along
   ``model``), ``theta`` with one column per parameter *name* (NaN where the particle's model
-  has no such parameter), ``distance``, ``weight``, ``survivor``;
+  has no such parameter), ``distance``, ``weight``, ``survivor``, ``coverage_test``;
 - population level: ``population`` (the population number t, 1-based; xarray's index), the
   tolerances, counters and elapsed time, ``has_survivors`` and ``has_ellipsoids`` (False for
   the baselines, whose records carry no survivors and no ellipsoids), the noise floor
@@ -79,7 +79,7 @@ from abcns.evidence import Evidence
 from abcns.noise import Floor
 from abcns.priors import Uniform
 
-FORMAT_VERSION = 4  # 4: the noise floor per population (floor_*), simulations and failures per model
+FORMAT_VERSION = 5  # 4: the noise floor per population (floor_*), simulations and failures per model; 5: coverage_test
 CHUNK_BYTES = 64 * 1024
 
 NOTE_CODES = {"": 0, "repaired": 1, "fallback": 2, "box": 3}  # -1: no ellipsoid (dead model)
@@ -137,6 +137,8 @@ SCHEMA: tuple[Variable, ...] = (
     _V("weight", (_N,), "float64", "weight", "normalised to sum to 1 within each model (ABC-NS: survivor selection)", "1",
        field="weights"),
     _V("survivor", (_N,), "bool", "survivor", "kept for the next population: carried into t+1 as it is (ABC-NS)"),
+    _V("coverage_test", (_N,), "int8", "coverage test", "the particle's part in the cross-validation of its model's new "
+       "bound (ABC-NS, read with has_evidence): -1 untested, 0 outside the bound, 1 missed by its half-fits, 2 held"),
     _V("epsilon", (), "float64", "tolerance", "the tolerance the population was accepted under", "{distance_units}",
        field="epsilon"),
     _V("epsilon_next", (), "float64", "next tolerance", "the tolerance chosen for the next population (NaN: none, as "
