@@ -162,10 +162,8 @@ def finish_population(
     n_proposed, n_accepted = filled.counts(n_models)
     previous_evidence = previous.evidence if previous is not None else None
     assert previous is None or previous_evidence is not None
-    tested = None if previous is None or previous.coverage_test is None else \
-        ev.Tested(previous.models, previous.distances, previous.coverage_test)
     found, eps_next, est, kept = _next(epsilon, which, distances, is_new, n_proposed, n_accepted, previous_evidence,
-                                       tested, settings.n_drop, lower, holding)
+                                       _tested(previous), settings.n_drop, lower, holding)
     copies = same_models(models) if variant.cross_validated else [[] for _ in models]
     est, relayed = _relayed(models, copies, which, theta, distances < eps_next, is_new, est)
     raw = ns_weights(distances, epsilon, eps_next, settings.weights)
@@ -217,6 +215,14 @@ def finish_population(
     notes += _tolerance_notes(t, models, float(distances[0]), found, eps_next, kept)
     return Step(eps_next, weights, survivors, tuple(bounds), probabilities, notes, counted, tuple(geometry_jobs),
                 tuple(fitted_rows), tied=found is None, kept=tuple(kept))
+
+
+def _tested(previous: Population | None) -> ev.Tested | None:
+    """The coverage test of the bounds that proposed this population: the previous one's,
+    point by point (None: none, or a population recorded without it)."""
+    if previous is None or previous.coverage_test is None:
+        return None
+    return ev.Tested(previous.models, previous.distances, previous.coverage_test)
 
 
 def _survival_notes(t: int, models: Sequence[Model], est: ev.Estimate, death: np.ndarray, dying: np.ndarray,
