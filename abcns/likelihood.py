@@ -126,10 +126,10 @@ def spared(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, t
     if log_l is None:
         return None
     r = read(shells, dims, log_l)
-    thin = ~enough(r.ess, dims)
-    if now is not None:
-        thin |= ~enough(read([*shells, now], dims, log_l).ess, dims)
-    return (r.probabilities + 3 * r.se >= threshold) | thin
+    out = (r.probabilities + 3 * r.se >= threshold) | ~enough(r.ess, dims)
+    if now is not None and not out.all():  # read again only where a model could die
+        out |= ~enough(read([*shells, now], dims, log_l).ess, dims)
+    return out
 
 
 def kept(shells: Sequence[Record], dims: Sequence[int], floor: Floor | None, which: np.ndarray,

@@ -93,8 +93,8 @@ VOLUME_DRAWS = 10_000
 
 
 #: a model's bound geometry (log prior mass, its standard error, coverage, points tested, and
-#: each of its particles' part in the coverage test: ``bounds.coverage_test`` codes)
-GeometryResult = tuple[float, float, float, int, np.ndarray]
+#: its particles' rows with their parts in the coverage test: ``bounds.coverage_test`` codes)
+GeometryResult = tuple[float, float, float, int, tuple[np.ndarray, np.ndarray]]
 #: its measurement, given the population's geometry generator
 Geometry = Callable[[np.random.Generator], GeometryResult]
 
@@ -115,7 +115,6 @@ class Step:
     notes: list[str]
     counted: ev.Evidence  # the evidence but its bounds' geometry (that of a model without a bound)
     geometry_jobs: tuple[Geometry | None, ...]
-    rows: tuple[np.ndarray, ...]  # each model's particles its bound was fitted to (its geometry job's)
     tied: bool = False  # every particle has the same distance: no lower tolerance exists
     kept: tuple[int, ...] = ()  # the models whose thin reading held eps_next up (:func:`abcns.likelihood.kept`)
 
@@ -129,8 +128,8 @@ class Step:
         tested = np.full(self.weights.shape[0], bd.UNTESTED, np.int8)
         for m, job in enumerate(self.geometry_jobs):
             if job is not None:
-                log_volume[m], log_volume_se[m], cover[m], n_cover[m], flags = job(geometry)
-                tested[self.rows[m]] = flags[: self.rows[m].size]
+                log_volume[m], log_volume_se[m], cover[m], n_cover[m], (rows, flags) = job(geometry)
+                tested[rows] = flags
         evidence = dataclasses.replace(c, log_volume=log_volume, log_volume_se=log_volume_se, coverage=cover,
                                        n_coverage=n_cover)
         return evidence, tested
@@ -182,7 +181,6 @@ def finish_population(
     survivors = np.zeros(which.shape[0], dtype=bool)
     bounds: list[bd.Union] = []
     geometry_jobs: list[Geometry | None] = []
-    fitted_rows: list[np.ndarray] = []
     for m, model in enumerate(models):
         rows = np.flatnonzero((which == m) & positive)
         if rows.size:
@@ -190,7 +188,6 @@ def finish_population(
         if not alive_next[m] or (quotas[m] == 0 and m not in relayed):
             bounds.append(())
             geometry_jobs.append(None)
-            fitted_rows.append(rows[:0])
             continue
         keep = rng.choice(rows, size=int(quotas[m]), replace=False, p=weights[rows]) if quotas[m] else rows[:0]
         survivors[keep] = True
@@ -201,8 +198,7 @@ def finish_population(
         bound = variant.bound(points, theta[np.sort(keep), : model.n_dim], frame, _fallback(prev_bound, frame, settings))
         notes += [f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)" for e in bound if e.note]
         bounds.append(bound)
-        fitted_rows.append(rows)
-        geometry_jobs.append(_geometry_job(bound, frame, points, new,
+        geometry_jobs.append(_geometry_job(bound, frame, points, new, rows,
                                            settings.enlargement if variant.cross_validated else None))
 
     acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
@@ -214,7 +210,7 @@ def finish_population(
                           n_accepted=n_accepted, death=death)
     notes += _tolerance_notes(t, models, float(distances[0]), found, eps_next, kept)
     return Step(eps_next, weights, survivors, tuple(bounds), probabilities, notes, counted, tuple(geometry_jobs),
-                tuple(fitted_rows), tied=found is None, kept=tuple(kept))
+                tied=found is None, kept=tuple(kept))
 
 
 def _tested(previous: Population | None) -> ev.Tested | None:
@@ -339,23 +335,26 @@ def _fitted_points(model: Model, frame: bd.Frame, theta: np.ndarray, rows: np.nd
     return np.vstack([points, frame.to_frame(other)]), np.concatenate([is_new[rows], np.zeros(other.shape[0], bool)])
 
 
-def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, new: np.ndarray,
+def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, new: np.ndarray, rows: np.ndarray,
                   enlargement: float | None) -> Geometry:
     """The measurement of one model's new bound, for :meth:`Step.evidence`: (log prior mass
     of the bound, its standard error, the share of the accepted region it holds, points
-    tested). The coverage is cross-validated on the ``new`` points (uniform in the region
-    sampled) when the bound is a fit of ``points`` with this ``enlargement`` (the evidence
-    variant), else the share of ``points`` the bound holds; then the volume by Monte Carlo."""
+    tested, and (``rows``, their parts in the test): the population's rows of the first
+    ``rows.size`` of ``points``, the model's own). The coverage is cross-validated on the
+    ``new`` points (uniform in the region sampled) when the bound is a fit of ``points`` with
+    this ``enlargement`` (the evidence variant), else the share of ``points`` the bound holds
+    (no point tested); then the volume by Monte Carlo."""
 
     def measure(geometry: np.random.Generator) -> GeometryResult:
         if enlargement is not None:
             flags = bd.coverage_test(points, bound, enlargement, geometry, new)
             cover, n_cover = bd.coverage_of(flags)
+            tested = (rows, flags[: rows.size])
         else:
-            flags = np.full(points.shape[0], bd.UNTESTED, np.int8)
             cover, n_cover = float(np.mean(ell.n_containing(bound, points) > 0)), points.shape[0]
+            tested = (rows[:0], np.zeros(0, np.int8))
         log_v, log_v_se = bd.union_volume(bound, frame.box, VOLUME_DRAWS, geometry)
-        return log_v - frame.log_box_volume, log_v_se, cover, n_cover, flags
+        return log_v - frame.log_box_volume, log_v_se, cover, n_cover, tested
 
     return measure
 
