@@ -268,7 +268,7 @@ def coverage_of(flags: np.ndarray) -> tuple[float, int]:
     if n < 4:
         return 1.0, 0
     n_in = int(np.count_nonzero(flags >= MISSED))
-    missed = 1.0 - np.count_nonzero(flags == HELD) / n_in if n_in else 0.0
+    missed = 1.0 - int(np.count_nonzero(flags == HELD)) / n_in if n_in else 0.0
     return n_in / n * (1.0 - 0.5 * missed), n
 
 
