@@ -98,9 +98,24 @@ def _chi2_quantile(q: float, d: int) -> float:
     return float(2.0 * gammaincinv(0.5 * d, q))
 
 
+def union_groups(points: np.ndarray, max_ellipsoids: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(the rows of ``points`` :func:`fit_union` keeps, ascending; the rows each of its
+    ellipsoids is fitted to): far :func:`outliers` left out (while enough points stay), the
+    kept points grouped by :func:`_tree_sets`, or one group of them all."""
+    kept = np.arange(points.shape[0])
+    if max_ellipsoids > 1 and points.shape[0] > points.shape[1] and (r2 := _radii(points)) is not None:
+        far = outliers(r2, points.shape[1])
+        if np.any(far) and np.count_nonzero(~far) > 2 * min_points(points.shape[1]):
+            kept = kept[~far]
+        sets = _tree_sets(points[kept], max_ellipsoids)
+        if sets is not None and len(sets) > 1:
+            return kept, [kept[r] for r in sets]
+    return kept, [kept]
+
+
 def fit_union(points: np.ndarray, enlargement: float, max_ellipsoids: int, fallback: ell.Ellipsoid) -> Union:
     """Ellipsoids that hold every point but far :func:`outliers`, each enlarged by
-    ``enlargement`` (f0).
+    ``enlargement`` (f0), one per group of :func:`union_groups`.
 
     The points' ellipsoid (``abcns.ellipsoid.fit``, with ``fallback`` when the points define
     no shape) is split by 2-means (at the median where 2-means strands a small group),
@@ -108,16 +123,11 @@ def fit_union(points: np.ndarray, enlargement: float, max_ellipsoids: int, fallb
     ellipsoids of that tree, the set of at most
     ``max_ellipsoids`` with the least total volume is kept (a node is replaced by its
     halves' best sets only when those hold less than ``SPLIT_GAIN`` of its volume)."""
-    sets = None
-    if max_ellipsoids > 1 and points.shape[0] > points.shape[1] and (r2 := _radii(points)) is not None:
-        far = outliers(r2, points.shape[1])
-        if np.any(far) and np.count_nonzero(~far) > 2 * min_points(points.shape[1]):
-            points = points[~far]
-        sets = _tree_sets(points, max_ellipsoids)
-    if sets is None or len(sets) == 1:
-        return tuple(ell.fit_many([points], fallback, enlargement=enlargement))
-    # the points' own ellipsoid is the sets' fallback shape, made only if one needs it
-    return tuple(ell.fit_many([points[r] for r in sets], fallback=lambda: ell.fit(points, fallback=fallback),
+    kept, groups = union_groups(points, max_ellipsoids)
+    if len(groups) == 1:
+        return tuple(ell.fit_many([points[kept]], fallback, enlargement=enlargement))
+    # the kept points' own ellipsoid is the groups' fallback shape, made only if one needs it
+    return tuple(ell.fit_many([points[g] for g in groups], fallback=lambda: ell.fit(points[kept], fallback=fallback),
                               enlargement=enlargement))
 
 
