@@ -1,0 +1,191 @@
+"""Importance nested sampling's evidence, computed after the run: the candidate to replace the
+coverage the direct estimate divides by (docs/benchmarks.md, "The coverage's two biases").
+
+    python -m benchmarks.ins [--problem copies|two_models|balls_4_and_5|line_and_disc] [--seeds 1-14] [--processes 2]
+
+Every population of an ABC-NS run proposes model m's particles uniformly in a region: the prior
+box (population 1), then the bound B_{i} of population i inside the box, of prior mass V_i
+(``Evidence.log_volume``), n_{i+1} proposals. Over all of them the proposals come from the
+mixture sum_i n_i q_i(x), q_i(x) = 1{x in B_i} / V_i, which holds the whole box (population 1's
+term), so
+
+    Z_m(eps_t) = sum over m's new particles x of populations 1..t with d(x) < eps_t of
+                 1 / sum_{i < t} n_{i+1} q_i(x)        (importance nested sampling's estimator)
+
+needs no coverage: a part of the region that B_{t-1} misses is counted through the older
+bounds that held it. One correction: a particle that a bound was fitted to lies inside it by
+construction, where a fresh point there might not; its membership of that bound is read
+leave-one-out (its group of ``bounds.union_groups`` refitted without it, enlarged by f0). The
+standard error is that of n = sum n_i independent draws from the mixture (an upper bound for
+the deterministic mixture's).
+
+Each check compares this estimate and abcns's own log Z with the exact ABC evidence at a
+population's tolerance: the closed-form toys of ``tests/closed_form.py`` (the checks of
+``benchmarks.evidence_calibration``), or the copies of ``benchmarks.copies`` over the last 10
+populations before the decision (their exact evidence a Monte Carlo over the accepted ball,
+whose own standard error is printed: the log copy's prior density, 1 / theta, makes it noisy).
+An experiment, not abcns's estimator yet.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+from abcns import NSSettings, Result, StopRules, run
+from abcns import bounds as bd
+from abcns import ellipsoid as ell
+from abcns.priors import Model, same_models
+from benchmarks import copies as cp
+from benchmarks.model_selection import seeds_of
+
+
+def held_without(points: np.ndarray, n_own: int, bound: bd.Union, enlargement: float, max_ellipsoids: int) -> np.ndarray:
+    """Whether ``bound``, fitted to ``points``, holds each of the first ``n_own`` points when its
+    ellipsoid is refitted without that point (the others as they are)."""
+    held = ell.n_containing(bound, points[:n_own]) > 0
+    _, groups = bd.union_groups(points, max_ellipsoids)
+    if len(groups) != len(bound):  # not this fit's grouping (a fallback shape): in-sample
+        return held
+    group = np.full(points.shape[0], -1)
+    for j, rows in enumerate(groups):
+        group[rows] = j
+    own = np.flatnonzero(group[:n_own] >= 0)
+    refits = ell.fit_many([points[groups[group[i]][groups[group[i]] != i]] for i in own],
+                          [bound[group[i]] for i in own], enlargement=enlargement) if own.size else []
+    for i, refit in zip(own, refits, strict=True):
+        rest = bound[: group[i]] + bound[group[i] + 1 :]
+        x = points[i : i + 1]
+        held[i] = bool(ell.n_containing((refit,), x)[0]) or bool(rest and ell.n_containing(rest, x)[0])
+    return held
+
+
+def log_evidence(result: Result, models: list[Model], settings: NSSettings) -> dict[tuple[int, int], tuple[float, float]]:
+    """{(t, m): (log Z_m(eps_t), its standard error)} for every population t >= 2 where model m
+    has a particle below eps_t."""
+    pops, twins = result.populations, same_models(models)
+    frames = [bd.Frame(m, unit=True) for m in models]
+    out = {}
+    for m, model in enumerate(models):
+        d = model.n_dim
+
+        def key(row: np.ndarray, d: int = d) -> bytes:
+            return row[:d].tobytes()
+
+        held = []  # per population i: {particle: held by B_i refitted without it}, for those B_i was fitted to
+        for pop in pops[:-1]:
+            below = pop.distances < pop.epsilon_next
+            own = np.flatnonzero(below & (pop.models == m))
+            other = np.flatnonzero(below & np.isin(pop.models, twins[m]))
+            other = other[model.in_prior(pop.theta[other, :d])] if other.size else other
+            table = {}
+            if pop.ellipsoids[m] and own.size:
+                points = frames[m].to_frame(np.vstack([pop.theta[own, :d], pop.theta[other, :d]]))
+                inside = held_without(points, own.size, pop.ellipsoids[m], settings.enlargement, settings.n_ellipsoids)
+                table = {key(pop.theta[r]): bool(h) for r, h in zip(own, inside, strict=True)}
+            held.append(table)
+        x, distance, born, keys = [], [], [], []
+        for j, pop in enumerate(pops):
+            n_survivors = int(np.count_nonzero(pops[j - 1].survivors)) if j else 0
+            new = np.flatnonzero((np.arange(pop.n_particles) >= n_survivors) & (pop.models == m))
+            x.append(frames[m].to_frame(pop.theta[new, :d]))
+            distance.append(pop.distances[new])
+            born.append(np.full(new.size, j))
+            keys += [key(pop.theta[r]) for r in new]
+        points, distances, births = np.vstack(x), np.concatenate(distance), np.concatenate(born)
+        n_proposed = [int(p.evidence.n_proposed[m]) for p in pops]
+        for t in range(2, len(pops) + 1):
+            rows = np.flatnonzero((distances < pops[t - 1].epsilon) & (births < t))
+            if not rows.size:
+                continue
+            mixture = np.full(rows.size, float(n_proposed[0]))  # population 1: the prior box, of mass 1
+            for i in range(t - 1):
+                bound = pops[i].ellipsoids[m]
+                if not bound or not n_proposed[i + 1]:
+                    continue
+                inside = ell.n_containing(bound, points[rows]) > 0
+                for k, r in enumerate(rows):
+                    inside[k] = held[i].get(keys[r], inside[k])
+                mixture += n_proposed[i + 1] * inside / math.exp(pops[i].evidence.log_volume[m])
+            w, n = 1.0 / mixture, sum(n_proposed[:t])
+            z = float(w.sum())
+            out[(t, m)] = (math.log(z), math.sqrt(max(float(np.sum((w * n) ** 2)) / n - z**2, 0.0) / n) / z)
+    return out
+
+
+def toy_checks(toy: str, seed: int) -> list[tuple]:
+    """(model, INS error, its se, abcns error, its se, 0) of each check of a closed-form toy."""
+    from benchmarks.evidence_calibration import MIN_PARTICLES, TOYS, problem
+
+    models, evaluate, exact_log_z = problem(toy)
+    ns, stop = TOYS[toy]
+    settings = NSSettings(particles=1000, **ns)
+    r = run(models, evaluate, settings, StopRules(min_epsilon_decrease=None, **stop), seed=seed)
+    rows = []
+    for (t, m), (log_z, se) in log_evidence(r, models, settings).items():
+        pop = r.populations[t - 1]
+        if t >= 3 and pop.model_counts(len(models))[m] >= MIN_PARTICLES:
+            exact = exact_log_z(pop.epsilon)[m]
+            rows.append((m, log_z - exact, se, pop.evidence.log_z[m] - exact, pop.evidence.log_z_se[m], 0.0))
+    return rows
+
+
+def copies_checks(seed: int) -> list[tuple]:
+    """(model, INS error, its se, abcns error, its se, the exact's Monte Carlo se) over the last
+    10 populations before the decision of ``benchmarks.copies``."""
+    y, r = cp.run_seed(seed, 500)
+    models, rng = cp.copies(), np.random.default_rng(seed)
+    estimate = log_evidence(r, models, NSSettings(particles=500))
+    decision = r.summary()["decision"]["population"]
+    rows = []
+    for t in range(max(2, decision - 9), decision + 1):
+        pop = r.populations[t - 1]
+        x, log_volume = cp.accepted_ball(y, pop.epsilon, rng, 1_000_000)
+        density = np.exp(-np.sum(np.log(x), axis=1) - cp.N_PARAMETERS * math.log(math.log(cp.HIGH / cp.LOW)))
+        exact = (log_volume - cp.N_PARAMETERS * math.log(cp.HIGH - cp.LOW),
+                 log_volume + math.log(density.mean()))
+        noise = (0.0, float(density.std() / density.mean() / math.sqrt(density.size)))
+        for m in (0, 1):
+            if (t, m) in estimate:
+                log_z, se = estimate[(t, m)]
+                rows.append((m, log_z - exact[m], se, pop.evidence.log_z[m] - exact[m], pop.evidence.log_z_se[m], noise[m]))
+    return rows
+
+
+def checks(problem: str, seed: int) -> list[tuple]:
+    return copies_checks(seed) if problem == "copies" else toy_checks(problem, seed)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--problem", default="copies", choices=["copies", "two_models", "balls_4_and_5", "line_and_disc"])
+    parser.add_argument("--seeds", default="1-14")
+    parser.add_argument("--processes", type=int, default=2)
+    args = parser.parse_args()
+    seeds, start = seeds_of(args.seeds), time.monotonic()
+    with ProcessPoolExecutor(args.processes) as pool:
+        rows = np.array([row for rs in pool.map(checks, [args.problem] * len(seeds), seeds) for row in rs])
+    print(f"## Importance nested sampling's log Z against abcns's: {args.problem}, seeds {args.seeds} "
+          f"({time.monotonic() - start:.0f} s on {args.processes} processes)\n")
+    print("| model | checks | estimate | error, mean | z, mean / sd | stated se, median | reference's own se, median |")
+    print("|---|---|---|---|---|---|---|")
+    if args.problem == "copies":
+        names = [m.name for m in cp.copies()]
+    else:
+        from benchmarks.evidence_calibration import problem
+
+        names = [m.name for m in problem(args.problem)[0]]
+    for m in np.unique(rows[:, 0]).astype(int):
+        b = rows[rows[:, 0] == m]
+        for name, err, se in (("importance NS", 1, 2), ("abcns", 3, 4)):
+            z, error = b[:, err] / b[:, se], b[:, err].std(ddof=1) / math.sqrt(len(b))
+            print(f"| {names[m]} | {len(b)} | {name} | {b[:, err].mean():+.4f} ± {error:.4f} | "
+                  f"{z.mean():+.2f} / {z.std(ddof=1):.2f} | {np.median(b[:, se]):.4f} | {np.median(b[:, 5]):.4f} |")
+
+
+if __name__ == "__main__":
+    main()
