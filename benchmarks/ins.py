@@ -54,13 +54,15 @@ def held_without(points: np.ndarray, n_own: int, bound: bd.Union, enlargement: f
     group = np.full(points.shape[0], -1)
     for j, rows in enumerate(groups):
         group[rows] = j
-    own = np.flatnonzero(group[:n_own] >= 0)
+    own = [i for i in range(n_own) if group[i] >= 0]
+    alone = [i for i in own if groups[group[i]].size == 1]  # its ellipsoid goes with it
+    own = [i for i in own if groups[group[i]].size > 1]
     refits = ell.fit_many([points[groups[group[i]][groups[group[i]] != i]] for i in own],
-                          [bound[group[i]] for i in own], enlargement=enlargement) if own.size else []
-    for i, refit in zip(own, refits, strict=True):
+                          [bound[group[i]] for i in own], enlargement=enlargement) if own else []
+    for i, refit in zip(own + alone, list(refits) + [None] * len(alone), strict=True):
         rest = bound[: group[i]] + bound[group[i] + 1 :]
         x = points[i : i + 1]
-        held[i] = bool(ell.n_containing((refit,), x)[0]) or bool(rest and ell.n_containing(rest, x)[0])
+        held[i] = bool(refit is not None and ell.n_containing((refit,), x)[0]) or bool(rest and ell.n_containing(rest, x)[0])
     return held
 
 
