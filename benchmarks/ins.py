@@ -44,25 +44,59 @@ from benchmarks import copies as cp
 from benchmarks.model_selection import seeds_of
 
 
+def inside_without_each(x: np.ndarray, f0: float) -> np.ndarray | None:
+    """For each of the n points ``x`` of one group: whether it lies inside the covariance
+    ellipsoid of the other n - 1 scaled to hold them all and enlarged by ``f0`` (what
+    ``ellipsoid.fit_many`` would fit to them, unless its covariance needs repair), by rank-one
+    downdates: with u = x - mean, S = U^T U and G = U S^-1 U^T, removing point i moves the
+    mean by u_i / (n - 1) and S by -n / (n - 1) u_i u_i^T (Sherman-Morrison), so every
+    Mahalanobis distance under every leave-one-out fit comes from G (O(n^2) after one
+    solve; 0.05 ms for 45 points in 11 dimensions against 0.1 ms per refit). None where
+    n - 1 <= d or S is singular."""
+    n, d = x.shape
+    if n - 1 <= d:
+        return None
+    u = x - x.mean(axis=0)
+    try:
+        g = u @ np.linalg.solve(u.T @ u, u.T)
+    except np.linalg.LinAlgError:
+        return None
+    k, c, h = n / (n - 1), 1.0 / (n - 1), np.diag(g)
+    denom = 1.0 - k * h  # zero when point i alone spans a direction
+    if not np.all(denom > 1e-12):
+        return None
+    quad = h[None, :] + 2 * c * g + c * c * h[:, None]  # [i, j]: w^T S^-1 w, w = u_j + u_i / (n - 1)
+    cross = g + c * h[:, None]  # [i, j]: w^T S^-1 u_i
+    others = (n - 2) * (quad + k * cross**2 / denom[:, None])  # x_j's squared distance without i
+    np.fill_diagonal(others, -np.inf)
+    own = (n - 2) * (k * k * h + k * (k * h) ** 2 / denom)  # x_i's, x_i - mean_i = k u_i
+    return own <= f0 * others.max(axis=1) * (1.0 + 1e-10) * (1.0 + ell.CONTAINS_SLACK)
+
+
 def held_without(points: np.ndarray, n_own: int, bound: bd.Union, enlargement: float, max_ellipsoids: int) -> np.ndarray:
     """Whether ``bound``, fitted to ``points``, holds each of the first ``n_own`` points when its
-    ellipsoid is refitted without that point (the others as they are)."""
+    ellipsoid is refitted without that point (the others as they are): by downdates
+    (:func:`inside_without_each`) where the ellipsoid's covariance needed no repair, else by
+    refitting."""
     held = ell.n_containing(bound, points[:n_own]) > 0
     _, groups = bd.union_groups(points, max_ellipsoids)
     if len(groups) != len(bound):  # not this fit's grouping (a fallback shape): in-sample
         return held
-    group = np.full(points.shape[0], -1)
     for j, rows in enumerate(groups):
-        group[rows] = j
-    own = [i for i in range(n_own) if group[i] >= 0]
-    alone = [i for i in own if groups[group[i]].size == 1]  # its ellipsoid goes with it
-    own = [i for i in own if groups[group[i]].size > 1]
-    refits = ell.fit_many([points[groups[group[i]][groups[group[i]] != i]] for i in own],
-                          [bound[group[i]] for i in own], enlargement=enlargement) if own else []
-    for i, refit in zip(own + alone, list(refits) + [None] * len(alone), strict=True):
-        rest = bound[: group[i]] + bound[group[i] + 1 :]
-        x = points[i : i + 1]
-        held[i] = bool(refit is not None and ell.n_containing((refit,), x)[0]) or bool(rest and ell.n_containing(rest, x)[0])
+        own = rows[rows < n_own]
+        if not own.size:
+            continue
+        fast = inside_without_each(points[rows], enlargement) if bound[j].note == "" else None
+        if fast is not None:
+            without = fast[rows < n_own]
+        elif rows.size > 1:
+            refits = ell.fit_many([points[rows[rows != i]] for i in own], [bound[j]] * own.size, enlargement=enlargement)
+            without = np.array([bool(ell.n_containing((e,), points[i : i + 1])[0]) for e, i in zip(refits, own, strict=True)])
+        else:
+            without = np.zeros(own.size, bool)  # its ellipsoid goes with it
+        rest = bound[:j] + bound[j + 1 :]
+        in_rest = ell.n_containing(rest, points[own]) > 0 if rest else np.zeros(own.size, bool)
+        held[own] = without | in_rest
     return held
 
 
