@@ -154,7 +154,7 @@ def log_evidence(result: Result, models: list[Model], settings: NSSettings) -> d
 
 
 def toy_checks(toy: str, seed: int) -> list[tuple]:
-    """(model, INS error, its se, abcns error, its se, 0) of each check of a closed-form toy."""
+    """(model, INS error, its se, abcns error, its se, 0, seed, t) of each check of a closed-form toy."""
     from benchmarks.evidence_calibration import MIN_PARTICLES, TOYS, problem
 
     models, evaluate, exact_log_z = problem(toy)
@@ -166,12 +166,12 @@ def toy_checks(toy: str, seed: int) -> list[tuple]:
         pop = r.populations[t - 1]
         if t >= 3 and pop.model_counts(len(models))[m] >= MIN_PARTICLES:
             exact = exact_log_z(pop.epsilon)[m]
-            rows.append((m, log_z - exact, se, pop.evidence.log_z[m] - exact, pop.evidence.log_z_se[m], 0.0))
+            rows.append((m, log_z - exact, se, pop.evidence.log_z[m] - exact, pop.evidence.log_z_se[m], 0.0, seed, t))
     return rows
 
 
 def copies_checks(seed: int) -> list[tuple]:
-    """(model, INS error, its se, abcns error, its se, the exact's Monte Carlo se) over the last
+    """(model, INS error, its se, abcns error, its se, the exact's Monte Carlo se, seed, t) over the last
     10 populations before the decision of ``benchmarks.copies``."""
     y, r = cp.run_seed(seed, 500)
     models, rng = cp.copies(), np.random.default_rng(seed)
@@ -188,7 +188,8 @@ def copies_checks(seed: int) -> list[tuple]:
         for m in (0, 1):
             if (t, m) in estimate:
                 log_z, se = estimate[(t, m)]
-                rows.append((m, log_z - exact[m], se, pop.evidence.log_z[m] - exact[m], pop.evidence.log_z_se[m], noise[m]))
+                rows.append((m, log_z - exact[m], se, pop.evidence.log_z[m] - exact[m], pop.evidence.log_z_se[m], noise[m],
+                             seed, t))
     return rows
 
 
@@ -221,6 +222,17 @@ def main() -> None:
             z, error = b[:, err] / b[:, se], b[:, err].std(ddof=1) / math.sqrt(len(b))
             print(f"| {names[m]} | {len(b)} | {name} | {b[:, err].mean():+.4f} ± {error:.4f} | "
                   f"{z.mean():+.2f} / {z.std(ddof=1):.2f} | {np.median(b[:, se]):.4f} | {np.median(b[:, 5]):.4f} |")
+    if len(names) == 2:  # the split, model 0's log Z minus model 1's, where both are checked
+        first, second = rows[rows[:, 0] == 0], rows[rows[:, 0] == 1]
+        pairs = {(s, t): r for s, t, r in zip(second[:, 6], second[:, 7], second, strict=True)}
+        both = [(r, pairs[(r[6], r[7])]) for r in first if (r[6], r[7]) in pairs]
+        if both:
+            print(f"\nThe split ({names[0]} minus {names[1]}), {len(both)} checks:\n")
+            for name, err, se in (("importance NS", 1, 2), ("abcns", 3, 4)):
+                split = np.array([a[err] - b[err] for a, b in both])
+                z = split / np.array([math.hypot(a[se], b[se]) for a, b in both])
+                print(f"- {name}: {split.mean():+.4f} ± {split.std(ddof=1) / math.sqrt(len(split)):.4f}, "
+                      f"RMS {math.sqrt(np.mean(split**2)):.4f}, z mean {z.mean():+.2f} sd {z.std(ddof=1):.2f}")
 
 
 if __name__ == "__main__":
