@@ -33,12 +33,14 @@ import argparse
 import math
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 
 from abcns import NSSettings, Result, StopRules, run
 from abcns import bounds as bd
 from abcns import ellipsoid as ell
+from abcns.likelihood import of_floor
 from abcns.priors import Model, same_models
 from benchmarks import copies as cp
 from benchmarks.model_selection import seeds_of
@@ -100,12 +102,39 @@ def held_without(points: np.ndarray, n_own: int, bound: bd.Union, enlargement: f
     return held
 
 
-def log_evidence(result: Result, models: list[Model], settings: NSSettings) -> dict[tuple[int, int], tuple[float, float]]:
-    """{(t, m): (log Z_m(eps_t), its standard error)} for every population t >= 2 where model m
-    has a particle below eps_t."""
+@dataclass(frozen=True)
+class Mixture:
+    """One model's new particles over a whole run and the proposal densities at each:
+    ``distances`` and ``births`` (the population, from 1, that drew each), ``terms[k, i]`` =
+    n_{i+1} q_i(x_k), population i + 1's proposals times its region's density at particle k
+    (column 0: population 1's, the prior box of mass 1), membership of a bound read
+    leave-one-out for the particles it was fitted to; ``n_proposed`` per population."""
+
+    distances: np.ndarray
+    births: np.ndarray
+    terms: np.ndarray
+    n_proposed: np.ndarray
+
+    def weights(self, t: int, rows: np.ndarray) -> np.ndarray:
+        """1 / the mixture of populations 1..t at the particles ``rows``."""
+        return 1.0 / self.terms[rows, :t].sum(axis=1)
+
+    def log_z(self, t: int, epsilon: float) -> tuple[float, float] | None:
+        """(log Z(epsilon), its standard error) from the particles of populations 1..t below
+        ``epsilon`` (<= eps_t), or None without one."""
+        rows = np.flatnonzero((self.distances < epsilon) & (self.births <= t))
+        if not rows.size:
+            return None
+        w, n = self.weights(t, rows), int(self.n_proposed[:t].sum())
+        z = float(w.sum())
+        return math.log(z), math.sqrt(max(float(np.sum((w * n) ** 2)) / n - z**2, 0.0) / n) / z
+
+
+def mixtures(result: Result, models: list[Model], settings: NSSettings) -> list[Mixture]:
+    """Each model's :class:`Mixture` over ``result``'s populations."""
     pops, twins = result.populations, same_models(models)
     frames = [bd.Frame(m, unit=True) for m in models]
-    out = {}
+    out = []
     for m, model in enumerate(models):
         d = model.n_dim
 
@@ -130,26 +159,59 @@ def log_evidence(result: Result, models: list[Model], settings: NSSettings) -> d
             new = np.flatnonzero((np.arange(pop.n_particles) >= n_survivors) & (pop.models == m))
             x.append(frames[m].to_frame(pop.theta[new, :d]))
             distance.append(pop.distances[new])
-            born.append(np.full(new.size, j))
+            born.append(np.full(new.size, j + 1))
             keys += [key(pop.theta[r]) for r in new]
-        points, distances, births = np.vstack(x), np.concatenate(distance), np.concatenate(born)
-        n_proposed = [int(p.evidence.n_proposed[m]) for p in pops]
-        for t in range(2, len(pops) + 1):
-            rows = np.flatnonzero((distances < pops[t - 1].epsilon) & (births < t))
-            if not rows.size:
+        points = np.vstack(x)
+        n_proposed = np.array([int(p.evidence.n_proposed[m]) for p in pops])
+        terms = np.zeros((points.shape[0], len(pops)))
+        terms[:, 0] = n_proposed[0]
+        for i in range(len(pops) - 1):  # population i + 1's bound proposed population i + 2
+            bound = pops[i].ellipsoids[m]
+            if not bound or not n_proposed[i + 1]:
                 continue
-            mixture = np.full(rows.size, float(n_proposed[0]))  # population 1: the prior box, of mass 1
-            for i in range(t - 1):
-                bound = pops[i].ellipsoids[m]
-                if not bound or not n_proposed[i + 1]:
-                    continue
-                inside = ell.n_containing(bound, points[rows]) > 0
-                for k, r in enumerate(rows):
-                    inside[k] = held[i].get(keys[r], inside[k])
-                mixture += n_proposed[i + 1] * inside / math.exp(pops[i].evidence.log_volume[m])
-            w, n = 1.0 / mixture, sum(n_proposed[:t])
-            z = float(w.sum())
-            out[(t, m)] = (math.log(z), math.sqrt(max(float(np.sum((w * n) ** 2)) / n - z**2, 0.0) / n) / z)
+            inside = ell.n_containing(bound, points) > 0
+            for k, name in enumerate(keys):
+                inside[k] = held[i].get(name, inside[k])
+            terms[:, i + 1] = n_proposed[i + 1] * inside / math.exp(pops[i].evidence.log_volume[m])
+        out.append(Mixture(np.concatenate(distance), np.concatenate(born), terms, n_proposed))
+    return out
+
+
+def log_evidence(result: Result, models: list[Model], settings: NSSettings) -> dict[tuple[int, int], tuple[float, float]]:
+    """{(t, m): (log Z_m(eps_t), its standard error)} for every population t >= 2 where model m
+    has a particle below eps_t."""
+    out = {}
+    for m, mix in enumerate(mixtures(result, models, settings)):
+        for t in range(2, len(result.populations) + 1):
+            estimate = mix.log_z(t, result.populations[t - 1].epsilon)
+            if estimate is not None:
+                out[(t, m)] = estimate
+    return out
+
+
+def read_answer(result: Result, models: list[Model], settings: NSSettings) -> list[tuple[float, float]]:
+    """Each model's likelihood evidence (log, relative to the run's floor's best fit, as
+    ``Result.reading``'s) and its standard error, read with the mixture's weights: every new
+    particle in the shell between two tolerances where it lies, eps_{s+1} <= d < eps_s (the
+    innermost, below eps_{T+1}, counted as shell T), weighted by L(d) / the mixture of
+    populations 1..s, if population s or an earlier one drew it."""
+    pops = result.populations
+    log_l = of_floor(result.floor) if result.floor is not None else None
+    if log_l is None:
+        raise ValueError("the run has no floor to read by")
+    tolerances = np.array([p.epsilon for p in pops] + [pops[-1].epsilon_next])
+    out = []
+    for mix in mixtures(result, models, settings):
+        shell = np.clip(np.searchsorted(-tolerances, -mix.distances, side="left"), 1, len(pops))
+        rows = np.flatnonzero(mix.births <= shell)
+        if not rows.size:
+            out.append((-math.inf, math.inf))
+            continue
+        log_w = log_l(mix.distances[rows]) - np.log(mix.terms[rows].cumsum(axis=1)[np.arange(rows.size), shell[rows] - 1])
+        top = float(log_w.max())
+        w, n = np.exp(log_w - top), int(mix.n_proposed.sum())
+        z = float(w.sum())
+        out.append((top + math.log(z), math.sqrt(max(float(np.sum((w * n) ** 2)) / n - z**2, 0.0) / n) / z))
     return out
 
 
