@@ -215,28 +215,30 @@ def specimen_job(folder: Path, name: str, seed: int, only: list[str] | None = No
     return build(parse(spec_for(x / np.max(np.abs(x)), load / np.max(np.abs(load)), seed, None, only)))
 
 
-def solve(exact: GaussianRestoring, method: argparse.Namespace, seed: int, start: dict | None) -> dict:
+def solve(exact: GaussianRestoring, method: argparse.Namespace, seed: int, start: list[dict]) -> dict:
     """One model's exact answer: dynesty (``method.sample`` its proposal, ``method.nlive``), or
     with ``--sample importance`` importance sampling (``method.draws`` draws, after chains of
-    ``method.mcmc`` or 4000 steps started around ``start``, abcns's posterior; the prior box's
-    middle, sd a quarter of its width, where abcns has none)."""
+    ``method.mcmc`` or 4000 steps started around each of ``start``, abcns's posteriors; the
+    prior box's middle, sd a quarter of its width, where abcns has none)."""
     if method.sample != "importance":
         return run_dynesty(exact, method.nlive, seed, method.sample)
     from examples.cyclic_tests.importance import importance_answer
 
-    if start is None:  # the box's middle in the prior's coordinates, in the parameters' units
+    if not start:  # the box's middle in the prior's coordinates, in the parameters' units
         mid = exact.natural(exact.low + exact.width / 2)
         sd = np.where(exact.model.log_columns, mid * exact.width / 4, exact.width / 4)
-        start = {n: {"mean": m, "std": s} for n, m, s in zip(exact.names[:-1], mid, sd, strict=True)}
-    return importance_answer(exact, start, method.mcmc or 4000, method.draws, seed)
+        start = [{n: {"mean": m, "std": s} for n, m, s in zip(exact.names[:-1], mid, sd, strict=True)}]
+    return importance_answer(exact, start if len(start) > 1 else start[0], method.mcmc or 4000, method.draws, seed)
 
 
-def start_of(model: Any, starts: dict) -> dict | None:
-    """abcns's posterior of ``model`` from ``starts``; where the run left it none, that of a
-    model over the same parameters (bwbn's from bwbn_log's: the same model under another
-    prior, whose best fits are its best fits), else None."""
-    twins = [s for s in starts.values() if set(s) == set(model.priors)]
-    return starts.get(model.name) or (twins[0] if twins else None)
+def start_of(model: Any, starts: dict) -> list[dict]:
+    """abcns's posteriors of ``model`` and of the models over the same parameters (bwbn's and
+    bwbn_log's: the same model under another prior, whose best fits are its best fits, and
+    which may hold another mode: daniel's copies do), its own first; empty where the run left
+    none."""
+    own = [starts[model.name]] if model.name in starts else []
+    twins = [s for name, s in starts.items() if name != model.name and set(s) == set(model.priors)]
+    return own + [s for s in twins if s not in own]
 
 
 def exact_specimen(folder: Path, name: str, seed: int, method: argparse.Namespace, only: list[str] | None = None,
