@@ -564,6 +564,34 @@ def test_a_service_killed_in_a_jobs_final_status_write_resumes_it_to_finished(tm
         again.shutdown(10)
 
 
+def test_a_population_whose_message_was_lost_is_announced_from_the_store_before_the_next(tmp_path, monkeypatch):
+    """CI's chaos run: a job's loop stored population 1, and its worker died before the
+    message that announces it reached the service; the loop resumed elsewhere from the store
+    and announced population 2, and the job's log never said population 1 (its events began
+    at 2, and the backfill at the loop's end starts after the last one announced). Here the
+    first message is dropped: the log still announces 1 then 2, population 1 as stored."""
+    from service.http.jobs import JobManager
+
+    manager = idle_manager(tmp_path / "jobs")
+    job = duffing_job(manager, populations=2)
+    take(manager, job)
+    announce, dropped = JobManager._announce, []
+
+    def lose_the_first(self, job, progress):
+        if not dropped:  # the loop's first message: lost with its worker
+            dropped.append(progress)
+            return
+        announce(self, job, progress)
+
+    monkeypatch.setattr(JobManager, "_announce", lose_the_first)
+    manager._run(job)
+    events = [json.loads(line) for line in (job.folder / "events.jsonl").read_text().splitlines()]
+    announced = [e["data"] for e in events if e["event"] == "population"]
+    assert job.status == "finished" and dropped[0]["population"] == 1, (job.status, dropped)
+    assert [a["population"] for a in announced] == [1, 2], announced
+    assert announced[0]["epsilon"] == dropped[0]["epsilon"], (announced[0], dropped[0])
+
+
 def test_a_run_that_says_cancelled_when_nobody_cancelled_the_job_fails_saying_so(tmp_path, monkeypatch):
     """The service ends a job "cancelled" only when it was cancelled. A run whose result says
     "cancelled" otherwise (as run_job's did for a store left "finished" with no stop reason)

@@ -694,27 +694,42 @@ class JobManager:
 
     def _announce(self, job: JobRecord, progress: dict) -> None:
         """Append a population event unless that population was announced already (a job
-        loop's message that comes after the store was read back, or twice)."""
+        loop's message that comes after the store was read back, or twice); the populations
+        before it that were stored but never announced first, from the store (a loop whose
+        worker died between storing a population and sending its message resumes elsewhere
+        and announces the next: in CI's chaos run a job's log began at population 2)."""
         with job.announcing:
-            if job.progress is not None and progress["population"] <= job.progress["population"]:
+            seen = job.progress["population"] if job.progress is not None else 0
+            if progress["population"] <= seen:
                 return
+            for event in self._stored_events(job, seen + 1, progress["population"] - 1):
+                job.log.append("population", event)
             job.progress = progress
             job.log.append("population", progress)
 
     def _backfill(self, job: JobRecord) -> None:
         """Population events for populations in the store but not in the log (the service
         died between a store append and its event; a job loop's last messages did not come)."""
+        with job.announcing:
+            seen = job.progress["population"] if job.progress is not None else 0
+            for event in self._stored_events(job, seen + 1, None):
+                job.progress = event
+                job.log.append("population", event)
+
+    @staticmethod
+    def _stored_events(job: JobRecord, first: int, last: int | None) -> tuple[dict, ...]:
+        """The population events of the job's stored populations ``first``..``last`` (None:
+        its last), as their messages would have said; none where the store cannot be read."""
         try:
             store = Store.open(job.store_path)
         except StoreError:
-            return
-        seen = job.progress["population"] if job.progress else 0
-        if store.n_populations <= seen:
-            return
+            return ()
+        last = store.n_populations if last is None else min(last, store.n_populations)
+        if last < first:
+            return ()
         totals = store.totals()
-        for t in range(seen + 1, store.n_populations + 1):
-            pop = store.population(t)
-            self._announce(job, Progress(pop, totals[t - 1], pop.elapsed_s, None).event(job.models))
+        return tuple(Progress(pop, totals[t - 1], pop.elapsed_s, None).event(job.models)
+                     for t in range(first, last + 1) for pop in [store.population(t)])
 
     def _connected(self) -> bool:
         """Is the client connected to a scheduler? A client that gave up reconnecting is
