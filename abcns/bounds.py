@@ -305,6 +305,22 @@ def coverage_test(points: np.ndarray, bound: Union, enlargement: float, rng: np.
     flags = np.full(points.shape[0], UNTESTED, np.int8)
     if np.count_nonzero(uniform) < 4:
         return flags
+    inside, folds = half_fits(points, bound, enlargement, rng)
+    flags[uniform] = np.where(inside[uniform], MISSED, OUTSIDE)
+    for test, fold in folds:
+        rows = test[uniform[test]]
+        if fold and rows.size:
+            flags[rows[ell.n_containing(fold, points[rows]) > 0]] = HELD
+    return flags
+
+
+def half_fits(points: np.ndarray, bound: Union, enlargement: float,
+              rng: np.random.Generator) -> tuple[np.ndarray, list[tuple[np.ndarray, Union]]]:
+    """The refits of :func:`coverage_test`: (which points lie inside ``bound``, and for each
+    half, the rows of the other half with the ellipsoids fitted to this one). Each point
+    inside belongs to the ellipsoid it lies deepest in; each such group is split at random
+    into halves, and each half of every group refitted by one ellipsoid enlarged by
+    ``enlargement`` (a group's ellipsoid the shape where a half defines none)."""
     depth = ell.mahalanobis2_each(bound, points)
     group = np.argmin(depth, axis=0)
     inside = depth[group, np.arange(points.shape[0])] <= 1.0 + ell.CONTAINS_SLACK
@@ -314,16 +330,13 @@ def coverage_test(points: np.ndarray, bound: Union, enlargement: float, rng: np.
         rows = rows[rng.permutation(rows.size)]
         halves[0].append(rows[: rows.size // 2])
         halves[1].append(rows[rows.size // 2 :])
-    flags[uniform] = np.where(inside[uniform], MISSED, OUTSIDE)
+    folds = []
     for train, test in (halves, halves[::-1]):
         fitted = [(rows, e) for rows, e in zip(train, bound, strict=True) if rows.size]
         fold = tuple(ell.fit_many([points[rows] for rows, _ in fitted], [e for _, e in fitted],
                                   enlargement=enlargement)) if fitted else ()
-        rows = np.concatenate(test)
-        rows = rows[uniform[rows]]
-        if fold and rows.size:
-            flags[rows[ell.n_containing(fold, points[rows]) > 0]] = HELD
-    return flags
+        folds.append((np.concatenate(test), fold))
+    return inside, folds
 
 
 class Frame:

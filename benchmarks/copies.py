@@ -111,19 +111,17 @@ def accepted_ball(y: np.ndarray, epsilon: float, rng: np.random.Generator, n: in
     return x[inside], log_ball + math.log(inside.mean())
 
 
-def half_fits(points: np.ndarray, bound: bd.Union, rng: np.random.Generator) -> bd.Union:
-    """The ellipsoids of one half of the coverage test (``abcns.bounds.coverage_test``): each
-    group (the points deepest in one ellipsoid) halved at random and refitted."""
-    depth = ell.mahalanobis2_each(bound, points)
-    group = np.argmin(depth, axis=0)
-    inside = depth[group, np.arange(points.shape[0])] <= 1.0 + ell.CONTAINS_SLACK
-    sets, shapes = [], []
-    for j, e in enumerate(bound):
-        rows = rng.permutation(np.flatnonzero(inside & (group == j)))[: max(1, int(np.count_nonzero(inside & (group == j)) // 2))]
-        if rows.size:
-            sets.append(points[rows])
-            shapes.append(e)
-    return tuple(ell.fit_many(sets, shapes, enlargement=NSSettings().enlargement)) if sets else ()
+def exact_abc(y: np.ndarray, epsilon: float, rng: np.random.Generator, n: int = 200_000):
+    """(points uniform in the accepted region at ``epsilon``, each copy's prior density over
+    the uniform copy's at them, each copy's exact log Z(epsilon), its Monte Carlo standard
+    error): the log copy's density, 1 / (theta log(HIGH / LOW)) per parameter, makes its
+    evidence a Monte Carlo mean of heavy-tailed weights."""
+    x, log_volume = accepted_ball(y, epsilon, rng, n)
+    density = np.exp(-np.sum(np.log(x), axis=1) - N_PARAMETERS * math.log(math.log(HIGH / LOW)) +
+                     N_PARAMETERS * math.log(HIGH - LOW))
+    log_z = log_volume - N_PARAMETERS * math.log(HIGH - LOW)
+    return (x, (np.ones(len(x)), density), (log_z, log_z + math.log(density.mean())),
+            (0.0, float(density.std() / density.mean() / math.sqrt(density.size))))
 
 
 def coverage_rows(seed: int, particles: int) -> list[tuple]:
@@ -135,19 +133,16 @@ def coverage_rows(seed: int, particles: int) -> list[tuple]:
     y, r = run_seed(seed, particles)
     models, rng = copies(), np.random.default_rng(seed)
     frames = [bd.Frame(m, unit=True) for m in models]
-    log_range = N_PARAMETERS * math.log(math.log(HIGH / LOW))
     decision = r.summary()["decision"]["population"]
     out = []
     for t in range(max(3, decision - 9), decision + 1):
         older, prev, pop = r.populations[t - 3], r.populations[t - 2], r.populations[t - 1]
-        x, log_volume = accepted_ball(y, pop.epsilon, rng)
-        density = np.exp(-np.sum(np.log(x), axis=1) - log_range)  # the log copy's prior over the uniform's
+        x, densities, exacts, _ = exact_abc(y, pop.epsilon, rng)
         for m, model in enumerate(models):
             bound, before, ev = prev.ellipsoids[m], older.ellipsoids[m], prev.evidence
             if not bound or not before or ev.n_coverage[m] == 0 or pop.evidence.n_accepted[m] == 0:
                 continue
-            w = np.ones(len(x)) if m == 0 else density
-            exact = log_volume + (-N_PARAMETERS * math.log(HIGH - LOW) if m == 0 else math.log(w.mean()))
+            w, exact = densities[m], exacts[m]
             u = frames[m].to_frame(x)
             in_b, in_a = ell.n_containing(bound, u) > 0, ell.n_containing(before, u) > 0
             share = lambda s, w=w: float(np.sum(w * s) / np.sum(w))
@@ -156,7 +151,7 @@ def coverage_rows(seed: int, particles: int) -> list[tuple]:
             mine = prev.theta[below & (prev.models == m), :N_PARAMETERS]
             twins = prev.theta[below & (prev.models != m), :N_PARAMETERS]
             points = frames[m].to_frame(np.vstack([mine, twins[model.in_prior(twins)]]))
-            halves = half_fits(points, bound, rng)
+            _, [(_, halves), _] = bd.half_fits(points, bound, NSSettings().enlargement, rng)
             half_miss = 1 - share(ell.n_containing(halves, u) > 0)
             log_a = math.log(pop.evidence.n_accepted[m] / pop.evidence.n_proposed[m])
             direct = log_a + ev.log_volume[m] - math.log(max(ev.coverage[m], 1e-12))

@@ -115,19 +115,23 @@ class Mixture:
     terms: np.ndarray
     n_proposed: np.ndarray
 
-    def weights(self, t: int, rows: np.ndarray) -> np.ndarray:
-        """1 / the mixture of populations 1..t at the particles ``rows``."""
-        return 1.0 / self.terms[rows, :t].sum(axis=1)
-
     def log_z(self, t: int, epsilon: float) -> tuple[float, float] | None:
         """(log Z(epsilon), its standard error) from the particles of populations 1..t below
         ``epsilon`` (<= eps_t), or None without one."""
         rows = np.flatnonzero((self.distances < epsilon) & (self.births <= t))
         if not rows.size:
             return None
-        w, n = self.weights(t, rows), int(self.n_proposed[:t].sum())
-        z = float(w.sum())
-        return math.log(z), math.sqrt(max(float(np.sum((w * n) ** 2)) / n - z**2, 0.0) / n) / z
+        return log_total(-np.log(self.terms[rows, :t].sum(axis=1)), int(self.n_proposed[:t].sum()))
+
+
+def log_total(log_w: np.ndarray, n: int) -> tuple[float, float]:
+    """(log of the sum of the weights exp(``log_w``), its standard error) for an estimate over
+    ``n`` proposals (the weights of those not kept are 0): that of ``n`` independent draws from
+    the mixture, var(n w) / n."""
+    top = float(np.max(log_w))
+    w = np.exp(log_w - top)
+    z = float(w.sum())
+    return top + math.log(z), math.sqrt(max(float(np.sum((w * n) ** 2)) / n - z**2, 0.0) / n) / z
 
 
 def mixtures(result: Result, models: list[Model], settings: NSSettings) -> list[Mixture]:
@@ -208,10 +212,7 @@ def read_answer(result: Result, models: list[Model], settings: NSSettings) -> li
             out.append((-math.inf, math.inf))
             continue
         log_w = log_l(mix.distances[rows]) - np.log(mix.terms[rows].cumsum(axis=1)[np.arange(rows.size), shell[rows] - 1])
-        top = float(log_w.max())
-        w, n = np.exp(log_w - top), int(mix.n_proposed.sum())
-        z = float(w.sum())
-        out.append((top + math.log(z), math.sqrt(max(float(np.sum((w * n) ** 2)) / n - z**2, 0.0) / n) / z))
+        out.append(log_total(log_w, int(mix.n_proposed.sum())))
     return out
 
 
@@ -242,11 +243,7 @@ def copies_checks(seed: int) -> list[tuple]:
     rows = []
     for t in range(max(2, decision - 9), decision + 1):
         pop = r.populations[t - 1]
-        x, log_volume = cp.accepted_ball(y, pop.epsilon, rng, 1_000_000)
-        density = np.exp(-np.sum(np.log(x), axis=1) - cp.N_PARAMETERS * math.log(math.log(cp.HIGH / cp.LOW)))
-        exact = (log_volume - cp.N_PARAMETERS * math.log(cp.HIGH - cp.LOW),
-                 log_volume + math.log(density.mean()))
-        noise = (0.0, float(density.std() / density.mean() / math.sqrt(density.size)))
+        _, _, exact, noise = cp.exact_abc(y, pop.epsilon, rng, 1_000_000)
         for m in (0, 1):
             if (t, m) in estimate:
                 log_z, se = estimate[(t, m)]
