@@ -11,10 +11,10 @@ from the generator it is given.
 - :func:`fit_union` : points -> ellipsoids (each enlarged by f0);
 - :func:`sample_union` : points uniform on the union (an ellipsoid is chosen by volume, a
   point uniform in it is kept with probability 1 / the number of ellipsoids holding it);
-- :func:`union_volume` : Monte Carlo estimate of log vol(union ∩ box) and its standard error;
-- :func:`coverage` : two-fold cross-validated share of points that the bound's ellipsoids,
-  refitted to the other half of their points, hold (how much of the accepted region the
-  bound misses).
+- :func:`union_volume` : Monte Carlo estimate of log vol(union ∩ box) and its standard error.
+
+How much of the accepted region a bound misses needs no measure: the evidence counts it
+through the older regions that held it (``abcns.mixture``).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ Union = tuple[ell.Ellipsoid, ...]
 SPLIT_GAIN = 0.8
 #: fewest points an ellipsoid of a split is fitted to (and at least 2 (d + 1)). Measured on
 #: §4.1 (seeds 1-8): 10 needs ~23 % fewer simulations to eps 0.015 than 20; on the closed-form
-#: toys both keep log Z within its standard error (the coverage correction sees the gaps)
+#: toys both kept log Z within its standard error
 LEAF_POINTS = 10
 #: a point is an outlier when its squared whitened radius exceeds the chi-square quantile
 #: 1 - OUTLIER_TAIL / n, scaled by the points' median radius (see :func:`outliers`)
@@ -87,7 +87,7 @@ def outliers(r2: np.ndarray, d: int) -> np.ndarray:
     so the points' median radius is the chi-square median. A Gaussian cloud loses a point in
     about 1 % of fits, a uniform one never; a stochastic simulator's lucky draw far from the
     accepted region (which would otherwise make the bound ten times larger) is left out, and
-    the cross-validated coverage counts what that leaves out."""
+    the evidence counts what that leaves out through the older regions that held it."""
     scale = float(np.median(r2)) / _chi2_quantile(0.5, d)
     return r2 > _chi2_quantile(1.0 - OUTLIER_TAIL / r2.shape[0], d) * scale
 
@@ -252,91 +252,6 @@ def union_volume(bound: Union, box: tuple[np.ndarray, np.ndarray], n_draws: int,
         return -np.inf, np.inf
     se = float(np.std(w, ddof=1)) / np.sqrt(n_draws) / mean if n_draws > 1 else np.inf
     return float(_volume_shares(bound)[0] + np.log(mean)), se
-
-
-#: a particle's part in its model's coverage test (:func:`coverage_test`, ``Population.coverage_test``)
-UNTESTED, OUTSIDE, MISSED, HELD = -1, 0, 1, 2
-
-
-def coverage(points: np.ndarray, bound: Union, enlargement: float, rng: np.random.Generator,
-             uniform: np.ndarray | None = None) -> tuple[float, int]:
-    """(estimated share of the sampled region that ``bound`` holds, points tested), for a
-    ``bound`` that :func:`fit_union` fitted to ``points``: :func:`coverage_of` the
-    :func:`coverage_test`."""
-    return coverage_of(coverage_test(points, bound, enlargement, rng, uniform))
-
-
-def coverage_of(flags: np.ndarray) -> tuple[float, int]:
-    """(coverage, points tested) of the points of a :func:`coverage_test` (any subset of them:
-    those in a smaller region give the bound's coverage of that region). The share an
-    ellipsoid fitted to n points misses falls like 1/n (d/n around uniform points), so the
-    bound, fitted to twice the points of the half-fits, misses about half of what they miss:
-    ``coverage = (1 - outside / n)(1 - missed / 2)``, over the n tested points, ``missed``
-    the share of those inside the bound that the half-fits miss; (1, 0) below 4 points."""
-    flags = np.asarray(flags)
-    n = int(np.count_nonzero(flags != UNTESTED))
-    if n < 4:
-        return 1.0, 0
-    n_in = int(np.count_nonzero(flags >= MISSED))
-    missed = 1.0 - int(np.count_nonzero(flags == HELD)) / n_in if n_in else 0.0
-    return n_in / n * (1.0 - 0.5 * missed), n
-
-
-def coverage_test(points: np.ndarray, bound: Union, enlargement: float, rng: np.random.Generator,
-                  uniform: np.ndarray | None = None) -> np.ndarray:
-    """Each point's part in the cross-validation of ``bound``, as :func:`fit_union` fitted it
-    to ``points``: OUTSIDE, MISSED, HELD, or UNTESTED. Only the points marked ``uniform``
-    (default all) are tested: those drawn uniformly from the region (a population's new
-    particles; survivors, drawn by weight, crowd its centre and would hide a miss at its
-    edge); fewer than 4 and none is.
-
-    Ellipsoid by ellipsoid: each point belongs to the ellipsoid of ``bound`` it lies deepest
-    in (the group that ellipsoid was fitted to); a point outside every ellipsoid is an
-    outlier the fit left out (OUTSIDE). Each group is split at random into halves; each half
-    is fitted by one ellipsoid (enlarged like the bound's), and the tested points of the
-    other halves are tested against the union of those ellipsoids (HELD or MISSED).
-
-    Refitting the halves with the same groups tests the bound's own structure: a
-    :func:`fit_union` of half the points can split into fewer ellipsoids (fewer points per
-    leaf) or more, and then measures another bound (a disc split into five ellipsoids of
-    ~16 points each missed 18 % of itself while fits to its halves, one ellipsoid each, said
-    1 %)."""
-    uniform = np.ones(points.shape[0], bool) if uniform is None else uniform
-    flags = np.full(points.shape[0], UNTESTED, np.int8)
-    if np.count_nonzero(uniform) < 4:
-        return flags
-    inside, folds = half_fits(points, bound, enlargement, rng)
-    flags[uniform] = np.where(inside[uniform], MISSED, OUTSIDE)
-    for test, fold in folds:
-        rows = test[uniform[test]]
-        if fold and rows.size:
-            flags[rows[ell.n_containing(fold, points[rows]) > 0]] = HELD
-    return flags
-
-
-def half_fits(points: np.ndarray, bound: Union, enlargement: float,
-              rng: np.random.Generator) -> tuple[np.ndarray, list[tuple[np.ndarray, Union]]]:
-    """The refits of :func:`coverage_test`: (which points lie inside ``bound``, and for each
-    half, the rows of the other half with the ellipsoids fitted to this one). Each point
-    inside belongs to the ellipsoid it lies deepest in; each such group is split at random
-    into halves, and each half of every group refitted by one ellipsoid enlarged by
-    ``enlargement`` (a group's ellipsoid the shape where a half defines none)."""
-    depth = ell.mahalanobis2_each(bound, points)
-    group = np.argmin(depth, axis=0)
-    inside = depth[group, np.arange(points.shape[0])] <= 1.0 + ell.CONTAINS_SLACK
-    halves: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
-    for j in range(len(bound)):
-        rows = np.flatnonzero(inside & (group == j))
-        rows = rows[rng.permutation(rows.size)]
-        halves[0].append(rows[: rows.size // 2])
-        halves[1].append(rows[rows.size // 2 :])
-    folds = []
-    for train, test in (halves, halves[::-1]):
-        fitted = [(rows, e) for rows, e in zip(train, bound, strict=True) if rows.size]
-        fold = tuple(ell.fit_many([points[rows] for rows, _ in fitted], [e for _, e in fitted],
-                                  enlargement=enlargement)) if fitted else ()
-        folds.append((np.concatenate(test), fold))
-    return inside, folds
 
 
 class Frame:

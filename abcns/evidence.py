@@ -6,24 +6,13 @@ The ABC posterior probability of model m at tolerance eps is
 
 (equal model priors; for a stochastic simulator, the prior expectation of P(d < eps | theta)).
 The paper reports particle shares instead (Eq. 12), which ignore how much prior volume lies
-under eps. ABC-NS already counts what Z needs, every population:
-
-- population 1 is rejection from the prior: Z_m = accepted / proposed for model m;
-- later, model m's proposals are uniform on B_m, its bound (a union of ellipsoids) intersected
-  with the prior box, so vol({d < eps_t} ∩ B_m) = a_m vol(B_m), with a_m the acceptance of
-  m's new proposals. The bound misses a share 1 - c of the accepted region (c is measured by
-  cross-validation when the bound is fitted), so the direct estimate is
-  ``log Z = log a + log V - log c``, V the prior mass of B_m (Monte Carlo, in the unit box);
-- the share r_m of m's new particles below the next tolerance predicts Z_m(eps_{t+1}) =
-  Z_m(eps_t) r_m c_m / c'_m (the nested-sampling recursion; c_m and c'_m the coverages of
-  the regions at eps_t and eps_{t+1} by the bound the new particles came from, both from its
-  cross-validation: c'_m on the tested points below eps_{t+1}).
-
-Each population's log Z combines the prediction from the previous population and the direct
-estimate by inverse variance (binomial variances on the log scale at the Agresti-Coull
-estimate; delta method), so the estimate gathers information over populations. Every term of
-the standard error is derived in docs/design.md ("The evidence's standard error"). Pure
-functions on arrays, one entry per model.
+under eps. ABC-NS already draws what Z needs: every particle of every population, proposed
+uniformly in a region of known prior mass (the prior box, then a bound), is an importance
+sample of the prior restricted to the tolerance, weighted by the mixture of all the regions
+that proposed them (``abcns.mixture``: importance nested sampling's estimator). Each
+population gives log Z at its own tolerance and the prediction at the next, both from its
+mixture, with their standard errors (docs/design.md, "The evidence"). Pure functions on
+arrays, one entry per model.
 """
 
 from __future__ import annotations
@@ -32,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from abcns import bounds as bd
+from abcns.mixture import Mixture
 
 #: death codes (``Evidence.death``): why a model is dead from the next population on;
 #: SIMULATIONS_FAILED: every one of its simulations in the population failed or diverged
@@ -48,8 +37,7 @@ class Evidence:
     ``log_z``/``log_z_se``: log Z_m(eps_t) and its standard error (-inf / inf for a dead model);
     ``log_z_next``/``log_z_next_se``: the prediction at eps_{t+1};
     ``log_volume``/``log_volume_se``: log prior mass of the bound that proposes m's particles
-    at t + 1 (NaN when there is none); ``coverage`` (measured on ``n_coverage`` points): the
-    share of the accepted region that bound holds;
+    at t + 1 (NaN when there is none), measured by Monte Carlo;
     ``allocation``: the probability that a proposal of population t + 1 is of model m;
     ``n_proposed``/``n_accepted``: model m's new proposals simulated in this population and
     those accepted; ``death``: ALIVE, or why m has no particles from t + 1 on.
@@ -61,33 +49,13 @@ class Evidence:
     log_z_next_se: np.ndarray
     log_volume: np.ndarray
     log_volume_se: np.ndarray
-    coverage: np.ndarray
-    n_coverage: np.ndarray
     allocation: np.ndarray
     n_proposed: np.ndarray
     n_accepted: np.ndarray
     death: np.ndarray
 
-    FLOATS = ("log_z", "log_z_se", "log_z_next", "log_z_next_se", "log_volume", "log_volume_se",
-              "coverage", "allocation")
-    INTS = ("n_coverage", "n_proposed", "n_accepted", "death")
-
-
-@dataclass(frozen=True, eq=False)
-class Tested:
-    """The coverage test of the bounds that proposed a population's new particles, point by
-    point: the previous population's particles (``which``, ``distances``) and each one's
-    part in its model's test (``flags``, :func:`abcns.bounds.coverage_test` codes)."""
-
-    which: np.ndarray
-    distances: np.ndarray
-    flags: np.ndarray
-
-    def below(self, epsilon: float, n_models: int) -> tuple[np.ndarray, np.ndarray]:
-        """(coverage, points tested) of each model's bound on its tested points below
-        ``epsilon``: the bound's coverage of the region there (:func:`abcns.bounds.coverage_of`)."""
-        out = [bd.coverage_of(self.flags[(self.which == m) & (self.distances < epsilon)]) for m in range(n_models)]
-        return np.array([c for c, _ in out]), np.array([n for _, n in out])
+    FLOATS = ("log_z", "log_z_se", "log_z_next", "log_z_next_se", "log_volume", "log_volume_se", "allocation")
+    INTS = ("n_proposed", "n_accepted", "death")
 
 
 def log_share(k: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -98,56 +66,13 @@ def log_share(k: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     (1 - a) / (n a), evaluated at the Agresti-Coull estimate a = (k + 2) / (n + 4) (two
     successes and two failures added): (n - k + 2) / ((n + 4)(k + 2)). At a = k / n it would
     rest on the count of the rarer outcome, which is the error's own source: an acceptance
-    near 1 with fewer rejections than due is too high and its variance too small at once
-    (docs/design.md, "The evidence's standard error"). Infinite where n = 0."""
+    near 1 with fewer rejections than due is too high and its variance too small at once.
+    Infinite where n = 0."""
     k, n = np.asarray(k, float), np.asarray(n, float)
     with np.errstate(divide="ignore", invalid="ignore"):
         log = np.where(k > 0, np.log(k / np.maximum(n, 1.0)), np.log(0.5 / (n + 1.0)))
         var = np.where(n > 0, (n - k + 2.0) / ((n + 4.0) * (k + 2.0)), np.inf)
     return log, var
-
-
-def log_coverage_variance(coverage: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Variance of log c for a coverage c measured by ``bounds.coverage`` on n points: the
-    binomial error of the held-out share (at least one point's worth), plus the error of its
-    1/n correction, which halves the share the half-fits miss and is uncertain by as much as
-    it corrects (1 - c); zero where nothing was measured (n = 0)."""
-    c, n = np.asarray(coverage, float), np.asarray(n, float)
-    m = np.maximum(n, 1.0)
-    return np.where(n > 0, np.maximum(1.0 - c, 1.0 / m) / (np.maximum(c, 1e-12) * m) + (1.0 - c) ** 2, 0.0)
-
-
-def coverage_term_next(var_c: np.ndarray, w_pred: np.ndarray) -> np.ndarray:
-    """What log c adds to the variance of the prediction log Z + log r + log c - log c'.
-
-    log Z holds -log c with the direct estimate's weight 1 - w (w: the prediction's weight),
-    so the sum holds +log c with weight w: its variance w^2 var_c replaces the (1 - w)^2 var_c
-    log Z carries, a change of (2 w - 1) var_c. Without c' measured (:func:`coverage_ratio`)
-    the prediction takes c' = 1, the bound's misses outside the region at the next tolerance;
-    at worst they lie inside it, which is then short of at most (1 - c) / r: that share enters
-    as an error of its own size (``unmeasured``)."""
-    return (2.0 * np.asarray(w_pred, float) - 1.0) * var_c
-
-
-def unmeasured(coverage: np.ndarray, log_r: np.ndarray) -> np.ndarray:
-    """The variance of log c' taken as 0 where it is not measured: ((1 - c) / r)^2, at most 1
-    (:func:`coverage_term_next`)."""
-    r = np.exp(np.minimum(np.asarray(log_r, float), 0.0))
-    return np.minimum((1.0 - np.asarray(coverage, float)) / np.maximum(r, 1e-12), 1.0) ** 2
-
-
-def coverage_ratio(coverage: np.ndarray, coverage_next: np.ndarray,
-                   n_next: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(log(c / c'), the variance log c' adds) for a bound's coverage c of a region and c'
-    of the smaller region at the next tolerance, measured on the ``n_next`` tested points
-    inside it (:meth:`Tested.below`). log c' is a coverage measured like c and carries
-    :func:`log_coverage_variance` as c does, its halving law's uncertainty included; its
-    covariance with log c (its points are a subset of c's) is not subtracted. The delta
-    method's smaller variance of log(c / c') (the two shares' binomial errors and (c - c')^2
-    for the halving) was measured too small: on the cyclic tests' copies (18 runs replayed)
-    their split's z-scores had sd 1.15, against 0.98 with this one (docs/design.md)."""
-    c, c1 = np.maximum(np.asarray(coverage, float), 1e-12), np.maximum(np.asarray(coverage_next, float), 1e-12)
-    return np.log(c) - np.log(c1), log_coverage_variance(c1, n_next)
 
 
 def combine(a: np.ndarray, var_a: np.ndarray, b: np.ndarray, var_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -231,59 +156,33 @@ class Estimate:
     se_next: np.ndarray
 
 
-def estimate(which: np.ndarray, distances: np.ndarray, is_new: np.ndarray, epsilon_next: float,
-             n_proposed: np.ndarray, n_accepted: np.ndarray, previous: Evidence | None,
-             tested: Tested | None = None) -> Estimate:
-    """The evidence of population t from its counts and the previous population's evidence
-    (its prediction at eps_t and its bounds' geometry): the two estimates of log Z at eps_t
-    combined by inverse variance, then the prediction at ``epsilon_next``. ``which``: each
-    particle's model; ``is_new``: drawn in this population (not a survivor); ``previous``
-    None for the first population (rejection from the priors: Z = accepted / proposed,
-    exactly); ``tested``: the previous population's coverage test, point by point (None:
-    not recorded; the prediction then takes c' = 1). docs/design.md, "The evidence's
-    standard error", derives every term."""
+def estimate(which: np.ndarray, distances: np.ndarray, epsilon: float, epsilon_next: float, n_proposed: np.ndarray,
+             n_accepted: np.ndarray, previous: Evidence | None, mixture: Mixture) -> Estimate:
+    """The evidence of population t (accepted at ``epsilon``; ``which``, ``distances``: its
+    particles' models and distances) from the ``mixture`` grown with it: log Z at
+    ``epsilon`` and at ``epsilon_next`` (the prediction), each with its variance. A model
+    alive now (:func:`alive`; ``previous``: the previous population's evidence, None for
+    the first) with no particle below ``epsilon`` (a copy whose twin's particles drew its
+    bound, none of its proposals accepted) takes log Z from this population's acceptance,
+    0 of n, in its region: log((1/2) / (n + 1)) + log V (:func:`log_share`; finite: a share
+    of zero must not declare a model dead on its own). A model with none of this
+    population's particles below ``epsilon_next`` has no prediction there (-inf: it dies,
+    or is relayed by its twin, ``abcns.nested._relayed``)."""
     n_models = n_proposed.shape[0]
     counts = np.bincount(which, minlength=n_models)
     alive_now = alive(counts, n_proposed, previous)
-    if previous is None:
-        log_z, var_z = log_share(n_accepted, n_proposed)
-        cover, var_c, w_pred = np.ones(n_models), np.zeros(n_models), np.zeros(n_models)
-    else:
+    log_z, var_z = mixture.log_z(epsilon)
+    if previous is not None:
         log_a, var_a = log_share(n_accepted, n_proposed)
-        cover = np.where(previous.n_coverage > 0, np.maximum(previous.coverage, 1e-12), 1.0)
-        var_c = log_coverage_variance(cover, previous.n_coverage)
-        direct = log_a + previous.log_volume - np.log(cover)
-        var_pred = previous.log_z_next_se**2
-        # a coverage not measured (fewer than 4 of the bound's new particles) is unknown, not 1:
-        # a bound fitted to a few survivors can miss most of the region, so the direct estimate
-        # then has no weight and the prediction carries log Z
-        var_direct = np.where(previous.n_coverage > 0, var_a + previous.log_volume_se**2 + var_c, np.inf)
-        log_z, var_z = combine(previous.log_z_next, var_pred, direct, var_direct)
-        with np.errstate(invalid="ignore"):  # the prediction's weight in the combination
-            w_pred = np.where(np.isfinite(var_pred), np.nan_to_num(var_z / var_pred, nan=1.0, posinf=1.0), 0.0)
+        none = ~np.isfinite(log_z) & np.isfinite(previous.log_volume)
+        log_z = np.where(none, log_a + previous.log_volume, log_z)
+        var_z = np.where(none, var_a + previous.log_volume_se**2, var_z)
     log_z = np.where(alive_now, log_z, -np.inf)
     var_z = np.where(alive_now, var_z, np.inf)
     p_now, _ = probabilities(log_z, np.sqrt(var_z))
-
-    # the prediction at eps_next: the share of each model's new particles below it, times
-    # c / c' (the coverages of the regions at eps_t and eps_next by the bound they were drawn
-    # from; c' = 1 where it is not measured: the bound's misses then taken at the region's edge)
-    below = distances < epsilon_next
-    k_new = np.bincount(which, weights=is_new & below, minlength=n_models)
-    n_new = np.bincount(which, weights=is_new, minlength=n_models)
-    k_all = np.bincount(which, weights=below, minlength=n_models)
-    k_r, n_r = np.where(n_new > 0, k_new, k_all), np.where(n_new > 0, n_new, counts)
-    log_r, var_r = log_share(k_r, n_r)
-    capacity = k_all > 0
-    if previous is not None and tested is not None:
-        cover_next, n_next = tested.below(epsilon_next, n_models)
-        measured = (previous.n_coverage > 0) & (n_next > 0)
-        log_q, var_q = coverage_ratio(cover, cover_next, n_next)
-    else:
-        measured, log_q, var_q = np.zeros(n_models, bool), np.zeros(n_models), np.zeros(n_models)
-    log_q = np.where(measured, log_q, np.log(cover))
-    var_q = np.where(measured, var_q, unmeasured(cover, log_r))
-    log_z_next = np.where(capacity, log_z + log_r + log_q, -np.inf)
-    var_next = np.where(capacity, var_z + var_r + (coverage_term_next(var_c, w_pred) + var_q), np.inf)
-    p_next, se_next = probabilities(log_z_next, np.sqrt(var_next))
-    return Estimate(log_z, var_z, log_z_next, var_next, p_now, p_next, se_next)
+    capacity = np.bincount(which, weights=distances < epsilon_next, minlength=n_models) > 0
+    log_next, var_next = mixture.log_z(epsilon_next)
+    log_next = np.where(capacity & np.isfinite(log_z), log_next, -np.inf)
+    var_next = np.where(np.isfinite(log_next), var_next, np.inf)
+    p_next, se_next = probabilities(log_next, np.sqrt(var_next))
+    return Estimate(log_z, var_z, log_next, var_next, p_now, p_next, se_next)

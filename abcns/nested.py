@@ -44,6 +44,7 @@ from abcns import evidence as ev
 from abcns import likelihood
 from abcns.executor import Executor
 from abcns.filling import Budget, Filled, Filling, Stopped, draw_inside, fill, population_rng
+from abcns.mixture import HELD, NOT_FITTED, OUTSIDE, Mixture, held_without
 from abcns.noise import Floor, Noise, Standing, Tracker, standing, standings, waited_for
 from abcns.priors import Model, same_models
 from abcns.rejection import initial_epsilon, pad, population_from, prior_proposer
@@ -79,8 +80,8 @@ def ns_weights(distances: np.ndarray, epsilon: float, epsilon_next: float, form:
 
 
 def geometry_rng(seed: int, t: int) -> np.random.Generator:
-    """The generator of population t's bound geometry (volume and coverage Monte Carlo):
-    its own stream, so the paper variant's survivors are unchanged by it."""
+    """The generator of population t's bound geometry (its volume's Monte Carlo): its own
+    stream, so the paper variant's survivors are unchanged by it."""
     return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(t, 0, 1)))
 
 
@@ -92,9 +93,9 @@ def geometry_rng(seed: int, t: int) -> np.random.Generator:
 VOLUME_DRAWS = 10_000
 
 
-#: a model's bound geometry (log prior mass, its standard error, coverage, points tested, and
-#: its particles' rows with their parts in the coverage test: ``bounds.coverage_test`` codes)
-GeometryResult = tuple[float, float, float, int, tuple[np.ndarray, np.ndarray]]
+#: a model's bound geometry (log prior mass, its standard error, and its particles' rows with
+#: their parts in the bound: ``abcns.mixture`` codes, ``Population.held``)
+GeometryResult = tuple[float, float, tuple[np.ndarray, np.ndarray]]
 #: its measurement, given the population's geometry generator
 Geometry = Callable[[np.random.Generator], GeometryResult]
 
@@ -102,10 +103,10 @@ Geometry = Callable[[np.random.Generator], GeometryResult]
 @dataclass(frozen=True, eq=False)
 class Step:
     """What finishing a population gives (see :func:`finish_population`): everything the next
-    population's proposals need. The geometry of the new bounds (their prior volume and the
-    share of the accepted region they hold), which only the evidence of the *next* population
-    uses, is measured by :meth:`evidence`, so a runner can overlap it with the next
-    population's simulations."""
+    population's proposals need. The geometry of the new bounds (their prior volume, and which
+    of the particles each was fitted to it holds refitted without them), which only the
+    evidence of the *next* population uses, is measured by :meth:`evidence`, so a runner can
+    overlap it with the next population's simulations."""
 
     epsilon_next: float
     weights: np.ndarray
@@ -119,20 +120,17 @@ class Step:
     kept: tuple[int, ...] = ()  # the models whose thin reading held eps_next up (:func:`abcns.likelihood.kept`)
 
     def evidence(self, geometry: np.random.Generator) -> tuple[ev.Evidence, np.ndarray]:
-        """(the population's evidence bookkeeping, each particle's part in its model's coverage
-        test: ``Population.coverage_test``), its bounds' geometry measured now with ``geometry``
+        """(the population's evidence bookkeeping, each particle's part in its model's new
+        bound: ``Population.held``), its bounds' geometry measured now with ``geometry``
         (used model by model, in model order)."""
         c = self.counted
-        log_volume, log_volume_se, cover, n_cover = (c.log_volume.copy(), c.log_volume_se.copy(), c.coverage.copy(),
-                                                     c.n_coverage.copy())
-        tested = np.full(self.weights.shape[0], bd.UNTESTED, np.int8)
+        log_volume, log_volume_se = c.log_volume.copy(), c.log_volume_se.copy()
+        held = np.full(self.weights.shape[0], NOT_FITTED, np.int8)
         for m, job in enumerate(self.geometry_jobs):
             if job is not None:
-                log_volume[m], log_volume_se[m], cover[m], n_cover[m], (rows, flags) = job(geometry)
-                tested[rows] = flags
-        evidence = dataclasses.replace(c, log_volume=log_volume, log_volume_se=log_volume_se, coverage=cover,
-                                       n_coverage=n_cover)
-        return evidence, tested
+                log_volume[m], log_volume_se[m], (rows, flags) = job(geometry)
+                held[rows] = flags
+        return dataclasses.replace(c, log_volume=log_volume, log_volume_se=log_volume_se), held
 
 
 def finish_population(
@@ -146,6 +144,7 @@ def finish_population(
     is_new: np.ndarray,
     filled: Filled,
     previous: Population | None,
+    mixture: Mixture,
     settings: NSSettings,
     rng: np.random.Generator,
     lower: float | None = None,
@@ -153,7 +152,8 @@ def finish_population(
     holding: Keep | None = None,
 ) -> Step:
     """eps_next (:func:`next_tolerance`, not below ``lower``, raised by ``holding``: :func:`_next`),
-    weights per model, the evidence (``abcns.evidence.estimate``), what the variant decides
+    weights per model, the evidence (``abcns.evidence.estimate``, from the ``mixture`` grown
+    with this population: ``abcns.mixture``), what the variant decides
     (``abcns.variants``: deaths, but not of the ``spared``, survivors, bounds, allocation);
     the evidence once :meth:`Step.evidence` has measured the bounds. All particles at one
     distance: eps_next is eps_t (``Step.tied``), the run must stop."""
@@ -161,9 +161,9 @@ def finish_population(
     n_proposed, n_accepted = filled.counts(n_models)
     previous_evidence = previous.evidence if previous is not None else None
     assert previous is None or previous_evidence is not None
-    found, eps_next, est, kept = _next(epsilon, which, distances, is_new, n_proposed, n_accepted, previous_evidence,
-                                       _tested(previous), settings.n_drop, lower, holding)
-    copies = same_models(models) if variant.cross_validated else [[] for _ in models]
+    found, eps_next, est, kept = _next(epsilon, which, distances, n_proposed, n_accepted, previous_evidence, mixture,
+                                       settings.n_drop, lower, holding)
+    copies = same_models(models) if variant.fits_all else [[] for _ in models]
     est, relayed = _relayed(models, copies, which, theta, distances < eps_next, is_new, est)
     raw = ns_weights(distances, epsilon, eps_next, settings.weights)
     counts, positive = np.bincount(which, minlength=n_models), raw > 0
@@ -193,32 +193,24 @@ def finish_population(
         survivors[keep] = True
         frame = frames[m]
         others = np.flatnonzero(np.isin(which, copies[m]) & positive) if copies[m] else None
-        points, new = _fitted_points(model, frame, theta, rows, is_new, others)
+        points = _fitted_points(model, frame, theta, rows, others)
         prev_bound = previous.ellipsoids[m] if previous is not None else ()
         bound = variant.bound(points, theta[np.sort(keep), : model.n_dim], frame, _fallback(prev_bound, frame, settings))
         notes += [f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)" for e in bound if e.note]
         bounds.append(bound)
-        geometry_jobs.append(_geometry_job(bound, frame, points, new, rows,
-                                           settings.enlargement if variant.cross_validated else None))
+        geometry_jobs.append(_geometry_job(bound, frame, points, rows,
+                                           settings.enlargement if variant.fits_all else None,
+                                           settings.n_ellipsoids))
 
     acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
     alloc, probabilities = variant.proposals(models, est, counts, acceptance, alive_next)
     counted = ev.Evidence(log_z=est.log_z, log_z_se=np.sqrt(est.var_z), log_z_next=est.log_z_next,
                           log_z_next_se=np.sqrt(est.var_next), log_volume=np.full(n_models, np.nan),
-                          log_volume_se=np.full(n_models, np.nan), coverage=np.ones(n_models),
-                          n_coverage=np.zeros(n_models, dtype=np.int64), allocation=alloc, n_proposed=n_proposed,
+                          log_volume_se=np.full(n_models, np.nan), allocation=alloc, n_proposed=n_proposed,
                           n_accepted=n_accepted, death=death)
     notes += _tolerance_notes(t, models, float(distances[0]), found, eps_next, kept)
     return Step(eps_next, weights, survivors, tuple(bounds), probabilities, notes, counted, tuple(geometry_jobs),
                 tied=found is None, kept=tuple(kept))
-
-
-def _tested(previous: Population | None) -> ev.Tested | None:
-    """The coverage test of the bounds that proposed this population: the previous one's,
-    point by point (None: none, or a population recorded without it)."""
-    if previous is None or previous.coverage_test is None:
-        return None
-    return ev.Tested(previous.models, previous.distances, previous.coverage_test)
 
 
 def _survival_notes(t: int, models: Sequence[Model], est: ev.Estimate, death: np.ndarray, dying: np.ndarray,
@@ -256,22 +248,22 @@ def _tolerance_notes(t: int, models: Sequence[Model], first: float, found: float
 Keep = Callable[[float, np.ndarray, np.ndarray], tuple[float, list[int]]]
 
 
-def _next(epsilon: float, which: np.ndarray, distances: np.ndarray, is_new: np.ndarray, n_proposed: np.ndarray,
-          n_accepted: np.ndarray, previous: ev.Evidence | None, tested: ev.Tested | None, n_drop: int,
-          lower: float | None, keep: Keep | None) -> tuple[float | None, float, ev.Estimate, list[int]]:
+def _next(epsilon: float, which: np.ndarray, distances: np.ndarray, n_proposed: np.ndarray, n_accepted: np.ndarray,
+          previous: ev.Evidence | None, mixture: Mixture, n_drop: int, lower: float | None,
+          keep: Keep | None) -> tuple[float | None, float, ev.Estimate, list[int]]:
     """(the tolerance the distances give, :func:`next_tolerance`; eps_next; the evidence
     estimate at it; the models ``keep`` raised eps_next for). ``keep`` is asked with the
     population's log Z (which does not depend on eps_next), and the estimate made again at
     the raised eps_next."""
     found = next_tolerance(distances, n_drop, lower)
     eps_next = epsilon if found is None else found
-    est = ev.estimate(which, distances, is_new, eps_next, n_proposed, n_accepted, previous, tested)
+    est = ev.estimate(which, distances, epsilon, eps_next, n_proposed, n_accepted, previous, mixture)
     if keep is None or found is None:
         return found, eps_next, est, []
     raised, kept = keep(eps_next, est.log_z, np.sqrt(est.var_z))
     if not kept:
         return found, eps_next, est, []
-    return found, raised, ev.estimate(which, distances, is_new, raised, n_proposed, n_accepted, previous, tested), kept
+    return found, raised, ev.estimate(which, distances, epsilon, raised, n_proposed, n_accepted, previous, mixture), kept
 
 
 def _relayed(models: Sequence[Model], copies: Sequence[Sequence[int]], which: np.ndarray, theta: np.ndarray,
@@ -320,41 +312,36 @@ def _fallback(previous_bound: bd.Union, frame: bd.Frame, settings: NSSettings) -
     return ell.from_matrix(largest.centre, largest.matrix / settings.enlargement)
 
 
-def _fitted_points(model: Model, frame: bd.Frame, theta: np.ndarray, rows: np.ndarray, is_new: np.ndarray,
-                   others: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """The points model m's bound is fitted to, in its frame, and which of them test its
-    coverage: its particles below the next tolerance (``rows``; its new ones test), then those
-    of the models it is the same model as (``others``, their rows; None: it has none) inside
-    its prior box, which never test (drawn under another prior, they are not uniform in m's
-    region)."""
+def _fitted_points(model: Model, frame: bd.Frame, theta: np.ndarray, rows: np.ndarray,
+                   others: np.ndarray | None) -> np.ndarray:
+    """The points model m's bound is fitted to, in its frame: its particles below the next
+    tolerance (``rows``), then those of the models it is the same model as (``others``, their
+    rows; None: it has none) inside its prior box."""
     points = frame.to_frame(theta[rows, : model.n_dim])
     if others is None or not others.size:
-        return points, is_new[rows]
+        return points
     other = theta[others, : model.n_dim]
-    other = other[model.in_prior(other)]
-    return np.vstack([points, frame.to_frame(other)]), np.concatenate([is_new[rows], np.zeros(other.shape[0], bool)])
+    return np.vstack([points, frame.to_frame(other[model.in_prior(other)])])
 
 
-def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, new: np.ndarray, rows: np.ndarray,
-                  enlargement: float | None) -> Geometry:
+def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, rows: np.ndarray,
+                  enlargement: float | None, max_ellipsoids: int) -> Geometry:
     """The measurement of one model's new bound, for :meth:`Step.evidence`: (log prior mass
-    of the bound, its standard error, the share of the accepted region it holds, points
-    tested, and (``rows``, their parts in the test): the population's rows of the first
-    ``rows.size`` of ``points``, the model's own). The coverage is cross-validated on the
-    ``new`` points (uniform in the region sampled) when the bound is a fit of ``points`` with
-    this ``enlargement`` (the evidence variant), else the share of ``points`` the bound holds
-    (no point tested); then the volume by Monte Carlo."""
+    of the bound by Monte Carlo, its standard error, and (``rows``, their parts in the bound:
+    ``abcns.mixture`` codes): the population's rows of the first ``rows.size`` of ``points``,
+    the model's own, each HELD or OUTSIDE by the bound refitted without it
+    (:func:`abcns.mixture.held_without`) when the bound is ``bounds.fit_union``'s of
+    ``points`` with this ``enlargement`` (the evidence variant); else NOT_FITTED (the
+    paper's bound, fitted to the survivors: the mixture reads their membership as it is)."""
 
     def measure(geometry: np.random.Generator) -> GeometryResult:
         if enlargement is not None:
-            flags = bd.coverage_test(points, bound, enlargement, geometry, new)
-            cover, n_cover = bd.coverage_of(flags)
-            tested = (rows, flags[: rows.size])
+            held = held_without(points, rows.size, bound, enlargement, max_ellipsoids)
+            flags = np.where(held, HELD, OUTSIDE).astype(np.int8)
         else:
-            cover, n_cover = float(np.mean(ell.n_containing(bound, points) > 0)), points.shape[0]
-            tested = (rows[:0], np.zeros(0, np.int8))
+            flags = np.full(rows.size, NOT_FITTED, np.int8)
         log_v, log_v_se = bd.union_volume(bound, frame.box, VOLUME_DRAWS, geometry)
-        return log_v - frame.log_box_volume, log_v_se, cover, n_cover, tested
+        return log_v - frame.log_box_volume, log_v_se, (rows, flags)
 
     return measure
 
@@ -480,7 +467,10 @@ class _Run:
         self.frames = [bd.Frame(m, unit=self.variant.unit_box) for m in models]
         self.floors = Tracker(noise, models, history)
         self.decisions = [None if p.floor is None else p.floor.decision for p in history]
-        self.shells = likelihood.records(history) if self.variant.reads_floor else []  # the reading so far
+        self.dims = [m.n_dim for m in models]
+        # every particle so far in the mixture of the regions that proposed them: the evidence
+        # and the likelihood reading (abcns.mixture), grown again over a resumed run's history
+        self.mixture = Mixture.of(history, self.frames, self.dims)
         self.at_floor = self.variant.reads_floor and stop.noise_floor and noise is not None
         # the first population accepted at the decision tolerance or below (:meth:`held`)
         self.first_reached = next((p.t for p, mark in zip(history, standings(history), strict=True)
@@ -505,23 +495,20 @@ class _Run:
         runs ahead starts simulating) before this one's bound geometry is measured."""
         floor = self.floors.after(which, distances)
         lower = floor.decision if self.at_floor and floor is not None else None
-        # this population's record for the reading, given its eps_next and evidence
-        now = functools.partial(likelihood.Record, which[is_new], theta[is_new], distances[is_new], eps)
+        before = self.mixture if self.variant.reads_floor else None  # the reading without this population
+        self.mixture = self.mixture.grown(previous, eps, which, theta, distances, is_new, filled.counts(len(self.models))[0])
 
         def spared(eps_next: float, log_z: np.ndarray, log_z_se: np.ndarray) -> np.ndarray | None:
-            return likelihood.spared(self.shells, [m.n_dim for m in self.models], floor,
-                                     self.settings.death_probability, now(eps_next, log_z, log_z_se))
+            return likelihood.spared(before, self.dims, floor, self.settings.death_probability, self.mixture)
 
         step = finish_population(self.models, self.frames, t, eps, which, theta, distances, is_new, filled, previous,
-                                 self.settings, population_rng(self.seed, t), lower, spared,
-                                 self.keeper(floor, now, which, distances))
+                                 self.mixture, self.settings, population_rng(self.seed, t), lower,
+                                 spared if before is not None else None, self.keeper(floor, which, distances))
         self.notes.extend(step.notes)
         self.decisions.append(None if floor is None else floor.decision)
         mark = standing(eps, floor if previous is None else previous.floor)
         if self.first_reached is None and mark is not None and mark.reached:
             self.first_reached = t
-        if self.variant.reads_floor:
-            self.shells.append(now(step.epsilon_next, step.counted.log_z, step.counted.log_z_se))
         held = self.held(t, mark, floor, step.model_probabilities > 0)
         reason = _stop_reason(self.stop, self.at_floor, t, eps, step.epsilon_next, step.tied, mark, self.decisions,
                               bool(held), bool(step.kept))
@@ -536,30 +523,26 @@ class _Run:
         if reason is None and self.budget.reason() is None:
             self.pending = self.start(t + 1, step.epsilon_next, step.bounds, step.counted.allocation,
                                       int(np.count_nonzero(step.survivors)))
-        evidence, tested = step.evidence(geometry_rng(self.seed, t))
+        evidence, held_flags = step.evidence(geometry_rng(self.seed, t))
         pop = population_from(
             t, eps, step.epsilon_next, which, theta, distances, step.weights, filled, self.budget.elapsed(),
             step.model_probabilities, survivors=step.survivors, ellipsoids=step.bounds,
-            evidence=evidence, coverage_test=tested, floor=floor, standing=mark,
+            evidence=evidence, held=held_flags, floor=floor, standing=mark,
         )
         return pop, reason
 
-    def keeper(self, floor: Floor | None, now: Callable[..., likelihood.Record], which: np.ndarray,
-               distances: np.ndarray) -> Keep | None:
+    def keeper(self, floor: Floor | None, which: np.ndarray, distances: np.ndarray) -> Keep | None:
         """What raises population t's next tolerance for a model that would leave the run on a
-        thin reading (:func:`abcns.likelihood.kept`: the reading so far and this population's
-        record, ``now(eps_next, log_z, log_z_se)``; ``which``, ``distances``: all its particles);
-        None for a run without a reading. (Death by
+        thin reading (:func:`abcns.likelihood.kept`: the reading with this population, whose
+        particles are ``which``, ``distances``); None for a run without a reading. (Death by
         probability takes its probability from the reading so far, without this population's
         particles (:func:`abcns.likelihood.spared`): read with them, the losing cubic-quintic of the
         exact-Bayes benchmark left one population earlier in seeds 2 and 4, on 10-11
         effective particles, its ln Bayes factor 2.4 and 1.4 nats low, against 0.4 and 0.2.)"""
         if not self.variant.reads_floor or floor is None:
             return None
-        dims = [m.n_dim for m in self.models]
-
         def keep(eps_next: float, log_z: np.ndarray, log_z_se: np.ndarray) -> tuple[float, list[int]]:
-            return likelihood.kept([*self.shells, now(eps_next, log_z, log_z_se)], dims, floor, which, distances)
+            return likelihood.kept(self.mixture, self.dims, floor, eps_next, which, distances)
 
         return keep
 
@@ -578,7 +561,7 @@ class _Run:
         if not (self.at_floor and mark is not None and mark.reached and self.first_reached is not None
                 and t - self.first_reached < likelihood.HELD_POPULATIONS):
             return []
-        thin = likelihood.thin(self.shells, [m.n_dim for m in self.models], floor, alive)
+        thin = likelihood.thin(self.mixture, self.dims, floor, alive)
         return [m.name for m, is_thin in zip(self.models, thin, strict=True) if is_thin]
 
     def populations(self, history: Sequence[Population]) -> Generator[Population, None, RunEnd]:

@@ -13,9 +13,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from abcns import run_warnings
+from abcns.bounds import Frame
 from abcns.ellipsoid import Ellipsoid
 from abcns.evidence import DEAD_BEFORE, DEATH_RULES, Evidence, probabilities
-from abcns.likelihood import Reading, enough, of_floor, read, records
+from abcns.likelihood import Reading, enough, of_floor, read
+from abcns.mixture import Mixture
 from abcns.noise import Floor, Standing, standings, waited_for
 from abcns.priors import Model
 from abcns.settings import DEATH_PROBABILITY, StopReason
@@ -47,11 +49,10 @@ class Population:
     their distance's noise model, else None). ``standing`` is where ``epsilon`` stands to
     the decision tolerance in force when it was chosen (:class:`abcns.noise.Standing`: set by
     it, above or below it; None without a floor, or where the population was made without the
-    record: :func:`abcns.noise.standings` then gives it from the floors). ``coverage_test``
-    (ABC-NS, else None) is each particle's part in the cross-validation of its model's new
-    bound (:func:`abcns.bounds.coverage_test`: -1 untested, 0 outside the bound, 1 missed by
-    its half-fits, 2 held), from which the next population's evidence reads the bound's
-    coverage below the next tolerance (:class:`abcns.evidence.Tested`).
+    record: :func:`abcns.noise.standings` then gives it from the floors). ``held`` (ABC-NS,
+    else None) is each particle's part in its model's new bound (``abcns.mixture`` codes: -1
+    not fitted to it, 0 outside the bound refitted without it, 1 held by it), from which the
+    evidence's mixture reads the bound's membership of the particles it was fitted to.
     """
 
     t: int
@@ -74,7 +75,7 @@ class Population:
     n_failed_by_model: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     floor: Floor | None = None
     standing: Standing | None = None
-    coverage_test: np.ndarray | None = None
+    held: np.ndarray | None = None
 
     @property
     def acceptance_rate(self) -> float:
@@ -229,7 +230,10 @@ class Result:
                 or any(p.evidence is None for p in self.populations) or not self.floor_settled):
             return None
         log_l = of_floor(floor)
-        return None if log_l is None else read(records(self.populations), [m.n_dim for m in self.models], log_l)
+        if log_l is None:
+            return None
+        dims = [m.n_dim for m in self.models]
+        return read(Mixture.of(self.populations, [Frame(m, unit=True) for m in self.models], dims), dims, log_l)
 
     def answer_draws(self, model: int) -> tuple[np.ndarray, np.ndarray, str]:
         """(theta (n, d), weights (n,) summing to 1, how) of one model in the run's answer.

@@ -93,8 +93,8 @@ class Paper:
         theta for a log-uniform prior), enlarged by f0."""
         return tuple(ell.fit_many([frame.to_frame(survivors)], fallback, enlargement=self.settings.enlargement))
 
-    #: the bound is not a fit of every point below eps_{t+1}: its coverage is the share it holds
-    cross_validated = False
+    #: the bound is not a fit of every point below eps_{t+1}: the mixture reads its membership as it is
+    fits_all = False
     #: bounds in raw parameter units, proposals pick an alive model with equal probability, and
     #: the run neither stops at its noise floor nor reads by the likelihood
     unit_box = allocates = reads_floor = False
@@ -153,8 +153,9 @@ class Evidence:
         the unit box)."""
         return bd.fit_union(points, self.settings.enlargement, self.settings.n_ellipsoids, fallback)
 
-    #: the bound is a fit of every point below eps_{t+1}: its coverage is cross-validated
-    cross_validated = True
+    #: the bound is a fit of every point below eps_{t+1}: the mixture reads its membership of
+    #: those points leave-one-out (``abcns.mixture.held_without``)
+    fits_all = True
     #: bounds in each model's unit prior box; proposals by the evidence's allocation; the run
     #: stops at its noise floor (``StopRules.noise_floor``) and reads by the likelihood
     unit_box = allocates = reads_floor = True

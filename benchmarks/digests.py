@@ -58,8 +58,8 @@ def population_digests(pop: Population) -> dict[str, str]:
     }
     if pop.survivors is not None:
         out["survivors"] = _sha(pop.survivors)
-    if pop.coverage_test is not None:
-        out["coverage_test"] = _sha(pop.coverage_test)
+    if pop.held is not None:
+        out["held"] = _sha(pop.held)
     if pop.ellipsoids:
         parts = []
         for bound in pop.ellipsoids:

@@ -83,39 +83,6 @@ def balls_4_and_5_log_evidence(eps):
     return np.log([np.pi**2 / 2 * (eps / 2) ** 4, 8 * np.pi**2 / 15 * eps**5])
 
 
-def _uniform_ball(centre, radius, n, rng):
-    d = len(centre)
-    g = rng.standard_normal((n, d))
-    g /= np.linalg.norm(g, axis=1)[:, None]
-    return np.asarray(centre) + radius * g * (rng.random(n) ** (1.0 / d))[:, None]
-
-
-def two_models_region(m, eps, n, rng, a=(5.0, 20.0)):
-    """n draws of model m's theta given |s - S_OBS| < eps (:func:`two_models`), in its unit
-    prior box: the accepted mass the evidence counts (rejection from theta within 8 of the
-    data, where all but 1e-15 of it lies)."""
-    lo, hi = max(-a[m], S_OBS - eps - 8), min(a[m], S_OBS + eps + 8)
-    out, got = [], 0
-    while got < n:
-        theta = rng.uniform(lo, hi, 4 * n)
-        keep = theta[np.abs(theta + rng.standard_normal(theta.size) - S_OBS) < eps]
-        out.append(keep)
-        got += keep.size
-    return ((np.concatenate(out)[:n] + a[m]) / (2 * a[m]))[:, None]
-
-
-def line_and_disc_region(m, eps, n, rng, x0=0.3, y0=0.6):
-    """n points uniform in model m's accepted set of :func:`line_and_disc` (eps <= 0.3)."""
-    if m == 0:
-        return (x0 + eps * (2 * rng.random(n) - 1))[:, None]
-    return _uniform_ball((x0, y0), eps, n, rng)
-
-
-def balls_4_and_5_region(m, eps, n, rng):
-    """n points uniform in model m's accepted ball of :func:`balls_4_and_5` (eps <= 0.5)."""
-    return _uniform_ball(np.full(4 + m, 0.5), eps / 2 if m == 0 else eps, n, rng)
-
-
 def uniform_and_log(x0=0.1, low=0.01, high=1.0):
     """One deterministic distance ``|x - x0|`` under two priors on x: U(low, high) and
     log-uniform on [low, high] (``[low, high, "log"]``)."""
@@ -138,15 +105,6 @@ def uniform_and_log_log_evidence(eps, low=0.01, high=1.0):
     return np.log([(b - a) / (high - low), np.log(b / a) / np.log(high / low)])
 
 
-def uniform_and_log_region(m, eps, n, rng, low=0.01, high=1.0):
-    """n draws of model m's accepted x at eps, in its unit prior box (log x's for the log prior)."""
-    a, b = uniform_and_log_window(eps, low=low, high=high)
-    if m == 0:
-        return ((a + (b - a) * rng.random(n) - low) / (high - low))[:, None]
-    lo, hi = (np.log(v / low) / np.log(high / low) for v in (a, b))
-    return (lo + (hi - lo) * rng.random(n))[:, None]
-
-
 
 def needle(x_needle=0.0003, slope=1000.0, x_broad=0.7, offset=0.05):
     """A distance with two basins on x in [1e-4, 1]: a broad one, ``|x - x_broad| + offset``,
@@ -154,8 +112,7 @@ def needle(x_needle=0.0003, slope=1000.0, x_broad=0.7, offset=0.05):
     needle holds 2 eps / slope of the prior at eps, 1/500 of the broad basin's at eps 0.1;
     under the log-uniform prior on the same range, a third. Models ``uniform`` and ``log``
     (``same_model_as`` uniform) over that one distance. Returns (models, evaluate, the exact
-    log Z of each at eps, region(m, eps, n, rng): n draws of model m's accepted x in its
-    unit prior box)."""
+    log Z of each at eps)."""
     low, high = 1e-4, 1.0
     models = [Model("uniform", {"x": (low, high)}), Model("log", {"x": (low, high, "log")}, same_model_as="uniform")]
 
@@ -175,9 +132,4 @@ def needle(x_needle=0.0003, slope=1000.0, x_broad=0.7, offset=0.05):
     def log_evidence(eps):
         return np.log([sum(b - a for a, b in pieces(m, eps)) for m in (0, 1)])
 
-    def region(m, eps, n, rng):
-        ends = np.array(pieces(m, eps))
-        which = rng.choice(len(ends), size=n, p=(ends[:, 1] - ends[:, 0]) / np.sum(ends[:, 1] - ends[:, 0]))
-        return (ends[which, 0] + (ends[which, 1] - ends[which, 0]) * rng.random(n))[:, None]
-
-    return models, per_model([dist, dist]), log_evidence, region
+    return models, per_model([dist, dist]), log_evidence

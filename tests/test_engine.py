@@ -321,7 +321,8 @@ def test_the_issues_two_models_one_failing_on_half_its_prior():
     assert pop.n_failed_by_model[0] == 0 and pop.n_failed == pop.n_failed_by_model[1] > 0
     assert pop.n_simulations_by_model.sum() == pop.n_simulations
     failures = r.summary()["failures_by_model"]
-    assert failures["A"]["failed"] == 0 and 0.2 < failures["B"]["share"] < 0.5, failures
+    assert failures["A"]["failed"] == 0 and failures["B"]["failed"] >= pop.n_failed_by_model[1], failures
+    assert 0 < failures["B"]["share"] < 0.5, failures  # its later bounds hold x <= 0.5: no failure there
     assert any(w.startswith("failures: ") and "of B's" in w for w in r.warnings()), r.warnings()
 
 

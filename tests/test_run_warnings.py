@@ -39,8 +39,9 @@ def failing() -> Result:
     """No floor; 3 of cubic's 100 simulations fail each population, and linear dies in
     population 2 because every one of its simulations failed (death rule ``failed``)."""
     def change(p):
-        evidence = Evidence(*[np.zeros(2)] * 7, np.zeros(2, np.int64), np.zeros(2), *[np.zeros(2, np.int64)] * 2,
-                            np.array([SIMULATIONS_FAILED if p.t == 2 else 0, 0]))
+        evidence = Evidence(**{name: np.zeros(2) for name in Evidence.FLOATS},
+                            **{name: np.zeros(2, np.int64) for name in Evidence.INTS[:2]},
+                            death=np.array([SIMULATIONS_FAILED if p.t == 2 else 0, 0]))
         probabilities = np.array([0.0, 1.0]) if p.t >= 2 else p.model_probabilities
         return dataclasses.replace(p, floor=None, evidence=evidence, model_probabilities=probabilities,
                                    n_simulations_by_model=np.array([100, 100]), n_failed_by_model=np.array([0, 3]))

@@ -1,10 +1,16 @@
-"""The population step's parts, apart: the evidence estimator (``abcns.evidence.estimate``)
-and the two variants (``abcns.variants``). Exact arithmetic on hand-made populations: no
-seed, no tolerance beyond floating point."""
+"""The population step's parts, apart: the evidence estimator (``abcns.evidence.estimate``,
+from ``abcns.mixture``) and the two variants (``abcns.variants``). Exact arithmetic on
+hand-made populations: no seed, no tolerance beyond floating point."""
+
+import math
+from types import SimpleNamespace
 
 import numpy as np
 
+from abcns import bounds as bd
+from abcns import ellipsoid as ell
 from abcns import evidence as ev
+from abcns.mixture import HELD, NOT_FITTED, OUTSIDE, Mixture
 from abcns.priors import Model
 from abcns.settings import NSSettings
 from abcns.variants import Evidence, Paper, variant_of
@@ -12,51 +18,82 @@ from abcns.variants import Evidence, Paper, variant_of
 MODELS = [Model("a", {"x": (0.0, 1.0)}), Model("b", {"x": (0.0, 1.0), "y": (0.0, 1.0)})]
 
 
+def empty() -> Mixture:
+    return Mixture.empty([bd.Frame(m, unit=True) for m in MODELS], [m.n_dim for m in MODELS])
+
+
 def previous_evidence(**over) -> ev.Evidence:
     base = dict(log_z=np.log([0.5, 0.25]), log_z_se=np.array([0.1, 0.1]),
                 log_z_next=np.log([0.2, 0.1]), log_z_next_se=np.array([0.1, 0.1]),
                 log_volume=np.log([0.4, 0.2]), log_volume_se=np.array([0.01, 0.01]),
-                coverage=np.array([1.0, 1.0]), n_coverage=np.array([100, 100]),
                 allocation=np.array([0.5, 0.5]), n_proposed=np.array([100, 100]),
                 n_accepted=np.array([50, 25]), death=np.zeros(2, dtype=np.int64))
     return ev.Evidence(**{**base, **over})
 
 
+def first(which: np.ndarray, d: np.ndarray, eps: float, n_proposed: np.ndarray) -> Mixture:
+    theta = np.full((which.size, 2), 0.5)
+    return empty().grown(None, eps, which, theta, d, np.ones(which.size, bool), n_proposed)
+
+
 def test_the_first_population_is_rejection_from_the_priors():
-    """Z = accepted / proposed exactly (Agresti-Coull variance), and the prediction at
-    eps_next is Z times the share of new particles below it."""
+    """Z = accepted / proposed exactly (the binomial's variance), and the prediction at
+    eps_next the share of proposals below it."""
     which = np.array([0, 0, 0, 0, 1, 1])
     d = np.array([0.1, 0.2, 0.6, 0.7, 0.3, 0.8])
-    est = ev.estimate(which, d, np.ones(6, bool), 0.5, np.array([40, 20]), np.array([4, 2]), None)
+    n = np.array([40, 20])
+    est = ev.estimate(which, d, 1.0, 0.5, n, np.array([4, 2]), None, first(which, d, 1.0, n))
     np.testing.assert_allclose(est.log_z, np.log([0.1, 0.1]))
-    np.testing.assert_allclose(est.log_z_next, np.log([0.1 * 2 / 4, 0.1 * 1 / 2]))
+    np.testing.assert_allclose(est.var_z, [0.9 / 4, 0.9 / 2])
+    np.testing.assert_allclose(est.log_z_next, np.log([2 / 40, 1 / 20]))
     np.testing.assert_allclose(est.p_now, [0.5, 0.5])
-    assert np.all(est.var_next > est.var_z)  # the share below eps_next adds its own variance
 
 
-def test_an_unmeasured_coverage_leaves_log_z_to_the_prediction():
-    """With n_coverage 0 the direct estimate has no weight: log Z is the previous prediction."""
-    prev = previous_evidence(n_coverage=np.array([0, 100]), coverage=np.array([1.0, 1.0]))
-    which, d = np.array([0, 0, 1, 1]), np.array([0.1, 0.2, 0.1, 0.2])
-    est = ev.estimate(which, d, np.ones(4, bool), 0.15, np.array([10, 10]), np.array([9, 1]), prev)
-    assert est.log_z[0] == prev.log_z_next[0] and est.var_z[0] == prev.log_z_next_se[0] ** 2
-    assert est.log_z[1] != prev.log_z_next[1]  # measured: the two estimates combine
+def test_the_mixture_counts_what_the_last_bound_misses_through_the_regions_before():
+    """Model a, d(x) = |x - 0.3|. Population 1: 100 proposals from the prior on a grid
+    (0.005, 0.015, ...), 60 below eps_1 = 0.3. Its bound B_1 = [0.2, 0.6] (prior mass 0.4)
+    proposes 40 new particles of population 2 on a grid; eps_2 = 0.2, whose region [0.1,
+    0.5) B_1 misses a quarter of. The 10 particles of population 1 in [0.1, 0.2) count
+    1 / 100 each, the 30 in [0.2, 0.5) and population 2's 30 there 1 / (100 + 40 / 0.4) each:
+    Z = 0.1 + 0.15 + 0.15 = 0.4, the truth, where the bound's acceptance times its volume
+    says 0.3 (the coverage estimate had to divide it by 0.75). A particle B_1 was fitted to
+    that the bound refitted without it leaves (OUTSIDE) counts as outside it: 1 / 100."""
+    x1 = 0.005 + 0.01 * np.arange(100)
+    keep = np.abs(x1 - 0.3) < 0.3
+    which1, theta1 = np.zeros(60, np.int64), np.column_stack([x1[keep], np.full(60, np.nan)])
+    d1 = np.abs(theta1[:, 0] - 0.3)
+    mixture = empty().grown(None, 0.5, which1, theta1, d1, np.ones(60, bool), np.array([100, 0]))
+    bound = (ell.from_matrix(np.array([0.4]), np.array([[0.04]])),)
+    held = np.full(60, NOT_FITTED, np.int8)
+    previous = SimpleNamespace(survivors=np.zeros(60, bool), ellipsoids=(bound, ()), held=held, models=which1,
+                               evidence=previous_evidence(log_volume=np.log([0.4, 1.0]), log_volume_se=np.zeros(2)))
+    x2 = 0.205 + 0.01 * np.arange(40)
+    theta2 = np.column_stack([x2, np.full(40, np.nan)])
+    d2 = np.abs(x2 - 0.3)
+    grown = mixture.grown(previous, 0.3, np.zeros(40, np.int64), theta2, d2, np.ones(40, bool), np.array([40, 0]))
+    log_z, var = grown.log_z(0.2)
+    assert math.isclose(log_z[0], math.log(0.4)) and log_z[1] == -np.inf and var[1] == np.inf
+    held[np.flatnonzero(np.isclose(theta1[:, 0], 0.215))] = OUTSIDE
+    held[np.flatnonzero(np.isclose(theta1[:, 0], 0.225))] = HELD
+    grown = mixture.grown(previous, 0.3, np.zeros(40, np.int64), theta2, d2, np.ones(40, bool), np.array([40, 0]))
+    assert math.isclose(grown.log_z(0.2)[0][0], math.log(0.4 + 1 / 100 - 1 / 200))
 
 
 def test_a_model_without_particles_has_no_evidence():
     """Dead after the previous population (it proposes nothing), or at the first population
     with no accepted particle; but a model alive after the previous population that proposed
     and has no particle (a copy relayed by its twin's particles: no survivors) is alive, its
-    log Z the previous prediction (its direct estimate unmeasured: no coverage of its own)."""
+    log Z that of 0 accepted of its 10 proposals in its bound: log((1/2) / 11) + log V."""
     which, d = np.array([0, 0, 0]), np.array([0.1, 0.2, 0.3])
+    n = np.array([10, 10])
+    mixture = first(which, d, 0.4, n)
     dead = previous_evidence(death=np.array([ev.ALIVE, ev.NO_PARTICLES]))
-    est = ev.estimate(which, d, np.ones(3, bool), 0.25, np.array([10, 0]), np.array([3, 0]), dead)
+    est = ev.estimate(which, d, 0.4, 0.25, np.array([10, 0]), np.array([3, 0]), dead, mixture)
     assert est.log_z[1] == -np.inf and est.p_now[1] == 0.0 and est.p_next[1] == 0.0
-    est = ev.estimate(which, d, np.ones(3, bool), 0.25, np.array([10, 10]), np.array([3, 0]), None)
+    est = ev.estimate(which, d, 0.4, 0.25, n, np.array([3, 0]), None, mixture)
     assert est.log_z[1] == -np.inf and est.p_now[1] == 0.0 and est.p_next[1] == 0.0
-    relayed = previous_evidence(n_coverage=np.array([100, 0]))
-    est = ev.estimate(which, d, np.ones(3, bool), 0.25, np.array([10, 10]), np.array([3, 0]), relayed)
-    assert est.log_z[1] == np.log(0.1) and est.p_now[1] > 0 and est.p_next[1] == 0.0
+    est = ev.estimate(which, d, 0.4, 0.25, n, np.array([3, 0]), previous_evidence(), mixture)
+    assert math.isclose(est.log_z[1], math.log(0.5 / 11 * 0.2)) and est.p_now[1] > 0 and est.p_next[1] == 0.0
 
 
 def estimate_with(p_next, se_next=(0.0, 0.0)) -> ev.Estimate:

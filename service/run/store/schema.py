@@ -9,7 +9,7 @@ the records read back are derived from it. Every array but the static coordinate
 
 - particle level (population, particle[, parameter]): ``model_index`` (an index along
   ``model``), ``theta`` with one column per parameter *name* (NaN where the particle's model
-  has no such parameter), ``distance``, ``weight``, ``survivor``, ``coverage_test``;
+  has no such parameter), ``distance``, ``weight``, ``survivor``, ``held``;
 - population level: ``population`` (the population number t, 1-based; xarray's index), the
   tolerances, counters and elapsed time, ``has_survivors`` and ``has_ellipsoids`` (False for
   the baselines, whose records carry no survivors and no ellipsoids), the noise floor
@@ -79,7 +79,9 @@ from abcns.evidence import Evidence
 from abcns.noise import Floor
 from abcns.priors import Uniform
 
-FORMAT_VERSION = 5  # 4: the noise floor per population (floor_*), simulations and failures per model; 5: coverage_test
+# 4: the noise floor per population (floor_*), simulations and failures per model; 5: coverage_test;
+# 6: held in coverage_test's place, evidence_coverage and evidence_n_coverage gone (the mixture's evidence)
+FORMAT_VERSION = 6
 CHUNK_BYTES = 64 * 1024
 
 NOTE_CODES = {"": 0, "repaired": 1, "fallback": 2, "box": 3}  # -1: no ellipsoid (dead model)
@@ -137,8 +139,8 @@ SCHEMA: tuple[Variable, ...] = (
     _V("weight", (_N,), "float64", "weight", "normalised to sum to 1 within each model (ABC-NS: survivor selection)", "1",
        field="weights"),
     _V("survivor", (_N,), "bool", "survivor", "kept for the next population: carried into t+1 as it is (ABC-NS)"),
-    _V("coverage_test", (_N,), "int8", "coverage test", "the particle's part in the cross-validation of its model's new "
-       "bound (ABC-NS, read with has_evidence): -1 untested, 0 outside the bound, 1 missed by its half-fits, 2 held"),
+    _V("held", (_N,), "int8", "held by its bound", "the particle's part in its model's new bound (ABC-NS, read with "
+       "has_evidence): -1 not fitted to it, 0 outside the bound refitted without it, 1 held"),
     _V("epsilon", (), "float64", "tolerance", "the tolerance the population was accepted under", "{distance_units}",
        field="epsilon"),
     _V("epsilon_next", (), "float64", "next tolerance", "the tolerance chosen for the next population (NaN: none, as "
@@ -196,12 +198,8 @@ SCHEMA: tuple[Variable, ...] = (
     _V("evidence_log_volume", (_M,), "float64", "log bound volume", "log prior mass of the bound proposing model m at "
        "t+1 (NaN: none)", field="evidence.log_volume"),
     _V("evidence_log_volume_se", (_M,), "float64", "standard error of log_volume", "", field="evidence.log_volume_se"),
-    _V("evidence_coverage", (_M,), "float64", "bound coverage", "share of the accepted region the bound holds", "1",
-       field="evidence.coverage"),
     _V("evidence_allocation", (_M,), "float64", "proposal share", "probability that a proposal of population t+1 is of "
        "model m", "1", field="evidence.allocation"),
-    _V("evidence_n_coverage", (_M,), "int64", "coverage points", "points the coverage was measured on", "1",
-       field="evidence.n_coverage"),
     _V("evidence_n_proposed", (_M,), "int64", "proposals", "model m's new proposals simulated in this population", "1",
        field="evidence.n_proposed"),
     _V("evidence_n_accepted", (_M,), "int64", "accepted proposals", "model m's new proposals accepted in this "

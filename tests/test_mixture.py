@@ -1,0 +1,61 @@
+"""The evidence from the mixture of a run's proposal regions (``abcns.mixture``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from abcns import bounds as bd
+from abcns import ellipsoid as ell
+from abcns.mixture import held_without, inside_without_each, log_total
+
+FALLBACK = ell.from_box(np.zeros(3), np.ones(3))
+
+
+def test_leave_one_out_by_downdates_is_refitting_without_the_point():
+    """``inside_without_each`` reads, from one solve, whether each point lies inside the
+    ellipsoid ``ellipsoid.fit_many`` fits to the others (enlarged by f0): the same answer as
+    n refits, for groups of 8-60 points in 3 and 11 dimensions, uniform in a ball and
+    Gaussian (whose far points leave their refit)."""
+    rng = np.random.default_rng(1)
+    checked = 0
+    for d, n in ((3, 8), (3, 25), (11, 24), (11, 60)):
+        for draw in (lambda: rng.standard_normal((n, d)), lambda: rng.random((n, d)) ** 3):
+            x = draw()
+            fast = inside_without_each(x, 1.1)
+            assert fast is not None
+            refits = ell.fit_many([np.delete(x, i, axis=0) for i in range(n)], [FALLBACK] * n, enlargement=1.1)
+            slow = np.array([bool(ell.n_containing((e,), x[i : i + 1])[0]) for i, e in enumerate(refits)])
+            assert np.array_equal(fast, slow), (d, n)
+            checked += int(np.count_nonzero(~slow))
+    assert checked > 5  # some points do leave their refit
+
+
+def test_a_point_alone_in_its_direction_and_too_few_points_give_no_downdate():
+    x = np.eye(4)[:, :3]  # 4 points in 3 dimensions: n - 1 = d
+    assert inside_without_each(x, 1.1) is None
+
+
+def test_held_without_refits_each_ellipsoid_of_a_union_on_its_own_group():
+    """Two clusters, one ellipsoid each: a point's leave-one-out membership is that of its own
+    group's refit, or of the other ellipsoid."""
+    rng = np.random.default_rng(2)
+    points = np.vstack([0.25 + 0.05 * rng.standard_normal((40, 2)), 0.75 + 0.05 * rng.standard_normal((40, 2))])
+    bound = bd.fit_union(points, 1.1, 4, ell.from_box(np.zeros(2), np.ones(2)))
+    assert len(bound) == 2
+    held = held_without(points, 60, bound, 1.1, 4)
+    _, groups = bd.union_groups(points, 4)
+    for rows in groups:
+        for i in rows[rows < 60]:
+            refit = ell.fit_many([points[rows[rows != i]]], [bound[0]], enlargement=1.1)[0]
+            others = tuple(e for e, g in zip(bound, groups, strict=True) if g is not rows)
+            want = bool(ell.n_containing((refit, *others), points[i : i + 1])[0])
+            assert held[i] == want
+    assert not held.all()  # the fit's own edge points leave their refits
+
+
+def test_the_standard_error_is_that_of_independent_draws():
+    """k hits of weight 1 / n among n draws: the binomial's sqrt((1 - k / n) / k)."""
+    log_z, se = log_total(np.full(30, -math.log(1000)), 1000)
+    assert math.isclose(log_z, math.log(0.03)) and math.isclose(se, math.sqrt(0.97 / 30))
