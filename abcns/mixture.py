@@ -269,7 +269,7 @@ class Mixture:
         if bound is None:
             return np.ones(particles.ids.shape[0], bool)
         inside = ell.n_containing(bound, particles.x) > 0 if particles.ids.size else np.zeros(0, bool)
-        flags = getattr(previous, "held", None)
+        flags = previous.held
         if flags is None or not particles.ids.size:
             return inside
         fitted = np.flatnonzero((flags != NOT_FITTED) & (previous.models == m))
