@@ -51,29 +51,43 @@ def inside_without_each(x: np.ndarray, f0: float) -> np.ndarray | None:
     """For each of the n points ``x`` of one group: whether it lies inside the covariance
     ellipsoid of the other n - 1 scaled to hold them all and enlarged by ``f0`` (what
     ``ellipsoid.fit_many`` would fit to them, unless its covariance needs repair), by rank-one
-    downdates: with u = x - mean, S = U^T U and G = U S^-1 U^T, removing point i moves the
-    mean by u_i / (n - 1) and S by -n / (n - 1) u_i u_i^T (Sherman-Morrison), so every
-    Mahalanobis distance under every leave-one-out fit comes from G (O(n^2) after one
-    solve; 0.05 ms for 45 points in 11 dimensions against 0.1 ms per refit). None where
-    n - 1 <= d or S is singular."""
+    downdates: with u = x - mean, S = U^T U, W = U S^-1 and g_ij = w_i . u_j, removing point i
+    moves the mean by u_i / (n - 1) and S by -n / (n - 1) u_i u_i^T (Sherman-Morrison), so
+    every Mahalanobis distance under every leave-one-out fit comes from g. Point i is held when
+    its own distance is within f0 of the largest of the others'; that largest is at least the
+    distance of the point farthest out in-sample (one column of g), which settles most points,
+    and only the rest read their whole row (O(n d^2) and O(n) a row, against O(n^2) for all
+    of g: 700 points in 3 dimensions, 6 ms -> 0.3 ms; 45 in 11, 0.05 ms against 0.1 ms a
+    refit). None where n - 1 <= d or S is singular."""
     n, d = x.shape
     if n - 1 <= d:
         return None
     u = x - x.mean(axis=0)
     try:
-        g = u @ np.linalg.solve(u.T @ u, u.T)
+        w = np.linalg.solve(u.T @ u, u.T).T
     except np.linalg.LinAlgError:
         return None
-    k, c, h = n / (n - 1), 1.0 / (n - 1), np.diag(g)
+    k, c, h = n / (n - 1), 1.0 / (n - 1), np.einsum("ij,ij->i", w, u)
     denom = 1.0 - k * h  # zero when point i alone spans a direction
     if not np.all(denom > 1e-12):
         return None
-    quad = h[None, :] + 2 * c * g + c * c * h[:, None]  # [i, j]: w^T S^-1 w, w = u_j + u_i / (n - 1)
-    cross = g + c * h[:, None]  # [i, j]: w^T S^-1 u_i
-    others = (n - 2) * (quad + k * cross**2 / denom[:, None])  # x_j's squared distance without i
-    np.fill_diagonal(others, -np.inf)
+
+    def without(i: np.ndarray, j: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """x_j's squared distance when point i is left out (g = g_ij; arrays that broadcast):
+        (n - 2) (w^T S^-1 w + k (w^T S^-1 u_i)^2 / (1 - k h_i)), w = u_j + u_i / (n - 1)."""
+        return (n - 2) * (h[j] + 2 * c * g + c * c * h[i] + k * (g + c * h[i]) ** 2 / denom[i])
+
     own = (n - 2) * (k * k * h + k * (k * h) ** 2 / denom)  # x_i's, x_i - mean_i = k u_i
-    return own <= f0 * others.max(axis=1) * (1.0 + 1e-10) * (1.0 + ell.CONTAINS_SLACK)
+    limit = f0 * (1.0 + 1e-10) * (1.0 + ell.CONTAINS_SLACK)
+    every = np.arange(n)
+    far, second = np.argsort(h)[::-1][:2]
+    witness = np.where(every == far, second, far)  # the point farthest out in-sample, but i itself
+    held = own <= limit * without(every, witness, np.einsum("ij,ij->i", w, u[witness]))
+    for i in np.flatnonzero(~held):  # the largest of the others' distances, from its whole row
+        row = without(np.full(n, i), every, u @ w[i])
+        row[i] = -np.inf
+        held[i] = own[i] <= limit * row.max()
+    return held
 
 
 def held_without(points: np.ndarray, n_own: int, bound: bd.Union, enlargement: float,
