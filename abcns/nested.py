@@ -476,6 +476,13 @@ class _Run:
         self.first_reached = next((p.t for p, mark in zip(history, standings(history), strict=True)
                                    if mark is not None and mark.reached), None)
         self.pending: Filling | None = None  # the next population, started
+        # the populations in a row, up to the last, whose next tolerance a leaving model's thin
+        # reading held up (:meth:`keeper`; at most likelihood.HELD_POPULATIONS)
+        self.kept_in_a_row = 0
+        for pop in reversed(history):
+            if not self.was_kept(pop):
+                break
+            self.kept_in_a_row += 1
 
     def end(self, reason: StopReason) -> RunEnd:
         return RunEnd(reason, self.budget.n_simulations, self.n_pilot, self.source, tuple(self.notes))
@@ -504,6 +511,7 @@ class _Run:
         step = finish_population(self.models, self.frames, t, eps, which, theta, distances, is_new, filled, previous,
                                  self.mixture, self.settings, population_rng(self.seed, t), lower,
                                  spared if before is not None else None, self.keeper(floor, which, distances))
+        self.kept_in_a_row = self.kept_in_a_row + 1 if step.kept else 0
         self.notes.extend(step.notes)
         self.decisions.append(None if floor is None else floor.decision)
         mark = standing(eps, floor if previous is None else previous.floor)
@@ -534,13 +542,18 @@ class _Run:
     def keeper(self, floor: Floor | None, which: np.ndarray, distances: np.ndarray) -> Keep | None:
         """What raises population t's next tolerance for a model that would leave the run on a
         thin reading (:func:`abcns.likelihood.kept`: the reading with this population, whose
-        particles are ``which``, ``distances``); None for a run without a reading. (Death by
+        particles are ``which``, ``distances``); None for a run without a reading, and once
+        :data:`abcns.likelihood.HELD_POPULATIONS` populations in a row were held up so (the MR
+        damper's Bouc-Wen, at its own floor, held the tolerance at 15.668 for 130 populations:
+        its best particles no longer shrink its region, and the mixture's weights stay on the
+        earlier, wider regions' particles, so its reading never fills). (Death by
         probability takes its probability from the reading so far, without this population's
         particles (:func:`abcns.likelihood.spared`): read with them, the losing cubic-quintic of the
         exact-Bayes benchmark left one population earlier in seeds 2 and 4, on 10-11
         effective particles, its ln Bayes factor 2.4 and 1.4 nats low, against 0.4 and 0.2.)"""
-        if not self.variant.reads_floor or floor is None:
+        if not self.variant.reads_floor or floor is None or self.kept_in_a_row >= likelihood.HELD_POPULATIONS:
             return None
+
         def keep(eps_next: float, log_z: np.ndarray, log_z_se: np.ndarray) -> tuple[float, list[int]]:
             return likelihood.kept(self.mixture, self.dims, floor, eps_next, which, distances)
 

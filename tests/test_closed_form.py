@@ -132,36 +132,19 @@ def test_abc_ns_paper_variant_shares_drift_to_even_when_fits_are_equal():
 
 # The evidence variant against exact ABC answers, at every population from the third on,
 # seeds 1-5 (benchmarks/evidence_calibration.py runs the same checks over many seeds and
-# prints their statistics; the figures below are from it, seeds 1-200, batch 200, before =
-# main at 3519323, after = this commit's branch):
+# prints their statistics; the figures below are from it, seeds 1-200, batch 200, with the
+# mixture's evidence, abcns.mixture, 2026-12-05; the coverage estimate it replaced in brackets):
 # - |p - exact| <= 0.03 (the issue's bar), or 4 of p's own standard errors where those are
-#   larger than 0.0075. On two_models and balls_4_and_5 p's standard error is 0.01-0.02, and
-#   0.03 is 2 of them: the largest error was 0.046 and 0.055 before the evidence's error bars
-#   were calibrated (29 and 76 of the 200 seeds above 0.03), 0.044 and 0.050 after (26 and
-#   52 seeds); p's z-scores there have sd 1.01 and 1.00 after (1.02 and 1.08 before), |z| > 4
-#   in 0 and 1 of 2,744 and 11,594 populations (worst 4.29). On line_and_disc every error is
-#   within 0.019; p's z-scores (sd 1.04 after, 1.35 before) reach 14.8 where the disc holds
-#   fewer than 100 particles (7 populations of 2,886 beyond 4; 19 before).
+#   larger than 0.0075. The largest error is 0.036 / 0.032 / 0.043 on two_models /
+#   line_and_disc / balls_4_and_5 (0.043 / 0.018 / 0.061), where p's standard error is
+#   0.01-0.02; p's z-scores have sd 0.98 / 0.79 / 0.84 (1.02 / 1.00 / 0.93).
 # - where a model holds at least 100 particles, |log Z - exact| < 4 of the evidence's own
-#   standard errors: |z| > 4 in 0 / 0 / 3 of 2,744 / 2,886 / 11,594 checks (two_models /
-#   line_and_disc / balls_4_and_5; 0.00 / 0.00 / 0.03 %, a normal: 0.006 %; before: 0 / 4 /
-#   18, 0.00 / 0.14 / 0.16 %), |z| > 3 in 0.22 / 0.24 / 0.37 % (a normal: 0.27 %; before
-#   0.51 / 0.83 / 0.76 %), sd of z 0.99 / 0.93 / 1.01 (before 1.00 / 1.03 / 1.05). Models
-#   with fewer particles have less reliable errors (docs/benchmarks.md, known limits): their
-#   p is still checked.
-# - for those models, the coverage the direct estimate used (that of the bound that proposed
-#   the population) within 4 of its standard errors (and the Monte Carlo error of the exact
-#   share, 20,000 draws from the exact region) of the share of the region the bound holds.
-#   Before the coverage tested the bound as fitted, a disc split into 5 ellipsoids that held
-#   0.83 of itself was reported at 0.99 (line_and_disc seed 3 at 4.2 standard errors,
-#   balls_4_and_5 seed 2 at 6.0; after: at most 1.0 over seeds 1-30). Not checked where the
-#   test missed no point (c = 1): the bound then holds every particle drawn, and what it
-#   misses is a cap no proposal reached, which every bound since has missed (docs/design.md,
-#   "Where the assumptions fail" (2)), and the cross-validation cannot see by construction.
-#   On balls_4_and_5, seeds 1-130: 1 population (seed 125, population 5: c = 1 on 57 points,
-#   0.882 held) before the prediction's c' (2026-12-05), 2 after (seed 2, population 7: 1 on
-#   68, 0.895; seed 68, population 6: 1 on 59, 0.931), none on line_and_disc; where c < 1
-#   the worst is 3.3 standard errors before, 2.3 after (both toys, seeds 1-130).
+#   standard errors: |z| > 4 in none of 2,756 / 2,944 / 11,548 checks (0.03 % of
+#   balls_4_and_5's before; a normal: 0.006 %), |z| > 3 in 0.11 / 0.03 / 0.04 % (a normal:
+#   0.27 %; 0.25 / 0.27 / 0.33 %), sd of z 0.96 / 0.79 / 0.82 (1.01 / 0.93 / 0.96): the
+#   standard error of independent draws is an upper bound for the deterministic mixture.
+#   Models with fewer particles have less reliable errors (docs/benchmarks.md, known
+#   limits): their p is still checked.
 EVIDENCE_SEEDS = [1, 2, 3, 4, 5]
 # These checks were measured with batches of 200 (the default until the unit became 25 for
 # scale-out). The batch size changes the draws, not their distribution.
