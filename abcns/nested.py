@@ -18,9 +18,9 @@ counted, not simulated).
 Two variants (``NSSettings.variant``): ``"paper"``, the published algorithm as the authors'
 demo runs it, and ``"evidence"`` (the default), the model probabilities from each model's
 evidence. What each decides is stated in ``abcns.variants`` (:class:`~abcns.variants.Paper`,
-:class:`~abcns.variants.Evidence`); the evidence estimator, with its derivation, in
-``abcns.evidence``; this module holds the steps both share (the paper's Algorithm 2) and
-the run loop.
+:class:`~abcns.variants.Evidence`); the evidence estimator in ``abcns.evidence`` and
+``abcns.mixture`` (derived in docs/design.md, "The evidence"); this module holds the steps
+both share (the paper's Algorithm 2) and the run loop.
 
 The evidence bookkeeping (``Population.evidence``) is computed in both variants; in the paper
 variant it is a diagnostic and uses its own random stream, so the paper's populations are
@@ -103,9 +103,9 @@ Geometry = Callable[[np.random.Generator], GeometryResult]
 @dataclass(frozen=True, eq=False)
 class Step:
     """What finishing a population gives (see :func:`finish_population`): everything the next
-    population's proposals need. The geometry of the new bounds (their prior volume, and which
-    of the particles each was fitted to it holds refitted without them), which only the
-    evidence of the *next* population uses, is measured by :meth:`evidence`, so a runner can
+    population's proposals need. The geometry of the new bounds (their prior volume, and
+    whether each holds the particles it was fitted to when refitted without them), which only
+    the evidence of the *next* population uses, is measured by :meth:`evidence`, so a runner can
     overlap it with the next population's simulations."""
 
     epsilon_next: float
