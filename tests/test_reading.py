@@ -396,6 +396,28 @@ def test_a_model_that_leaves_early_is_read_on_enough_particles(seed):
     assert np.array_equal(resumed[-1].theta, r.final.theta)
 
 
+def test_a_leaving_model_holds_the_tolerance_up_for_at_most_held_populations_in_a_row(monkeypatch):
+    """A leaving model at its own floor can hold the tolerance up for ever: its best
+    particles no longer shrink its region, and the mixture's weights stay on the earlier,
+    wider regions' particles, so its reading never fills (the MR damper's Bouc-Wen held it
+    at 15.668 for 130 populations and ran the job to ``max_populations``). So at most
+    ``HELD_POPULATIONS`` populations in a row are held up. Seed 9 holds the line up at
+    populations 10 and 11; with the cap at 1, only at 10, and a run resumed after population
+    10 reads the count from the stored populations and ends as the run did."""
+    from abcns import likelihood
+
+    monkeypatch.setattr(likelihood, "HELD_POPULATIONS", 1)
+    models, evaluate, noise, _ = curved(9)
+    r = abcns.run(models, evaluate, SETTINGS, StopRules(), seed=9, noise=noise)
+    held = sorted({int(n.split(":")[0].removeprefix("population ")) for n in r.notes
+                   if "the next tolerance is held" in n})
+    assert held == [10]
+    resumed = list(iterate(models, SerialExecutor(evaluate), SETTINGS, StopRules(), 9, noise=noise,
+                           history=r.populations[:10]))
+    assert [p.t for p in resumed] == [p.t for p in r.populations[10:]]
+    assert np.array_equal(resumed[-1].theta, r.final.theta)
+
+
 def test_a_step_a_leaving_model_held_up_is_not_a_stall():
     """Above the decision tolerance (1.0), a population that closes less than 1e-3 of its
     distance to it has stalled and stops the run; a step that a leaving model's thin reading
