@@ -114,8 +114,14 @@ def union_groups(points: np.ndarray, max_ellipsoids: int) -> tuple[np.ndarray, l
 
 
 def fit_union(points: np.ndarray, enlargement: float, max_ellipsoids: int, fallback: ell.Ellipsoid) -> Union:
-    """Ellipsoids that hold every point but far :func:`outliers`, each enlarged by
-    ``enlargement`` (f0), one per group of :func:`union_groups`.
+    """:func:`fit_union_groups`'s ellipsoids."""
+    return fit_union_groups(points, enlargement, max_ellipsoids, fallback)[0]
+
+
+def fit_union_groups(points: np.ndarray, enlargement: float, max_ellipsoids: int,
+                     fallback: ell.Ellipsoid) -> tuple[Union, list[np.ndarray]]:
+    """(ellipsoids that hold every point but far :func:`outliers`, each enlarged by
+    ``enlargement`` (f0), one per group of :func:`union_groups`; those groups' rows).
 
     The points' ellipsoid (``abcns.ellipsoid.fit``, with ``fallback`` when the points define
     no shape) is split by 2-means (at the median where 2-means strands a small group),
@@ -125,10 +131,10 @@ def fit_union(points: np.ndarray, enlargement: float, max_ellipsoids: int, fallb
     halves' best sets only when those hold less than ``SPLIT_GAIN`` of its volume)."""
     kept, groups = union_groups(points, max_ellipsoids)
     if len(groups) == 1:
-        return tuple(ell.fit_many([points[kept]], fallback, enlargement=enlargement))
+        return tuple(ell.fit_many([points[kept]], fallback, enlargement=enlargement)), groups
     # the kept points' own ellipsoid is the groups' fallback shape, made only if one needs it
     return tuple(ell.fit_many([points[g] for g in groups], fallback=lambda: ell.fit(points[kept], fallback=fallback),
-                              enlargement=enlargement))
+                              enlargement=enlargement)), groups
 
 
 def _log_volumes(bound: Union) -> np.ndarray:

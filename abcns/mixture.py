@@ -90,17 +90,14 @@ def inside_without_each(x: np.ndarray, f0: float) -> np.ndarray | None:
     return held
 
 
-def held_without(points: np.ndarray, n_own: int, bound: bd.Union, enlargement: float,
-                 max_ellipsoids: int) -> np.ndarray:
-    """Whether ``bound``, as ``bounds.fit_union`` fitted it to ``points``, holds each of the
-    first ``n_own`` points when its ellipsoid is refitted without that point (the others as
-    they are): by downdates (:func:`inside_without_each`) where the ellipsoid's covariance
-    needed no repair, else by refitting. A point the fit left out (an outlier), or a bound
-    that is not this fit's grouping (a fallback shape), is read as it is."""
+def held_without(points: np.ndarray, n_own: int, bound: bd.Union, groups: list[np.ndarray],
+                 enlargement: float) -> np.ndarray:
+    """Whether ``bound``, whose ellipsoid j ``bounds.fit_union_groups`` fitted to the rows
+    ``groups[j]`` of ``points``, holds each of the first ``n_own`` points when its ellipsoid
+    is refitted without that point (the others as they are): by downdates
+    (:func:`inside_without_each`) where the ellipsoid's covariance needed no repair, else by
+    refitting. A point the fit left out (an outlier) is read as it is."""
     held = ell.n_containing(bound, points[:n_own]) > 0
-    _, groups = bd.union_groups(points, max_ellipsoids)
-    if len(groups) != len(bound):
-        return held
     for j, rows in enumerate(groups):
         own = rows[rows < n_own]
         if not own.size:

@@ -195,12 +195,11 @@ def finish_population(
         others = np.flatnonzero(np.isin(which, copies[m]) & positive) if copies[m] else None
         points = _fitted_points(model, frame, theta, rows, others)
         prev_bound = previous.ellipsoids[m] if previous is not None else ()
-        bound = variant.bound(points, theta[np.sort(keep), : model.n_dim], frame, _fallback(prev_bound, frame, settings))
+        bound, groups = variant.bound(points, theta[np.sort(keep), : model.n_dim], frame,
+                                      _fallback(prev_bound, frame, settings))
         notes += [f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)" for e in bound if e.note]
         bounds.append(bound)
-        geometry_jobs.append(_geometry_job(bound, frame, points, rows,
-                                           settings.enlargement if variant.fits_all else None,
-                                           settings.n_ellipsoids))
+        geometry_jobs.append(_geometry_job(bound, frame, points, rows, groups, settings.enlargement))
 
     acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
     alloc, probabilities = variant.proposals(models, est, counts, acceptance, alive_next)
@@ -325,18 +324,19 @@ def _fitted_points(model: Model, frame: bd.Frame, theta: np.ndarray, rows: np.nd
 
 
 def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, rows: np.ndarray,
-                  enlargement: float | None, max_ellipsoids: int) -> Geometry:
+                  groups: list[np.ndarray] | None, enlargement: float) -> Geometry:
     """The measurement of one model's new bound, for :meth:`Step.evidence`: (log prior mass
     of the bound by Monte Carlo, its standard error, and (``rows``, their parts in the bound:
     ``abcns.mixture`` codes): the population's rows of the first ``rows.size`` of ``points``,
     the model's own, each HELD or OUTSIDE by the bound refitted without it
-    (:func:`abcns.mixture.held_without`) when the bound is ``bounds.fit_union``'s of
-    ``points`` with this ``enlargement`` (the evidence variant); else NOT_FITTED (the
-    paper's bound, fitted to the survivors: the mixture reads their membership as it is)."""
+    (:func:`abcns.mixture.held_without`) when the bound's ellipsoids were fitted to
+    ``groups`` of ``points`` with this ``enlargement`` (the evidence variant); else (None)
+    NOT_FITTED (the paper's bound, fitted to the survivors: the mixture reads their
+    membership as it is)."""
 
     def measure(geometry: np.random.Generator) -> GeometryResult:
-        if enlargement is not None:
-            held = held_without(points, rows.size, bound, enlargement, max_ellipsoids)
+        if groups is not None:
+            held = held_without(points, rows.size, bound, groups, enlargement)
             flags = np.where(held, HELD, OUTSIDE).astype(np.int8)
         else:
             flags = np.full(rows.size, NOT_FITTED, np.int8)

@@ -88,12 +88,14 @@ class Paper:
         quotas = survivor_quotas(self.settings.n_survivors, counts, capacity)
         return quotas, deaths(alive_now, alive_now & (quotas == 0), ev.NO_PARTICLES)
 
-    def bound(self, points: np.ndarray, survivors: np.ndarray, frame: bd.Frame, fallback: ell.Ellipsoid) -> bd.Union:
-        """One ellipsoid fitted to the survivors (theta) in ``frame`` (the raw coordinates: log
-        theta for a log-uniform prior), enlarged by f0."""
-        return tuple(ell.fit_many([frame.to_frame(survivors)], fallback, enlargement=self.settings.enlargement))
+    def bound(self, points: np.ndarray, survivors: np.ndarray, frame: bd.Frame,
+              fallback: ell.Ellipsoid) -> tuple[bd.Union, None]:
+        """(one ellipsoid fitted to the survivors (theta) in ``frame`` (the raw coordinates:
+        log theta for a log-uniform prior), enlarged by f0; None: not a fit of ``points``, so
+        the mixture reads its membership as it is)."""
+        return tuple(ell.fit_many([frame.to_frame(survivors)], fallback, enlargement=self.settings.enlargement)), None
 
-    #: the bound is not a fit of every point below eps_{t+1}: the mixture reads its membership as it is
+    #: the bound is a model's own: not fitted to its copies' particles
     fits_all = False
     #: bounds in raw parameter units, proposals pick an alive model with equal probability, and
     #: the run neither stops at its noise floor nor reads by the likelihood
@@ -148,13 +150,14 @@ class Evidence:
         floor = np.array([bd.min_points(m.n_dim) for m in models])
         return _floored_quotas(s.n_survivors, shares, np.where(alive_next, capacity, 0), floor), death
 
-    def bound(self, points: np.ndarray, survivors: np.ndarray, frame: bd.Frame, fallback: ell.Ellipsoid) -> bd.Union:
-        """A union of ellipsoids fitted to every particle below eps_{t+1} (``points``, already in
-        the unit box)."""
-        return bd.fit_union(points, self.settings.enlargement, self.settings.n_ellipsoids, fallback)
+    def bound(self, points: np.ndarray, survivors: np.ndarray, frame: bd.Frame,
+              fallback: ell.Ellipsoid) -> tuple[bd.Union, list[np.ndarray]]:
+        """(a union of ellipsoids fitted to every particle below eps_{t+1} (``points``, already
+        in the unit box), the rows of ``points`` each ellipsoid is fitted to: the mixture reads
+        its membership of them leave-one-out, ``abcns.mixture.held_without``)."""
+        return bd.fit_union_groups(points, self.settings.enlargement, self.settings.n_ellipsoids, fallback)
 
-    #: the bound is a fit of every point below eps_{t+1}: the mixture reads its membership of
-    #: those points leave-one-out (``abcns.mixture.held_without``)
+    #: the bound is fitted to every point below eps_{t+1}, its copies' particles too
     fits_all = True
     #: bounds in each model's unit prior box; proposals by the evidence's allocation; the run
     #: stops at its noise floor (``StopRules.noise_floor``) and reads by the likelihood

@@ -253,5 +253,5 @@ def test_the_default_bound_of_many_particles_is_not_capped_at_8_ellipsoids():
     assert NSSettings(particles=2000, max_ellipsoids=3).n_ellipsoids == 3
     assert NSSettings(particles=2000, variant="paper").n_ellipsoids == 1
     points, _, own = balls_11d(np.random.default_rng(2))
-    union = Evidence(NSSettings(particles=2000)).bound(points, points[:50], None, ell.from_box(np.zeros(11), np.ones(11)))
+    union, _ = Evidence(NSSettings(particles=2000)).bound(points, points[:50], None, ell.from_box(np.zeros(11), np.ones(11)))
     assert logsumexp([e.log_volume for e in union]) < own + np.log(1.5)

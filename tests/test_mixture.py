@@ -43,10 +43,9 @@ def test_held_without_refits_each_ellipsoid_of_a_union_on_its_own_group():
     group's refit, or of the other ellipsoid."""
     rng = np.random.default_rng(2)
     points = np.vstack([0.25 + 0.05 * rng.standard_normal((40, 2)), 0.75 + 0.05 * rng.standard_normal((40, 2))])
-    bound = bd.fit_union(points, 1.1, 4, ell.from_box(np.zeros(2), np.ones(2)))
+    bound, groups = bd.fit_union_groups(points, 1.1, 4, ell.from_box(np.zeros(2), np.ones(2)))
     assert len(bound) == 2
-    held = held_without(points, 60, bound, 1.1, 4)
-    _, groups = bd.union_groups(points, 4)
+    held = held_without(points, 60, bound, groups, 1.1)
     for rows in groups:
         for i in rows[rows < 60]:
             refit = ell.fit_many([points[rows[rows != i]]], [bound[0]], enlargement=1.1)[0]
@@ -81,7 +80,7 @@ def test_two_copies_of_one_model_each_get_their_exact_abc_evidence():
         decision = r.summary()["decision"]["population"]
         errors = []
         for pop in r.populations[decision - 5 : decision]:
-            _, _, exact, _ = exact_abc(y, pop.epsilon, rng, 200_000)
+            exact, _ = exact_abc(y, pop.epsilon, rng, 200_000)
             errors.append([pop.evidence.log_z[m] - exact[m] for m in (0, 1)])
         means += np.mean(errors, axis=0).tolist()
     assert abs(np.mean(means)) < 0.05, means
