@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from abcns.evidence import probabilities
-from abcns.mixture import Mixture, log_total, volume_variance
+from abcns.mixture import Mixture, log_estimate
 from abcns.noise import METHODS, Floor
 
 
@@ -95,10 +95,11 @@ def spared(before: Mixture | None, dims: Sequence[int], floor: Floor | None, thr
     max(5 (d + 1), 64) effective particles for (:func:`thin`'s bar: a model's evidence is
     final when it dies, and its few particles far from its best fit can hide most of it: the
     cyclic test chiu's losing uniform copy, seed 4, died on 37 whose core was thin, its split
-    against its log copy 1.39 nats off; spared to 71, 0.07), read without and with this population (``now``: a model that dies
-    keeps its particles in it, and they can thin the reading it leaves with: gill's uniform
-    copy in the cyclic tests, seed 1, had 25 effective particles without its last population
-    and 3.2 with it); None without a reading (no floor, an exact best fit, no particle yet)."""
+    against its log copy 1.39 nats off; spared to 71, 0.07), read without and with this
+    population (``now``: a model that dies keeps its particles in it, and they can thin the
+    reading it leaves with: gill's uniform copy in the cyclic tests, seed 1, had 25 effective
+    particles without its last population and 3.2 with it); None without a reading (no
+    floor, an exact best fit, no particle yet)."""
     log_l = None if floor is None or before is None or not before.n.any() else of_floor(floor)
     if log_l is None or before is None:
         return None
@@ -121,7 +122,7 @@ def kept(mixture: Mixture, dims: Sequence[int], floor: Floor | None, epsilon_nex
     on a handful of them, and falls short of its own (a model that fits much worse than
     another: the cyclic test chiu's Bouc-Wen, on 2.5 effective particles, 2.5 nats below its
     own run's). While that reading rests on fewer than 2 (d + 1) effective particles
-    (:func:`enough`, the rule that spares a model from death by probability), the next
+    (:func:`enough`), the next
     tolerance is raised so that the model keeps its 2 (d + 1) best particles (more than that
     in the population, else it leaves): each population then shrinks its region by its own
     nested sampling, towards its best fit, until its reading holds. The tolerance
@@ -178,9 +179,8 @@ def read(mixture: Mixture, dims: Sequence[int], log_likelihood: Callable[[np.nda
     """The reading of an ABC-NS run's particles (``mixture``: :meth:`abcns.mixture.Mixture.of`
     its populations) of models of ``dims`` parameters, with ``log_likelihood`` of a distance
     (:func:`gaussian`, :func:`marginal`; relative to the best fit's, so the weights stay
-    finite): every new particle x weighted by L(x) / S(x), and the standard error of the sum
-    that of the model's proposals' count of independent draws (:func:`abcns.mixture.log_total`)
-    with its regions' volume errors (:func:`abcns.mixture.volume_variance`)."""
+    finite): every new particle x weighted by L(x) / S(x), the sum's standard error
+    :func:`abcns.mixture.log_estimate`'s."""
     n_models = len(dims)
     log_z, log_z_se, ess = np.full(n_models, -np.inf), np.full(n_models, np.inf), np.zeros(n_models)
     thetas, weights = [], []
@@ -191,8 +191,8 @@ def read(mixture: Mixture, dims: Sequence[int], log_likelihood: Callable[[np.nda
             thetas.append(np.zeros((0, dims[m])))
             weights.append(np.zeros(0))
             continue
-        log_z[m], draws_se = log_total(log_w, int(mixture.n[m]))
-        log_z_se[m] = math.sqrt(draws_se**2 + volume_variance(log_w, part.log_u - 2 * part.log_s))
+        log_z[m], var = log_estimate(log_w, part.log_u - 2 * part.log_s, int(mixture.n[m]))
+        log_z_se[m] = math.sqrt(var)
         w = np.exp(log_w - log_z[m])
         keep = w > 0
         thetas.append(part.theta[keep])

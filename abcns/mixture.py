@@ -140,6 +140,14 @@ def volume_variance(log_w: np.ndarray, log_v: np.ndarray) -> float:
     return float(np.sum(a * np.exp(log_v)) / np.sum(a))
 
 
+def log_estimate(log_w: np.ndarray, log_v: np.ndarray, n: int) -> tuple[float, float]:
+    """(log of the sum of the weights exp(``log_w``) over ``n`` proposals, its variance): the
+    draws' (:func:`log_total`) and the regions' volumes' (:func:`volume_variance`, ``log_v``
+    each particle's log u / S^2)."""
+    log_z, se = log_total(log_w, n)
+    return log_z, se**2 + volume_variance(log_w, log_v)
+
+
 @dataclass(frozen=True, eq=False)
 class Particles:
     """Some of one model's new particles: ``theta`` (n, d), the same in its bounds' frame
@@ -295,15 +303,13 @@ class Mixture:
     def log_z(self, epsilon: float) -> tuple[np.ndarray, np.ndarray]:
         """(log Z_m(``epsilon``), its variance) per model, from its active particles below
         ``epsilon`` (at most the last population's tolerance); -inf / inf for a model with
-        none. The variance is the draws' (:func:`log_total`) and the volumes'
-        (:func:`volume_variance`)."""
+        none (:func:`log_estimate`)."""
         k = len(self.dims)
         log_z, var = np.full(k, -np.inf), np.full(k, np.inf)
         for m, p in enumerate(self.active):
             below = p.distances < epsilon
             if below.any():
-                log_z[m], se = log_total(-p.log_s[below], int(self.n[m]))
-                var[m] = se**2 + volume_variance(-p.log_s[below], p.log_u[below] - 2 * p.log_s[below])
+                log_z[m], var[m] = log_estimate(-p.log_s[below], p.log_u[below] - 2 * p.log_s[below], int(self.n[m]))
         return log_z, var
 
     def particles(self, m: int) -> Particles:
