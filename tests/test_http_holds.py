@@ -168,10 +168,12 @@ def test_the_time_budget_and_a_cancel_end_a_job_while_its_batch_runs(tmp_path):
                 """The keys of the batch tasks the workers' threads run: ``(group, population,
                 first, last)``, batches numbered from 1. Not a seceded job loop, nor the job's
                 data or its anchors (``first`` 0), no-ops that run for an instant: two of them
-                caught running at once passed for the job's two batches (a CI failure)."""
+                caught running at once passed for the job's two batches (a CI failure). A
+                worker killed below but not yet removed by the scheduler is skipped (its
+                broadcast raised CommClosedError: a failure of this suite on 2026-12-05)."""
                 keys = client.run(lambda dask_worker: [str(ts.key) for ts in dask_worker.state.executing
                                                        if isinstance(ts.key, tuple) and len(ts.key) == 4
-                                                       and ts.key[2] >= 1])
+                                                       and ts.key[2] >= 1], on_error="ignore")
                 return {k for ks in keys.values() for k in ks}
 
             def executing() -> int:
