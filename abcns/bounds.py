@@ -279,6 +279,8 @@ class Frame:
         self.width = self.high - self.low
         #: log volume of the prior box in these coordinates
         self.log_box_volume = 0.0 if unit else model.log_prior_volume()
+        #: the prior's log density at rows of theta inside the box, in the parameters' own units
+        self.log_prior_density = model.log_prior_density
 
     def to_frame(self, theta: np.ndarray) -> np.ndarray:
         u = self.coordinates.to_coordinates(theta) if self.coordinates else theta

@@ -89,9 +89,12 @@ def combine(a: np.ndarray, var_a: np.ndarray, b: np.ndarray, var_b: np.ndarray) 
     return mean, var
 
 
-def probabilities(log_z: np.ndarray, log_z_se: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def probabilities(log_z: np.ndarray, log_z_se: np.ndarray,
+                  covariance: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """p_m = Z_m / sum Z and its standard error (delta method on independent log Z):
-    var p_m = p_m^2 [(1 - p_m)^2 s_m^2 + sum_{j != m} p_j^2 s_j^2]."""
+    var p_m = p_m^2 [(1 - p_m)^2 s_m^2 + sum_{j != m} p_j^2 s_j^2]; with the ``covariance``
+    of the log Z (copies read from the same particles, ``abcns.likelihood.read``), J C J^T's
+    diagonal, J_mj = p_m (delta_mj - p_j)."""
     log_z = np.asarray(log_z, float)
     alive = np.isfinite(log_z)
     p = np.zeros(log_z.shape)
@@ -100,6 +103,10 @@ def probabilities(log_z: np.ndarray, log_z_se: np.ndarray) -> tuple[np.ndarray, 
     top = np.max(log_z[alive])
     z = np.where(alive, np.exp(np.where(alive, log_z, top) - top), 0.0)
     p = z / z.sum()
+    if covariance is not None:
+        c = np.where(np.outer(alive, alive) & np.isfinite(covariance), covariance, 0.0)
+        jac = np.diag(p) - np.outer(p, p)
+        return p, np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", jac, c, jac), 0.0))
     s2 = np.where(alive, np.asarray(log_z_se, float) ** 2, 0.0)
     s2 = np.where(np.isfinite(s2), s2, 0.0)
     total = np.sum(p**2 * s2)

@@ -182,20 +182,26 @@ class Particles:
 Column = tuple[bd.Union | None, float, float]
 
 
-def _add(log_s: np.ndarray, log_u: np.ndarray, inside: np.ndarray, column: Column) -> tuple[np.ndarray, np.ndarray]:
-    """(log S, log u) with ``column``'s terms added where ``inside``."""
+def _add(log_s: np.ndarray, log_u: np.ndarray, inside: np.ndarray, column: Column,
+         log_r: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(log S, log u) with ``column``'s terms added where ``inside``, each times r (``log_r``
+    per row; None: 1) and its u term times r^2."""
     log_s, log_u = log_s.copy(), log_u.copy()
-    log_s[inside] = np.logaddexp(log_s[inside], column[1])
-    log_u[inside] = np.logaddexp(log_u[inside], column[2])
+    r = 0.0 if log_r is None else log_r[inside]
+    log_s[inside] = np.logaddexp(log_s[inside], column[1] + r)
+    log_u[inside] = np.logaddexp(log_u[inside], column[2] + 2 * r)
     return log_s, log_u
 
 
-def _sums(columns: Sequence[Column], x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(log S, log u) over ``columns`` at each row of ``x`` (-inf outside all)."""
-    log_s, log_u = np.full(x.shape[0], -np.inf), np.full(x.shape[0], -np.inf)
+def _sums(columns: Sequence[Column], x: np.ndarray, log_s: np.ndarray | None = None, log_u: np.ndarray | None = None,
+          log_r: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(log S, log u) over ``columns`` at each row of ``x`` (-inf outside all), added to
+    ``log_s`` and ``log_u`` (None: none yet), each term times r (:func:`_add`)."""
+    if log_s is None or log_u is None:
+        log_s, log_u = np.full(x.shape[0], -np.inf), np.full(x.shape[0], -np.inf)
     for column in columns:
         inside = np.ones(x.shape[0], bool) if column[0] is None else ell.n_containing(column[0], x) > 0
-        log_s, log_u = _add(log_s, log_u, inside, column)
+        log_s, log_u = _add(log_s, log_u, inside, column, log_r)
     return log_s, log_u
 
 
@@ -206,10 +212,20 @@ class Mixture:
     particles below that population's tolerance, their S still growing; ``left[m]``: those
     that left, their S final; ``columns[m]``: every proposal region of m so far; ``n[m]``:
     its proposals in all; ``row_ids``: the ids of that population's particles, row by row;
-    ``next_id``: the next new particle's."""
+    ``next_id``: the next new particle's; ``families[m]``: the models m is one model with
+    (m and its ``same_model_as`` copies, in model order: ``abcns.priors.same_models``).
+
+    A family's copies are one model under several priors p_k, so every copy's proposals are
+    draws of the one parameter: from the family's mixture G(theta) = sum_k p_k(theta)
+    S_k(theta) in the parameters' own units, and each copy m's evidence is read from all of
+    them, each weighted by p_m / G (multiple importance sampling, the balance heuristic:
+    Veach & Guibas 1995). A particle's ``log_s`` is log G / p_j for its own copy j (S_j
+    itself for a model without copies), so copy m weighs it by p_m / p_j / (G / p_j). A copy
+    whose prior hides a mode its twin's finds is read with that mode (the cyclic test gill)."""
 
     frames: tuple[bd.Frame, ...]
     dims: tuple[int, ...]
+    families: tuple[tuple[int, ...], ...]
     active: tuple[Particles, ...]
     left: tuple[tuple[Particles, ...], ...]
     columns: tuple[tuple[Column, ...], ...]
@@ -218,16 +234,21 @@ class Mixture:
     next_id: int
 
     @classmethod
-    def empty(cls, frames: Sequence[bd.Frame], dims: Sequence[int]) -> Mixture:
+    def empty(cls, frames: Sequence[bd.Frame], dims: Sequence[int],
+              copies: Sequence[Sequence[int]] | None = None) -> Mixture:
+        """No particle yet; ``copies[m]``: the models m is the same model as
+        (``abcns.priors.same_models``; None: none)."""
         k = len(dims)
-        return cls(tuple(frames), tuple(dims), tuple(Particles.join([], d) for d in dims), ((),) * k, ((),) * k,
-                   np.zeros(k, np.int64), np.zeros(0, np.int64), 0)
+        families = tuple(tuple(sorted({m, *(copies[m] if copies is not None else ())})) for m in range(k))
+        return cls(tuple(frames), tuple(dims), families, tuple(Particles.join([], d) for d in dims), ((),) * k,
+                   ((),) * k, np.zeros(k, np.int64), np.zeros(0, np.int64), 0)
 
     @classmethod
-    def of(cls, populations: Sequence, frames: Sequence[bd.Frame], dims: Sequence[int]) -> Mixture:
+    def of(cls, populations: Sequence, frames: Sequence[bd.Frame], dims: Sequence[int],
+           copies: Sequence[Sequence[int]] | None = None) -> Mixture:
         """The mixture after ``populations`` (ABC-NS populations with their evidence), grown
         as the run grew it."""
-        mixture = cls.empty(frames, dims)
+        mixture = cls.empty(frames, dims, copies)
         for i, pop in enumerate(populations):
             previous = populations[i - 1] if i else None
             first = int(np.count_nonzero(previous.survivors)) if previous is not None else 0
@@ -241,8 +262,9 @@ class Mixture:
         ``theta``, ``distances``, the survivors of ``previous`` first, then the ``is_new``
         ones; ``n_proposed``: its proposals per model). The particles at or above ``epsilon``
         leave, the region that proposed this population (``previous``'s bound, the prior box
-        for the first) joins the sum of those that stay, then the new particles join with
-        their sums over every region so far."""
+        for the first) joins the sum of those that stay (its own model's and its copies'),
+        then the new particles join with their sums over every region of their family so
+        far."""
         ids = np.empty(which.shape[0], np.int64)
         if previous is not None:
             ids[~is_new] = self.row_ids[np.flatnonzero(previous.survivors)]
@@ -250,28 +272,52 @@ class Mixture:
         ids[is_new] = self.next_id + np.arange(n_new)
         active, left, columns = list(self.active), list(self.left), list(self.columns)
         n = self.n + np.asarray(n_proposed, np.int64)
-        for m, (frame, d) in enumerate(zip(self.frames, self.dims, strict=True)):
+        for m in range(len(self.dims)):
             stay = active[m].distances < epsilon
             if not stay.all():
                 left[m] = (*left[m], active[m].take(~stay))
                 active[m] = active[m].take(stay)
+        for m in range(len(self.dims)):
             if n_proposed[m] > 0:
                 column = self._column(previous, m, int(n_proposed[m]))
-                a = active[m]
-                log_s, log_u = _add(a.log_s, a.log_u, self._held(previous, m, column[0], a), column)
-                active[m] = Particles(a.theta, a.x, a.distances, log_s, log_u, a.ids)
+                for j in self.families[m]:
+                    a = active[j]
+                    if j == m:
+                        inside, log_r = self._held(previous, m, column[0], a, a.x), None
+                    else:  # a copy's particles inside m's prior box
+                        rows, log_r = self._in_box(m, j, a.theta)
+                        inside = np.zeros(a.ids.shape[0], bool)
+                        inside[rows] = self._held(previous, m, column[0], a.take(rows), None)
+                    log_s, log_u = _add(a.log_s, a.log_u, inside, column, log_r)
+                    active[j] = Particles(a.theta, a.x, a.distances, log_s, log_u, a.ids)
                 columns[m] = (*columns[m], column)
-            rows = np.flatnonzero(is_new & (which == m))
+        for j, (frame, d) in enumerate(zip(self.frames, self.dims, strict=True)):
+            rows = np.flatnonzero(is_new & (which == j))
             if rows.size:
-                x = frame.to_frame(theta[rows, :d])
-                log_s, log_u = _sums(columns[m], x)
+                th = theta[rows, :d]
+                x = frame.to_frame(th)
+                log_s, log_u = _sums(columns[j], x)
+                for k in self.families[j]:
+                    if k != j:
+                        inside, log_r = self._in_box(k, j, th)
+                        part_s, part_u = _sums(columns[k], self.frames[k].to_frame(th[inside]), log_s[inside],
+                                               log_u[inside], log_r[inside])
+                        log_s[inside], log_u[inside] = part_s, part_u
                 # drawn from the last region: inside it, whatever the rounding of the test
                 outside = ~np.isfinite(log_s)
-                log_s[outside], log_u[outside] = columns[m][-1][1], columns[m][-1][2]
-                new = Particles(theta[rows, :d], x, distances[rows], log_s, log_u, ids[rows])
-                active[m] = Particles.join([active[m], new], d)
-        return Mixture(self.frames, self.dims, tuple(active), tuple(left), tuple(columns), n, ids,
+                log_s[outside], log_u[outside] = columns[j][-1][1], columns[j][-1][2]
+                new = Particles(th, x, distances[rows], log_s, log_u, ids[rows])
+                active[j] = Particles.join([active[j], new], d)
+        return Mixture(self.frames, self.dims, self.families, tuple(active), tuple(left), tuple(columns), n, ids,
                        self.next_id + n_new)
+
+    def _in_box(self, k: int, j: int, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(the rows of copy j's ``theta`` inside copy k's prior box, log p_k / p_j at every
+        row: the priors' densities in the parameters' units, -inf outside)."""
+        inside = np.flatnonzero(self.frames[k].in_prior(theta))
+        log_r = np.full(theta.shape[0], -np.inf)
+        log_r[inside] = self.frames[k].log_prior_density(theta[inside]) - self.frames[j].log_prior_density(theta[inside])
+        return inside, log_r
 
     @staticmethod
     def _column(previous, m: int, n_proposed: int) -> Column:
@@ -282,16 +328,19 @@ class Mixture:
         se = float(previous.evidence.log_volume_se[m])
         return previous.ellipsoids[m], log_w, 2 * (log_w + math.log(se)) if se > 0 else -math.inf
 
-    def _held(self, previous, m: int, bound: bd.Union | None, particles: Particles) -> np.ndarray:
-        """Which of model m's ``particles`` lie in ``bound`` (None: the box), those it was
-        fitted to (``previous.held``) read leave-one-out."""
+    def _held(self, previous, m: int, bound: bd.Union | None, particles: Particles, x: np.ndarray | None) -> np.ndarray:
+        """Which ``particles`` (model m's, at ``x`` in its frame, or a copy's inside m's prior
+        box: None) lie in m's ``bound`` (None: the box), those it was fitted to
+        (``previous.held[:, m]``) read leave-one-out."""
         if bound is None:
             return np.ones(particles.ids.shape[0], bool)
-        inside = ell.n_containing(bound, particles.x) > 0 if particles.ids.size else np.zeros(0, bool)
-        flags = previous.held
-        if flags is None or not particles.ids.size:
+        if not particles.ids.size:
+            return np.zeros(0, bool)
+        inside = ell.n_containing(bound, self.frames[m].to_frame(particles.theta) if x is None else x) > 0
+        if previous.held is None:
             return inside
-        fitted = np.flatnonzero((flags != NOT_FITTED) & (previous.models == m))
+        flags = previous.held[:, m]
+        fitted = np.flatnonzero(flags != NOT_FITTED)
         if fitted.size:
             order = np.argsort(self.row_ids[fitted])
             known, flag = self.row_ids[fitted][order], flags[fitted][order]
@@ -300,19 +349,37 @@ class Mixture:
             inside[found] = flag[at[found]] == HELD
         return inside
 
+    def weighed(self, m: int, active: bool = False) -> tuple[Particles, np.ndarray, int]:
+        """(the particles model m's family is read from: every new particle of each of its
+        copies so far, those that left, then those below the last tolerance, each with its S
+        (final, or as it stands now); only the latter if ``active``; log p_k / p_j at each
+        (rows) for each copy k of the family (columns, in ``families[m]``'s order; j the
+        particle's own copy: 0 for k = j, -inf outside k's prior box); the family's proposals
+        in all)."""
+        family = self.families[m]
+        parts, log_r = [], []
+        for j in family:
+            p = self.active[j] if active else Particles.join([*self.left[j], self.active[j]], self.dims[j])
+            r = np.zeros((p.ids.shape[0], len(family)))
+            for c, k in enumerate(family):
+                if k != j:
+                    r[:, c] = self._in_box(k, j, p.theta)[1]
+            parts.append(p)
+            log_r.append(r)
+        n = int(sum(self.n[j] for j in family))
+        return Particles.join(parts, self.dims[m]) if len(parts) > 1 else parts[0], np.concatenate(log_r), n
+
     def log_z(self, epsilon: float) -> tuple[np.ndarray, np.ndarray]:
-        """(log Z_m(``epsilon``), its variance) per model, from its active particles below
-        ``epsilon`` (at most the last population's tolerance); -inf / inf for a model with
-        none (:func:`log_estimate`)."""
+        """(log Z_m(``epsilon``), its variance) per model, from its family's active particles
+        below ``epsilon`` (at most the last population's tolerance) inside its prior box;
+        -inf / inf for a model with none (:func:`log_estimate`)."""
         k = len(self.dims)
         log_z, var = np.full(k, -np.inf), np.full(k, np.inf)
-        for m, p in enumerate(self.active):
-            below = p.distances < epsilon
+        for m in range(k):
+            p, log_r, n = self.weighed(m, active=True)
+            r = log_r[:, self.families[m].index(m)]
+            below = (p.distances < epsilon) & np.isfinite(r)
             if below.any():
-                log_z[m], var[m] = log_estimate(-p.log_s[below], p.log_u[below] - 2 * p.log_s[below], int(self.n[m]))
+                log_s = p.log_s[below]
+                log_z[m], var[m] = log_estimate(r[below] - log_s, p.log_u[below] - 2 * log_s, n)
         return log_z, var
-
-    def particles(self, m: int) -> Particles:
-        """Every new particle of model m so far: those that left, then those below the last
-        tolerance, each with its S (final, or as it stands now)."""
-        return Particles.join([*self.left[m], self.active[m]], self.dims[m])

@@ -125,11 +125,11 @@ class Step:
         (used model by model, in model order)."""
         c = self.counted
         log_volume, log_volume_se = c.log_volume.copy(), c.log_volume_se.copy()
-        held = np.full(self.weights.shape[0], NOT_FITTED, np.int8)
+        held = np.full((self.weights.shape[0], len(self.geometry_jobs)), NOT_FITTED, np.int8)
         for m, job in enumerate(self.geometry_jobs):
             if job is not None:
                 log_volume[m], log_volume_se[m], (rows, flags) = job(geometry)
-                held[rows] = flags
+                held[rows, m] = flags
         return dataclasses.replace(c, log_volume=log_volume, log_volume_se=log_volume_se), held
 
 
@@ -193,13 +193,13 @@ def finish_population(
         survivors[keep] = True
         frame = frames[m]
         others = np.flatnonzero(np.isin(which, copies[m]) & positive) if copies[m] else None
-        points = _fitted_points(model, frame, theta, rows, others)
+        points, fitted = _fitted_points(model, frame, theta, rows, others)
         prev_bound = previous.ellipsoids[m] if previous is not None else ()
         bound, groups = variant.bound(points, theta[np.sort(keep), : model.n_dim], frame,
                                       _fallback(prev_bound, frame, settings))
         notes += [f"population {t}: ellipsoid of {model.name} {e.note} ({rows.size} points)" for e in bound if e.note]
         bounds.append(bound)
-        geometry_jobs.append(_geometry_job(bound, frame, points, rows, groups, settings.enlargement))
+        geometry_jobs.append(_geometry_job(bound, frame, points, fitted, groups, settings.enlargement))
 
     acceptance = np.where(n_proposed > 0, n_accepted / np.maximum(n_proposed, 1), 0.5)
     alloc, probabilities = variant.proposals(models, est, counts, acceptance, alive_next)
@@ -312,23 +312,23 @@ def _fallback(previous_bound: bd.Union, frame: bd.Frame, settings: NSSettings) -
 
 
 def _fitted_points(model: Model, frame: bd.Frame, theta: np.ndarray, rows: np.ndarray,
-                   others: np.ndarray | None) -> np.ndarray:
-    """The points model m's bound is fitted to, in its frame: its particles below the next
-    tolerance (``rows``), then those of the models it is the same model as (``others``, their
-    rows; None: it has none) inside its prior box."""
+                   others: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(the points model m's bound is fitted to, in its frame, their rows): its particles
+    below the next tolerance (``rows``), then those of the models it is the same model as
+    (``others``, their rows; None: it has none) inside its prior box."""
     points = frame.to_frame(theta[rows, : model.n_dim])
     if others is None or not others.size:
-        return points
-    other = theta[others, : model.n_dim]
-    return np.vstack([points, frame.to_frame(other[model.in_prior(other)])])
+        return points, rows
+    others = others[model.in_prior(theta[others, : model.n_dim])]
+    return np.vstack([points, frame.to_frame(theta[others, : model.n_dim])]), np.concatenate([rows, others])
 
 
 def _geometry_job(bound: bd.Union, frame: bd.Frame, points: np.ndarray, rows: np.ndarray,
                   groups: list[np.ndarray] | None, enlargement: float) -> Geometry:
     """The measurement of one model's new bound, for :meth:`Step.evidence`: (log prior mass
     of the bound by Monte Carlo, its standard error, and (``rows``, their parts in the bound:
-    ``abcns.mixture`` codes): the population's rows of the first ``rows.size`` of ``points``,
-    the model's own, each HELD or OUTSIDE by the bound refitted without it
+    ``abcns.mixture`` codes): the population's rows of ``points``, the model's own and its
+    copies', each HELD or OUTSIDE by the bound refitted without it
     (:func:`abcns.mixture.held_without`) when the bound's ellipsoids were fitted to
     ``groups`` of ``points`` with this ``enlargement`` (the evidence variant); else (None)
     NOT_FITTED (the paper's bound, fitted to the survivors: the mixture reads their
@@ -469,7 +469,9 @@ class _Run:
         self.decisions = [None if p.floor is None else p.floor.decision for p in history]
         self.dims = [m.n_dim for m in models]
         # every particle so far in the mixture of the regions that proposed them: the evidence
-        # and the likelihood reading (abcns.mixture), grown again over a resumed run's history
+        # and the likelihood reading (abcns.mixture), grown again over a resumed run's history.
+        # The run's own decisions read each same_model_as copy from its own particles; the
+        # answer reads them together (Result.reading; docs/design.md, "Copies read together")
         self.mixture = Mixture.of(history, self.frames, self.dims)
         self.at_floor = self.variant.reads_floor and stop.noise_floor and noise is not None
         # the first population accepted at the decision tolerance or below (:meth:`held`)

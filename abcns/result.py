@@ -19,7 +19,7 @@ from abcns.evidence import DEAD_BEFORE, DEATH_RULES, Evidence, probabilities
 from abcns.likelihood import Reading, enough, of_floor, read
 from abcns.mixture import Mixture
 from abcns.noise import Floor, Standing, standings, waited_for
-from abcns.priors import Model
+from abcns.priors import Model, same_models
 from abcns.settings import DEATH_PROBABILITY, StopReason
 
 QUANTILES = (0.025, 0.05, 0.5, 0.95, 0.975)
@@ -50,9 +50,11 @@ class Population:
     the decision tolerance in force when it was chosen (:class:`abcns.noise.Standing`: set by
     it, above or below it; None without a floor, or where the population was made without the
     record: :func:`abcns.noise.standings` then gives it from the floors). ``held`` (ABC-NS,
-    else None) is each particle's part in its model's new bound (``abcns.mixture`` codes: -1
-    not fitted to it, 0 outside the bound refitted without it, 1 held by it), from which the
-    evidence's mixture reads the bound's membership of the particles it was fitted to.
+    else None; (n_particles, n_models)) is each particle's part in each model's new bound
+    (``abcns.mixture`` codes: -1 not fitted to it, 0 outside the bound refitted without it, 1
+    held by it; a model's bound is fitted to its own particles and its ``same_model_as``
+    copies'), from which the evidence's mixture reads the bound's membership of the particles
+    it was fitted to.
     """
 
     t: int
@@ -233,7 +235,8 @@ class Result:
         if log_l is None:
             return None
         dims = [m.n_dim for m in self.models]
-        return read(Mixture.of(self.populations, [Frame(m, unit=True) for m in self.models], dims), dims, log_l)
+        frames = [Frame(m, unit=True) for m in self.models]
+        return read(Mixture.of(self.populations, frames, dims, same_models(self.models)), dims, log_l)
 
     def answer_draws(self, model: int) -> tuple[np.ndarray, np.ndarray, str]:
         """(theta (n, d), weights (n,) summing to 1, how) of one model in the run's answer.

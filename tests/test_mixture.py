@@ -61,6 +61,32 @@ def test_the_standard_error_is_that_of_independent_draws():
     assert math.isclose(log_z, math.log(0.03)) and math.isclose(se, math.sqrt(0.97 / 30))
 
 
+def test_copies_weigh_every_particle_of_their_family_by_their_own_prior():
+    """One model under two priors, ``a`` U(0, 1) and ``b`` U(0, 0.5) (``same_model_as`` a);
+    population 1 draws 100 of a's proposals and 50 of b's on grids, accepted in [0.1, 0.3).
+    The family's mixture is G = p_a S_a + p_b S_b = 1 * 100 + 2 * 50 = 200 on [0, 0.5], and
+    the 40 accepted particles (20 of each copy) give Z_a = 40 * 1 / 200 = 0.2 and Z_b =
+    40 * 2 / 200 = 0.4: each copy's prior mass of the accepted region, exactly. A copy's
+    particles outside the other's box count 0 for it: at eps 0.2, a's 10 particles in
+    [0.5, 0.6), outside b's box (G = 100 there), weigh 1 / 100 for a only; its 5 in
+    [0.45, 0.5), 1 / 200 for a and 2 / 200 for b."""
+    from abcns import Model
+    from abcns.mixture import Mixture
+
+    models = [Model("a", {"x": (0.0, 1.0)}), Model("b", {"x": (0.0, 0.5)}, same_model_as="a")]
+    mixture = Mixture.empty([bd.Frame(m, unit=True) for m in models], [1, 1], [[1], [0]])
+    xa, xb = 0.005 + 0.01 * np.arange(100), 0.005 + 0.01 * np.arange(50)
+    keep_a, keep_b = (np.abs(xa - 0.2) < 0.1) | (np.abs(xa - 0.525) < 0.075), np.abs(xb - 0.2) < 0.1
+    which = np.r_[np.zeros(keep_a.sum(), np.int64), np.ones(keep_b.sum(), np.int64)]
+    theta = np.r_[xa[keep_a], xb[keep_b]][:, None]
+    distances = np.where(np.abs(theta[:, 0] - 0.2) < 0.1, np.abs(theta[:, 0] - 0.2), 0.15)
+    grown = mixture.grown(None, 0.2, which, theta, distances, np.ones(which.size, bool), np.array([100, 50]))
+    log_z, _ = grown.log_z(0.1)
+    assert np.allclose(np.exp(log_z), [0.2, 0.4])
+    log_z, _ = grown.log_z(0.2)  # a's 15 particles in [0.45, 0.6): 0.05 / 200 + 0.1 / 100 more for a
+    assert np.allclose(np.exp(log_z), [0.2 + 5 / 200 + 10 / 100, 0.4 + 5 * 2 / 200])
+
+
 @pytest.mark.slow
 def test_two_copies_of_one_model_each_get_their_exact_abc_evidence():
     """Issue Y: one 11-parameter linear-Gaussian model under a uniform and a log-uniform prior

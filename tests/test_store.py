@@ -316,7 +316,7 @@ def test_append_refuses_wrong_order_and_shapes(tmp_path):
 def test_attributes_status_and_format_version(reference):
     store = Store.open(reference[0].path)
     attrs = store.attrs
-    assert attrs["format_version"] == FORMAT_VERSION == 6
+    assert attrs["format_version"] == FORMAT_VERSION == 7
     assert attrs["spec"] == SPEC and attrs["seed"] == SEED and attrs["algorithm"] == "abc-ns"
     assert attrs["data_hash"] == data_hash(np.array([0.5]))
     assert attrs["model_names"] == ["narrow", "wide"] and attrs["parameter_names"] == [["theta"], ["theta"]]
@@ -387,7 +387,7 @@ def test_open_and_create_errors(tmp_path):
     models, _ = two_models()
     store = new_store(tmp_path / "empty", models)  # an empty directory is fine
     zarr.open_group(str(store.path), mode="r+").attrs["format_version"] = 1
-    with pytest.raises(StoreError, match="format_version 1; this abcns reads version 6"):
+    with pytest.raises(StoreError, match="format_version 1; this abcns reads version 7"):
         Store.open(store.path)
 
     with pytest.raises(StoreError, match="already exists"):
@@ -804,7 +804,7 @@ def fixed_population(t: int) -> Population:
         n_simulations_by_model=np.array([4 * t, 6 * t]) if full else np.zeros(0, dtype=np.int64),
         n_failed_by_model=np.array([0, t]) if full else np.zeros(0, dtype=np.int64),
         floor=Floor(0.0625, 1, 2, 0.001, 0, 500) if full else None,
-        held=np.array([1, -1, 1, 0], dtype=np.int8) if full else None,
+        held=np.array([[1, -1], [-1, -1], [-1, 1], [1, 0]], dtype=np.int8) if full else None,
     )
 
 
@@ -843,13 +843,13 @@ def test_the_format_is_the_one_written_before_the_schema_was_declared_once(tmp_p
     sort_keys=True))'``); a store written now holds the same arrays, metadata and content,
     and reads back as written. One text changed since: survivor's description said "kept
     from the previous population" while survivor marks the particles kept for the next one.
-    Format 6 is format 4 with one array more, ``held``, and two fewer, ``evidence_coverage``
-    and ``evidence_n_coverage`` (the evidence from the mixture of the proposal regions needs
-    no coverage)."""
+    Format 7 is format 4 with one array more, ``held`` (per particle and model), and two
+    fewer, ``evidence_coverage`` and ``evidence_n_coverage`` (the evidence from the mixture
+    of the proposal regions needs no coverage)."""
     store = write_format_store(tmp_path / "f.zarr")
     want = json.loads(FORMAT_SNAPSHOT.read_text())
     got = json.loads(json.dumps(format_snapshot(store.path)))  # JSON's view (NaN fills, tuples as lists)
-    assert got["attributes"] == want["attributes"] | {"format_version": 6}
+    assert got["attributes"] == want["attributes"] | {"format_version": 7}
     gone = {"evidence_coverage", "evidence_n_coverage"}
     assert sorted(got["arrays"]) == sorted([*(set(want["arrays"]) - gone), "held"])
     for name in set(want["arrays"]) - gone:

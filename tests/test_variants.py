@@ -64,7 +64,7 @@ def test_the_mixture_counts_what_the_last_bound_misses_through_the_regions_befor
     d1 = np.abs(theta1[:, 0] - 0.3)
     mixture = empty().grown(None, 0.5, which1, theta1, d1, np.ones(60, bool), np.array([100, 0]))
     bound = (ell.from_matrix(np.array([0.4]), np.array([[0.04]])),)
-    held = np.full(60, NOT_FITTED, np.int8)
+    held = np.full((60, 2), NOT_FITTED, np.int8)
     previous = SimpleNamespace(survivors=np.zeros(60, bool), ellipsoids=(bound, ()), held=held, models=which1,
                                evidence=previous_evidence(log_volume=np.log([0.4, 1.0]), log_volume_se=np.zeros(2)))
     x2 = 0.205 + 0.01 * np.arange(40)
@@ -73,8 +73,8 @@ def test_the_mixture_counts_what_the_last_bound_misses_through_the_regions_befor
     grown = mixture.grown(previous, 0.3, np.zeros(40, np.int64), theta2, d2, np.ones(40, bool), np.array([40, 0]))
     log_z, var = grown.log_z(0.2)
     assert math.isclose(log_z[0], math.log(0.4)) and log_z[1] == -np.inf and var[1] == np.inf
-    held[np.flatnonzero(np.isclose(theta1[:, 0], 0.215))] = OUTSIDE
-    held[np.flatnonzero(np.isclose(theta1[:, 0], 0.225))] = HELD
+    held[np.flatnonzero(np.isclose(theta1[:, 0], 0.215)), 0] = OUTSIDE
+    held[np.flatnonzero(np.isclose(theta1[:, 0], 0.225)), 0] = HELD
     grown = mixture.grown(previous, 0.3, np.zeros(40, np.int64), theta2, d2, np.ones(40, bool), np.array([40, 0]))
     assert math.isclose(grown.log_z(0.2)[0][0], math.log(0.4 + 1 / 100 - 1 / 200))
 

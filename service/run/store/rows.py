@@ -73,15 +73,15 @@ def row(layout: Layout, pop: Population, n_simulations_total: int) -> dict[str, 
         raise StoreError(f"population {pop.t}: theta has shape {np.shape(pop.theta)}, the store expects {(n, d)}")
     if pop.survivors is not None and np.shape(pop.survivors) != (n,):
         raise StoreError(f"population {pop.t}: survivors has shape {np.shape(pop.survivors)}, expected ({n},)")
-    if pop.held is not None and np.shape(pop.held) != (n,):
-        raise StoreError(f"population {pop.t}: held has shape {np.shape(pop.held)}, expected ({n},)")
+    if pop.held is not None and np.shape(pop.held) != (n, m):
+        raise StoreError(f"population {pop.t}: held has shape {np.shape(pop.held)}, expected {(n, m)}")
     if pop.ellipsoids and len(pop.ellipsoids) != m:
         raise StoreError(f"population {pop.t}: {len(pop.ellipsoids)} bounds for {m} models")
     out = _fields(pop, {"particle": n, "model": m})
     out |= {
         "theta": layout.to_named(np.asarray(pop.models), np.asarray(pop.theta, dtype=np.float64)),
         "survivor": np.zeros(n, bool) if pop.survivors is None else np.asarray(pop.survivors, dtype=bool),
-        "held": np.full(n, -1, np.int8) if pop.held is None else np.asarray(pop.held, np.int8),
+        "held": np.full((n, m), -1, np.int8) if pop.held is None else np.asarray(pop.held, np.int8),
         "n_simulations_total": n_simulations_total,
         "has_survivors": pop.survivors is not None,
         "has_ellipsoids": bool(pop.ellipsoids),

@@ -80,8 +80,9 @@ from abcns.noise import Floor
 from abcns.priors import Uniform
 
 # 4: the noise floor per population (floor_*), simulations and failures per model; 5: coverage_test;
-# 6: held in coverage_test's place, evidence_coverage and evidence_n_coverage gone (the mixture's evidence)
-FORMAT_VERSION = 6
+# 6: held in coverage_test's place, evidence_coverage and evidence_n_coverage gone (the mixture's evidence);
+# 7: held per particle and model (a copy's bound is fitted to its twins' particles too)
+FORMAT_VERSION = 7
 CHUNK_BYTES = 64 * 1024
 
 NOTE_CODES = {"": 0, "repaired": 1, "fallback": 2, "box": 3}  # -1: no ellipsoid (dead model)
@@ -139,8 +140,9 @@ SCHEMA: tuple[Variable, ...] = (
     _V("weight", (_N,), "float64", "weight", "normalised to sum to 1 within each model (ABC-NS: survivor selection)", "1",
        field="weights"),
     _V("survivor", (_N,), "bool", "survivor", "kept for the next population: carried into t+1 as it is (ABC-NS)"),
-    _V("held", (_N,), "int8", "held by its bound", "the particle's part in its model's new bound (ABC-NS, read with "
-       "has_evidence): -1 not fitted to it, 0 outside the bound refitted without it, 1 held"),
+    _V("held", (_N, _M), "int8", "held by the bounds", "the particle's part in each model's new bound (ABC-NS, read "
+       "with has_evidence; a model's bound is fitted to its particles and its same_model_as copies'): -1 not fitted "
+       "to it, 0 outside the bound refitted without it, 1 held"),
     _V("epsilon", (), "float64", "tolerance", "the tolerance the population was accepted under", "{distance_units}",
        field="epsilon"),
     _V("epsilon_next", (), "float64", "next tolerance", "the tolerance chosen for the next population (NaN: none, as "
