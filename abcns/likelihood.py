@@ -11,10 +11,13 @@ with S(x) the mixture of those (final once the tolerance falls below x's distanc
 
 model m's exact evidence (importance nested sampling: Feroz et al. 2019); the same weights
 make the particles an importance sample of m's exact posterior. Survivors are not counted
-again (each was a new particle once). Without a stated noise, its variance is integrated out
-under Jeffreys' prior (:func:`marginal`). In a run stopped above its floor, a model whose
-reading rests on fewer than 2 (d + 1) effective particles (:func:`enough`) takes its
-posterior from the answer population's particles instead
+again (each was a new particle once). ``same_model_as`` copies are read from every particle
+of both, each weighted by L p_m / (sum_k p_k S_k) (:class:`abcns.mixture.Mixture`), in the
+answer (:meth:`abcns.result.Result.reading`); the run's own steps read each copy alone.
+Without a stated noise, its variance is integrated out under Jeffreys' prior
+(:func:`marginal`). In a run stopped above its floor, a model whose reading rests on fewer
+than 2 (d + 1) effective particles (:func:`enough`) takes its posterior from the answer
+population's particles instead
 (:meth:`abcns.result.Result.answer_draws`). A run at its floor holds its decision tolerance
 while an alive model's reading is thin (:func:`thin`), and a model about to leave on a thin
 reading first keeps its best particles below the next tolerance (:func:`kept`). The

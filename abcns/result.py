@@ -226,7 +226,8 @@ class Result:
     def _reading(self) -> Reading | None:
         """The likelihood-weighted answer (:mod:`abcns.likelihood`): the evidence variant of a
         run that knows its noise (a floor), read over all its populations with the floor's
-        noise variance; None otherwise (the answer is then the decision population's)."""
+        noise variance, ``same_model_as`` copies from both copies' particles; None otherwise
+        (the answer is then the decision population's)."""
         floor = self.floor
         if (floor is None or self.settings.get("sampler", {}).get("variant") != "evidence"
                 or any(p.evidence is None for p in self.populations) or not self.floor_settled):
