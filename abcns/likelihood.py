@@ -203,7 +203,7 @@ def read(mixture: Mixture, dims: Sequence[int], log_likelihood: Callable[[np.nda
         log_l = log_likelihood(part.distances)
         shares: dict[int, np.ndarray] = {}
         for c, m in enumerate(family):
-            log_w = log_l + log_r[:, c] - part.log_s if len(family) > 1 else log_l - part.log_s
+            log_w = log_l + log_r[:, c] - part.log_s  # log_r 0 for a model's own particles
             if not np.isfinite(np.max(log_w)):
                 continue
             log_z[m], var = log_estimate(log_w, part.log_u - 2 * part.log_s, n)
