@@ -36,6 +36,15 @@ SPLIT_GAIN = 0.8
 #: §4.1 (seeds 1-8): 10 needs ~23 % fewer simulations to eps 0.015 than 20; on the closed-form
 #: toys both kept log Z within its standard error
 LEAF_POINTS = 10
+#: a bound has at most one ellipsoid per this many of the points it is fitted to (and at most
+#: ``max_ellipsoids``): a few points split into several sets show no shape. A losing cubic
+#: (3-d, 24-50 points below the next tolerance) bounded by 2-4 ellipsoids of 10-16 points held
+#: 0.65-0.93 of its points left out one at a time, by one 0.93-0.98; its bounds lost the end of
+#: its curved region where its posterior lies, population after population, and its log
+#: evidence ended 46 nats low (linear-vs-cubic, data seed 4, seed 5). 64 kept it too, but §4.1's
+#: winner (4-d, ~700 points) then got 10 ellipsoids instead of 16, for 30 % more simulations
+#: (docs/benchmarks.md, "A rare model's bound")
+POINTS_PER_ELLIPSOID = 32
 #: a point is an outlier when its squared whitened radius exceeds the chi-square quantile
 #: 1 - OUTLIER_TAIL / n, scaled by the points' median radius (see :func:`outliers`)
 OUTLIER_TAIL = 0.01
@@ -101,8 +110,10 @@ def _chi2_quantile(q: float, d: int) -> float:
 def union_groups(points: np.ndarray, max_ellipsoids: int) -> tuple[np.ndarray, list[np.ndarray]]:
     """(the rows of ``points`` :func:`fit_union` keeps, ascending; the rows each of its
     ellipsoids is fitted to): far :func:`outliers` left out (while enough points stay), the
-    kept points grouped by :func:`_tree_sets`, or one group of them all."""
+    kept points grouped by :func:`_tree_sets` into at most ``max_ellipsoids`` sets and one
+    per ``POINTS_PER_ELLIPSOID`` points, or one group of them all."""
     kept = np.arange(points.shape[0])
+    max_ellipsoids = min(max_ellipsoids, points.shape[0] // POINTS_PER_ELLIPSOID)
     if max_ellipsoids > 1 and points.shape[0] > points.shape[1] and (r2 := _radii(points)) is not None:
         far = outliers(r2, points.shape[1])
         if np.any(far) and np.count_nonzero(~far) > 2 * min_points(points.shape[1]):
@@ -126,9 +137,9 @@ def fit_union_groups(points: np.ndarray, enlargement: float, max_ellipsoids: int
     The points' ellipsoid (``abcns.ellipsoid.fit``, with ``fallback`` when the points define
     no shape) is split by 2-means (at the median where 2-means strands a small group),
     recursively, while each half keeps ``LEAF_POINTS`` and :func:`min_points` points; of the
-    ellipsoids of that tree, the set of at most
-    ``max_ellipsoids`` with the least total volume is kept (a node is replaced by its
-    halves' best sets only when those hold less than ``SPLIT_GAIN`` of its volume)."""
+    ellipsoids of that tree, the set of at most ``max_ellipsoids`` (and one per
+    ``POINTS_PER_ELLIPSOID`` points) with the least total volume is kept (a node is replaced
+    by its halves' best sets only when those hold less than ``SPLIT_GAIN`` of its volume)."""
     kept, groups = union_groups(points, max_ellipsoids)
     if len(groups) == 1:
         return tuple(ell.fit_many([points[kept]], fallback, enlargement=enlargement)), groups
