@@ -37,6 +37,17 @@ def test_two_separate_discs_get_separate_ellipsoids_and_hold_every_point():
     assert total < 1.5 * 2 * np.pi * 0.05**2 * 1.1
 
 
+def test_few_points_make_one_ellipsoid_and_enough_are_split():
+    """At most one ellipsoid per ``POINTS_PER_ELLIPSOID`` (32) points: the two discs above,
+    20 points each, are bounded by one ellipsoid over both (before, two of 20: a rare model's
+    bound that missed a third of its region, tests/test_reading.py), 40 each by two."""
+    rng = np.random.default_rng(1)
+    for n, ellipsoids in ((20, 1), (40, 2)):
+        points = np.vstack([ball((0.2, 0.2), 0.05, n, rng), ball((0.8, 0.7), 0.05, n, rng)])
+        union = bd.fit_union(points, 1.1, 8, FALLBACK)
+        assert len(union) == ellipsoids and np.all(ell.n_containing(union, points) > 0), n
+
+
 def test_a_convex_cloud_stays_one_ellipsoid():
     """Halves replace a node only when they hold less than ``SPLIT_GAIN`` (0.8) of its volume,
     which the chance fluctuations of a uniform disc do not reach: it stays one ellipsoid."""
