@@ -14,7 +14,9 @@ from the generator it is given.
 - :func:`union_volume` : Monte Carlo estimate of log vol(union ∩ box) and its standard error.
 
 How much of the accepted region a bound misses needs no measure: the evidence counts it
-through the older regions that held it (``abcns.mixture``).
+through the older regions that held it (``abcns.mixture``). What no later region holds is
+lost to the run, so a bound is never split finer than its points can show
+(``POINTS_PER_ELLIPSOID``).
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ LEAF_POINTS = 10
 #: 0.65-0.93 of its points left out one at a time, by one 0.93-0.98; its bounds lost the end of
 #: its curved region where its posterior lies, population after population, and its log
 #: evidence ended 46 nats low (linear-vs-cubic, data seed 4, seed 5). 64 kept it too, but §4.1's
-#: winner (4-d, ~700 points) then got 10 ellipsoids instead of 16, for 30 % more simulations
+#: winner (4-d, ~700 points) then got 10 ellipsoids instead of 16, for 38 % more simulations
 #: (docs/benchmarks.md, "A rare model's bound")
 POINTS_PER_ELLIPSOID = 32
 #: a point is an outlier when its squared whitened radius exceeds the chi-square quantile

@@ -514,6 +514,26 @@ def test_a_model_is_spared_while_the_population_that_decides_would_thin_its_read
     assert not likelihood.spared(before, [1, 1], floor, 1e-3, like)[1]
 
 
+def exact_bayes_case(case: str, data_seed: int, seed: int):
+    """(the job of benchmarks.exact_bayes's ``case`` on data ``data_seed`` run with ``seed``,
+    dynesty's log Z per model from the benchmark's cache, checked against what it was made
+    from: a stale answer fails here, not as a wrong comparison)."""
+    from benchmarks.exact_bayes import CACHE, ExactModel, cache_key, case_data, case_spec
+    from service.spec import build, parse
+
+    data = case_data(case, data_seed)
+    raw, base = case_spec(case, data, seed, None)
+    job = build(parse(raw), base)
+    log_z = {}
+    for model, simulator in zip(job.models, job.simulators, strict=True):
+        stored = json.loads((CACHE / f"{case}-s{data_seed}-{model.name}-n1000.json").read_text())
+        exact = ExactModel(model, simulator, job.force, job.observed, tuple(job.spec.data.fit), data["noise_std"])
+        assert stored["key"] == cache_key(case, data_seed, 1000, exact, model, job.force), \
+            f"the cached exact answer of {case} {data_seed} {model.name} is stale: rerun benchmarks.exact_bayes"
+        log_z[model.name] = stored["answer"]["log_z"]
+    return job, log_z
+
+
 @pytest.mark.parametrize(("data_seed", "seed"), [(4, 5), (3, 3)])
 def test_a_rare_model_s_bound_keeps_the_end_of_its_curved_region(data_seed, seed):
     """benchmarks.exact_bayes's linear-vs-cubic (linear truth, 1 % noise): the cubic loses
@@ -525,15 +545,7 @@ def test_a_rare_model_s_bound_keeps_the_end_of_its_curved_region(data_seed, seed
     it (``bounds.POINTS_PER_ELLIPSOID``): on data seed 4, seeds 1-8, the ln Bayes factor is
     within 0.23 of dynesty's and the 15 runs of the benchmark within 0.46. The tolerance, 1
     nat, is three of the combined errors (dynesty's 0.2 per model, abcns's ~0.15)."""
-    from benchmarks.exact_bayes import CACHE, case_data, case_spec
-    from service.spec import build, parse
-
-    case = "linear-vs-cubic"
-    data = case_data(case, data_seed)
-    raw, base = case_spec(case, data, seed, None)
-    job = build(parse(raw), base)
-    exact = {m: json.loads((CACHE / f"{case}-s{data_seed}-{m}-n1000.json").read_text())["answer"]["log_z"]
-             for m in ("linear", "cubic")}
+    job, exact = exact_bayes_case("linear-vs-cubic", data_seed, seed)
     r = abcns.run(job.models, job.evaluate, job.settings, job.stop, seed=seed, noise=job.noise)
     log_z = {m: v["log_z"] for m, v in r.summary()["log_evidence"].items()}
     off = (log_z["cubic"] - log_z["linear"]) - (exact["cubic"] - exact["linear"])
@@ -546,14 +558,8 @@ def test_a_model_that_left_far_above_its_own_best_fit_says_its_evidence_is_a_low
     own best fit: its ln Bayes factor against the cubic-quintic reads -242,123 with a standard
     error of 0.28, dynesty's is -167,775. The summary says so: ``lower_bound`` for a model read
     on fewer effective particles than ``likelihood.held_target``, not for the winner."""
-    from benchmarks.exact_bayes import CACHE, case_data, case_spec
-    from service.spec import build, parse
-
-    case, seed = "paper41", 4
-    raw, base = case_spec(case, case_data(case, seed), seed, None)
-    job = build(parse(raw), base)
-    exact = {m: json.loads((CACHE / f"{case}-s{seed}-{m}-n1000.json").read_text())["answer"]["log_z"]
-             for m in ("cubic", "cubic-quintic")}
+    seed = 4
+    job, exact = exact_bayes_case("paper41", seed, seed)
     ev = abcns.run(job.models, job.evaluate, job.settings, job.stop, seed=seed, noise=job.noise).summary()["log_evidence"]
     assert ev["cubic"]["lower_bound"] and ev["cubic"]["effective_particles"] < 64
     # what the flag is for: far below the truth, by more than its standard error says
