@@ -87,6 +87,7 @@ import json
 import math
 import os
 import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, Protocol
@@ -281,19 +282,28 @@ def cache_key(case: str, seed: int, nlive: int, exact: ExactModel, model: Any, f
             "fixed": {k: float(v) for k, v in model.fixed.items()}, "simulator": exact.sim.config()}
 
 
-def exact_answer(case: str, seed: int, nlive: int, job: Any, data: dict[str, Any], cache: Path | None) -> dict:
-    """Every model's exact answer (cached) and the exact model probabilities with their
-    delta-method errors (equal model priors)."""
+def cached(case: str, seed: int, nlive: int, job: Any, data: dict[str, Any],
+           cache: Path | None) -> Iterator[tuple[ExactModel, dict, Path | None, dict | None]]:
+    """Per model of ``job``: (its :class:`ExactModel`, its cache key, the cache file (None
+    without a cache), dynesty's stored answer where the file's key is this one, else None)."""
     fit = tuple(job.spec.data.fit)
-    models: dict[str, dict] = {}
     for model, simulator in zip(job.models, job.simulators):
         exact = ExactModel(model, simulator, job.force, job.observed, fit, data["noise_std"])
-        exact.loglike(exact.prior_transform(np.full(len(exact.names), 0.5)))  # compiled kernels loaded
         key = cache_key(case, seed, nlive, exact, model, job.force)
         path = None if cache is None else cache / f"{case}-s{seed}-{model.name}-n{nlive}.json"
         stored = json.loads(path.read_text()) if path is not None and path.exists() else None
-        if stored is not None and stored.get("key") == key:
-            models[model.name] = {**stored["answer"], "cached": True}
+        yield exact, key, path, stored["answer"] if stored is not None and stored.get("key") == key else None
+
+
+def exact_answer(case: str, seed: int, nlive: int, job: Any, data: dict[str, Any], cache: Path | None) -> dict:
+    """Every model's exact answer (cached) and the exact model probabilities with their
+    delta-method errors (equal model priors)."""
+    models: dict[str, dict] = {}
+    for exact, key, path, stored in cached(case, seed, nlive, job, data, cache):
+        model = exact.model
+        exact.loglike(exact.prior_transform(np.full(len(exact.names), 0.5)))  # compiled kernels loaded
+        if stored is not None:
+            models[model.name] = {**stored, "cached": True}
             continue
         answer = run_dynesty(exact, nlive, seed)
         if path is not None:

@@ -11,7 +11,6 @@ the box's cut is below 1e-12 of the mass for these data). The spec states the no
 """
 
 import dataclasses
-import json
 import math
 
 import numpy as np
@@ -518,19 +517,16 @@ def exact_bayes_case(case: str, data_seed: int, seed: int):
     """(the job of benchmarks.exact_bayes's ``case`` on data ``data_seed`` run with ``seed``,
     dynesty's log Z per model from the benchmark's cache, checked against what it was made
     from: a stale answer fails here, not as a wrong comparison)."""
-    from benchmarks.exact_bayes import CACHE, ExactModel, cache_key, case_data, case_spec
+    from benchmarks.exact_bayes import CACHE, cached, case_data, case_spec
     from service.spec import build, parse
 
     data = case_data(case, data_seed)
     raw, base = case_spec(case, data, seed, None)
     job = build(parse(raw), base)
     log_z = {}
-    for model, simulator in zip(job.models, job.simulators, strict=True):
-        stored = json.loads((CACHE / f"{case}-s{data_seed}-{model.name}-n1000.json").read_text())
-        exact = ExactModel(model, simulator, job.force, job.observed, tuple(job.spec.data.fit), data["noise_std"])
-        assert stored["key"] == cache_key(case, data_seed, 1000, exact, model, job.force), \
-            f"the cached exact answer of {case} {data_seed} {model.name} is stale: rerun benchmarks.exact_bayes"
-        log_z[model.name] = stored["answer"]["log_z"]
+    for exact, _, path, stored in cached(case, data_seed, 1000, job, data, CACHE):
+        assert stored is not None, f"{path} is stale or missing: rerun benchmarks.exact_bayes"
+        log_z[exact.model.name] = stored["log_z"]
     return job, log_z
 
 
