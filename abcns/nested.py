@@ -487,7 +487,7 @@ class _Run:
             self.kept_in_a_row += 1
 
     def end(self, reason: StopReason) -> RunEnd:
-        return RunEnd(reason, self.budget.n_simulations, self.n_pilot, self.source, tuple(self.notes))
+        return RunEnd(reason, self.budget.n_simulations, self.n_pilot, self.source, tuple(self.notes), self.mixture)
 
     def start(self, t: int, eps: float, bounds: Sequence[bd.Union], allocation: np.ndarray, n_survivors: int) -> Filling:
         """Open population t: proposals from ``bounds`` by the evidence's ``allocation`` (the

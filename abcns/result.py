@@ -106,6 +106,9 @@ class RunEnd:
     n_pilot_simulations: int
     epsilon_initial_source: str
     notes: tuple[str, ...] = ()
+    #: ABC-NS's mixture after its last population (None from the other algorithms): the
+    #: answer's reading takes it rather than growing it again (:attr:`Result.mixture`)
+    mixture: Mixture | None = field(default=None, repr=False, compare=False)
 
 
 def weighted_quantiles(x: np.ndarray, w: np.ndarray, qs: Sequence[float]) -> np.ndarray:
@@ -158,6 +161,9 @@ class Result:
     wall_time_s: float
     weighted_posterior: bool = False
     notes: tuple[str, ...] = ()
+    #: the mixture the run grew (``RunEnd.mixture``), when this result is the run's own: its
+    #: reading is then made without growing it again over the populations (``Mixture.of``)
+    mixture: Mixture | None = field(default=None, repr=False, compare=False)
 
     @property
     def final(self) -> Population:
@@ -237,7 +243,7 @@ class Result:
             return None
         dims = [m.n_dim for m in self.models]
         frames = [Frame(m, unit=True) for m in self.models]
-        return read(Mixture.of(self.populations, frames, dims, same_models(self.models)), dims, log_l)
+        return read(Mixture.of(self.populations, frames, dims, same_models(self.models), self.mixture), dims, log_l)
 
     def answer_draws(self, model: int) -> tuple[np.ndarray, np.ndarray, str]:
         """(theta (n, d), weights (n,) summing to 1, how) of one model in the run's answer.

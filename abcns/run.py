@@ -120,4 +120,5 @@ def run(
         wall_time_s=time.monotonic() - start,
         weighted_posterior=isinstance(settings, SMCSettings),
         notes=end.notes,
+        mixture=end.mixture,
     )

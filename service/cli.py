@@ -376,13 +376,13 @@ def run(
             line.show(p.event(names))
 
         try:
-            run_job(job_spec, base, out, client, seed=seed, on_population=progress, allow_import=True)
+            result = run_job(job_spec, base, out, client, seed=seed, on_population=progress, allow_import=True)
         except SpecError as err:
             _fail(str(err))
         except BatchError as err:  # a bug in a simulator: which batch, which exception; the store keeps the rest
             _fail(f"the job failed in {err}; the populations before it are in {out} (abcns summary {out})", JOB_FAILED)
     line.end()
-    print_summary(summary(Store.open(out)), job_spec.distance.name, as_json,
+    print_summary(summary(Store.open(out), result), job_spec.distance.name, as_json,
                   f"store: {out}  (full JSON summary: abcns summary {out} --json)")
 
 

@@ -1,5 +1,6 @@
-"""The runner (``service.run.runner.run_job``) keeps the cyclic garbage collector's full
-passes short while a run goes on (``frozen_heap``): the objects alive when the run starts
+"""The runner (``service.run.runner.run_job``) hands back its run's result with the mixture
+the run grew (its answer read without growing it again), and keeps the cyclic garbage
+collector's full passes short while a run goes on (``frozen_heap``): the objects alive when the run starts
 are frozen (``gc.freeze``) during the run and handed back when it ends, whatever way it
 ends. What this buys is measured, not tested (docs/benchmarks.md, "The runner's pauses": a
 full pass over a runner's ~200,000 objects stalls all its threads ~110-140 ms, against ~7
@@ -14,7 +15,7 @@ import pytest
 
 import service.run.runner as runner
 from abcns.executor import SerialExecutor
-from service.run.runner import alone, frozen_heap, run_job
+from service.run.runner import alone, frozen_heap, run_job, summary
 from service.run.store import Store
 from service.spec import parse
 from tests.test_store import linear_demo_raw
@@ -49,6 +50,17 @@ def test_a_run_is_frozen_while_it_goes_on_and_hands_everything_back(tmp_path, mo
     with pytest.raises(RuntimeError, match="the runner dies"):
         run_job(parse(linear_demo_raw("gc-dies")), Path("/"), tmp_path / "dies.zarr", None, on_population=dies)
     assert gc.get_freeze_count() == before  # also when the run fails
+
+
+def test_a_job_s_result_holds_the_mixture_its_run_grew(tmp_path):
+    """The store's result, handed back with the run's own mixture (``RunEnd.mixture``: the
+    answer's reading takes it, ``abcns.mixture.Mixture.of``); a result read from the store
+    later has none and grows it again, to the same summary."""
+    spec = parse(linear_demo_raw("grown"))
+    result = run_job(spec, Path("/"), tmp_path / "grown.zarr", None)
+    assert result.mixture is not None and result.mixture.n_populations == len(result.populations) == 2
+    assert run_job(spec, Path("/"), tmp_path / "grown.zarr", None).mixture is None  # finished: read back
+    assert summary(Store.open(tmp_path / "grown.zarr"), result) == summary(Store.open(tmp_path / "grown.zarr"))
 
 
 def test_overlapping_runs_unfreeze_when_the_last_ends():

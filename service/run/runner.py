@@ -455,7 +455,8 @@ def _run_job(
             getattr(executor, "close", lambda: None)()  # the Dask executor releases the job's data
         assert writer.store is not None  # close() raised otherwise
         _record_end(writer.store, key, end, run_info, budget)
-        result = result_from_store(writer.store)
+        # the store's result, with the mixture the run grew (its answer's reading: not again)
+        result = replace(result_from_store(writer.store), mixture=end.mixture)
         _record_residuals(writer.store, job, result)
         return result
 
