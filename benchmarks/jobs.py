@@ -4,8 +4,9 @@
     python -m benchmarks.jobs [--jobs 16] [--workers 2] [--spec SPEC] [--keep DIR] [--ceiling] [--service]
                               [--sleepy MS] [--no-alone]
 
-*one after another*: every job in this process, ``run_job(..., client=None)`` (the
-in-process engine, a store each), the first one paying for loading the compiled kernels.
+*one after another*: every job in this process as ``abcns run`` runs it, ``run_job(...,
+client=None)`` (the in-process engine, a store each) then its summary (as every job of the
+other paths makes it), the first one paying for loading the compiled kernels.
 *together*: every job at once through :func:`service.run.jobs.run_jobs` on a LocalCluster
 of ``--workers`` single-threaded worker processes (started before the clock starts; its
 start is printed apart), each job one task on a worker, whole or spread as its placement
@@ -60,7 +61,7 @@ from distributed import Client, get_task_stream
 
 from service.run.dask_executor import local_cluster
 from service.run.jobs import JobRun, job_workers, run_jobs
-from service.run.runner import run_job
+from service.run.runner import run_job, summary
 from service.run.store import Store
 from service.spec import JobSpec, load, load_array
 
@@ -86,8 +87,11 @@ def same_populations(a: Path, b: Path) -> str | None:
     return None
 
 
-def _one(spec: JobSpec, base: Path, store: Path, seed: int) -> None:
-    run_job(spec, base, store, None, seed=seed)
+def _one(spec: JobSpec, base: Path | None, store: Path, seed: int) -> None:
+    """One job as ``abcns run`` runs it in its own process: the run, then its summary (as a
+    job on a worker makes it)."""
+    result = run_job(spec, base, store, None, seed=seed)
+    summary(Store.open(store), result)
 
 
 def _warm() -> None:
@@ -95,15 +99,17 @@ def _warm() -> None:
     the clock, as on the workers)."""
 
 
-def plain_processes(spec: JobSpec, base: Path, folder: Path, seeds: range, n: int) -> float:
-    """Seconds for the jobs on ``n`` plain processes (a job at a time each), started first."""
+def plain_processes(spec: JobSpec, base: Path, folder: Path, seeds: range, n: int) -> dict:
+    """The jobs on ``n`` plain processes (a job at a time each), started first: the wall
+    seconds and the processes' CPU seconds."""
     with ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn")) as pool:
         for f in [pool.submit(_warm) for _ in range(4 * n)]:
             f.result()
-        start = time.monotonic()
+        pids = [c.pid for c in psutil.Process().children()]
+        cpu_0, start = cpu_seconds(pids), time.monotonic()
         for f in [pool.submit(_one, spec, base, folder / f"plain-{seed}.zarr", seed) for seed in seeds]:
             f.result()
-        return time.monotonic() - start
+        return {"wall": time.monotonic() - start, "cpu": cpu_seconds(pids) - cpu_0}
 
 
 def cpu_seconds(pids: list[int]) -> float:
@@ -279,12 +285,13 @@ def job_specs(args) -> tuple[JobSpec, Path | None]:
 
 def alone(spec: JobSpec, base: Path | None, folder: Path, seeds: range) -> dict:
     load_0 = load_average()
-    start, each = time.monotonic(), []
+    start, cpu_0, each = time.monotonic(), time.process_time(), []
     for seed in seeds:
         t = time.monotonic()
-        run_job(spec, base, folder / f"alone-{seed}.zarr", None, seed=seed)
+        _one(spec, base, folder / f"alone-{seed}.zarr", seed)
         each.append(time.monotonic() - t)
-    return {"wall": time.monotonic() - start, "each": each, "load": (load_0, load_average())}
+    return {"wall": time.monotonic() - start, "cpu": time.process_time() - cpu_0, "each": each,
+            "load": (load_0, load_average())}
 
 
 def main() -> None:
@@ -314,7 +321,7 @@ def main() -> None:
         plain = None
         if args.ceiling:
             load = load_average()
-            plain = {"wall": plain_processes(spec, base, folder, seeds, args.workers), "load": (load, load_average())}
+            plain = {**plain_processes(spec, base, folder, seeds, args.workers), "load": (load, load_average())}
         served = None
         if args.service:
             load = load_average()
@@ -345,8 +352,10 @@ def report(args, folder: Path, seeds: range, one: dict | None, both: dict, plain
             print(f"{label:38s} {r['wall']:8.1f} {60 * args.jobs / r['wall']:9.1f} {r['load'][0]:>19s} -> {r['load'][1]:<17s}")
     if one is not None:
         each = np.array(one["each"])
-        print(f"one job alone: {each.mean():.2f} s on average ({each.min():.2f}-{each.max():.2f}); each: "
-              + " ".join(f"{x:.2f}" for x in each))
+        print(f"one job alone: {each.mean():.2f} s on average ({each.min():.2f}-{each.max():.2f}), CPU ms per job "
+              f"{1e3 * one['cpu'] / args.jobs:.0f}; each: " + " ".join(f"{x:.2f}" for x in each))
+    if plain is not None:
+        print(f"  plain processes: CPU ms per job {1e3 * plain['cpu'] / args.jobs:.0f}")
     print(where_time_goes("run_jobs", args.jobs, args.workers, both["wall"], both["cpu"], both["idle"]))
     if served is not None:
         print(where_time_goes("service", args.jobs, args.workers, served["wall"], served["cpu"], served["idle"]))
