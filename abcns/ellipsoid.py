@@ -61,8 +61,10 @@ def from_matrix(centre: np.ndarray, matrix: np.ndarray, note: str = "") -> Ellip
 def from_matrices(centres: Sequence[np.ndarray], matrices: Sequence[np.ndarray],
                   notes: Sequence[str]) -> list[Ellipsoid]:
     """:func:`from_matrix` of each (centre, matrix, note), of one dimension d, in one stacked
-    call of each numpy step (a stack gives each matrix the bits it gets alone)."""
+    call of each numpy step (a stack gives each matrix the bits it gets alone); none for none."""
     cs = [np.asarray(c, dtype=float).reshape(-1) for c in centres]
+    if not cs:
+        return []
     d = cs[0].shape[0]
     ms = [np.asarray(m, dtype=float) for m in matrices]
     for c, m in zip(cs, ms, strict=True):

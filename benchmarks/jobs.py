@@ -99,7 +99,7 @@ def _warm() -> None:
     the clock, as on the workers)."""
 
 
-def plain_processes(spec: JobSpec, base: Path, folder: Path, seeds: range, n: int) -> dict:
+def plain_processes(spec: JobSpec, base: Path | None, folder: Path, seeds: range, n: int) -> dict:
     """The jobs on ``n`` plain processes (a job at a time each), started first: the wall
     seconds and the processes' CPU seconds."""
     with ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn")) as pool:

@@ -165,9 +165,6 @@ def _bounds(layout: Layout, a: Mapping[str, np.ndarray], i: int) -> tuple[tuple[
     for j, cols in enumerate(layout.columns):
         codes = a["ellipsoid_note"][i, j]
         kept = np.flatnonzero(codes >= 0)
-        if kept.size == 0:
-            bounds.append(())
-            continue
         centres = a["ellipsoid_centre"][i, j][np.ix_(kept, cols)]
         matrices = a["ellipsoid_matrix"][i, j][np.ix_(kept, cols, cols)]
         bounds.append(tuple(from_matrices(list(centres), list(matrices), [NOTES[int(c)] for c in codes[kept]])))
